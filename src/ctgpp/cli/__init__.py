@@ -1,0 +1,1 @@
+"""The ``ctgpp`` command line: a thin layer over library calls."""

@@ -1,0 +1,51 @@
+"""``ctgpp scenes`` and ``ctgpp show``: list the scenes, draw one with its vehicle numbers."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from ctgpp.cli.common import add_data_arg, open_catalog, print_table
+from ctgpp.sim.closed_loop import episode_bounds
+
+
+def add_parsers(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("scenes", help="list the scenes of a data directory")
+    add_data_arg(p)
+    p.add_argument("--split", default=None, help="only scenes of this split (e.g. mini_val)")
+    p.set_defaults(run=run_scenes)
+
+    p = sub.add_parser("show", help="draw a scene with every vehicle's number (the numbers queries use)")
+    p.add_argument("scene", help="scene id, e.g. scene-0103 (a unique suffix such as 0103 works)")
+    p.add_argument("--start", type=float, default=None, metavar="SEC",
+                   help="time to show in seconds (default: the first episode start, 3 s)")
+    p.add_argument("--out", type=Path, default=None, metavar="FILE", help="picture file (default: SCENE.png)")
+    p.add_argument("--radius", type=float, default=None, metavar="M", help="half-size of the view in metres")
+    add_data_arg(p)
+    p.set_defaults(run=run_show)
+
+
+def run_scenes(args: argparse.Namespace) -> int:
+    catalog = open_catalog(args)
+    entries = [e for e in catalog.entries if args.split is None or e.split == args.split]
+    if not entries:
+        raise ValueError(f"no scenes in split {args.split!r}; splits here: {', '.join(catalog.splits())}")
+    rows = [[e.id, e.map_name, f"{e.duration_s:.1f} s", e.num_vehicles, e.split] for e in entries]
+    print_table(["id", "map", "duration", "vehicles", "split"], rows)
+    print(f"\n{len(entries)} scenes in {catalog.root}")
+    return 0
+
+
+def run_show(args: argparse.Namespace) -> int:
+    from ctgpp.viz import plot_scene
+
+    catalog = open_catalog(args)
+    scene = catalog.load(args.scene)
+    t = episode_bounds(scene)[0] if args.start is None else args.start
+    step = int(round(t / scene.dt_s))
+    if not 0 <= step < scene.agents.num_steps:
+        raise ValueError(f"--start {t:g} is outside {scene.id} (0-{scene.duration_s:.1f} s)")
+    out = args.out or Path(f"{scene.id}.png")
+    plot_scene(scene, step, out, radius_m=args.radius)
+    print(f"wrote {out}")
+    return 0

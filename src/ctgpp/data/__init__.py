@@ -1,0 +1,1 @@
+"""Data: adapters, the compact scene format, catalogs, windows."""

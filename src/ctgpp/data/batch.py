@@ -1,0 +1,105 @@
+"""Padded, masked torch batches of scene windows, and a Dataset of training windows."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields, replace
+
+import numpy as np
+import torch
+from torch import Tensor
+from torch.utils.data import Dataset
+
+from ctgpp.data.windows import SceneWindow, WindowConfig, build_window
+from ctgpp.scene.types import Scene
+
+
+@dataclass(frozen=True, eq=False)
+class SceneBatch:
+    """S scenes padded to A agents. Shapes as in :class:`SceneWindow` with a leading S.
+
+    agent_mask: (S, A) bool, True for real agents. pose: (S, A, 3) world x, y, yaw relative to
+    ``origin`` (S, 2) (the first agent's position; float64 world metres), so float32 keeps precision.
+    """
+
+    agent_mask: Tensor
+    origin: Tensor
+    pose: Tensor
+    extent: Tensor
+    hist: Tensor
+    hist_valid: Tensor
+    fut: Tensor
+    fut_valid: Tensor
+    fut_actions: Tensor
+    lanes: Tensor
+    lanes_valid: Tensor
+
+    def to(self, device: torch.device | str) -> SceneBatch:
+        """A copy on ``device`` (the origin stays float64)."""
+        return replace(self, **{f.name: getattr(self, f.name).to(device) for f in fields(self)})
+
+    @property
+    def num_scenes(self) -> int:
+        return int(self.agent_mask.shape[0])
+
+    @property
+    def num_agents(self) -> int:
+        return int(self.agent_mask.shape[1])
+
+
+_PADDED = ("extent", "hist", "hist_valid", "fut", "fut_valid", "fut_actions", "lanes", "lanes_valid")
+
+
+def collate(windows: list[SceneWindow]) -> SceneBatch:
+    """Stack windows into one batch, padding the agent axis with masked zeros."""
+    n_agents = max(max(w.num_agents for w in windows), 1)
+
+    def pad(x: np.ndarray) -> np.ndarray:
+        width = [(0, n_agents - x.shape[0])] + [(0, 0)] * (x.ndim - 1)
+        return np.pad(x, width)
+
+    origin = np.stack([w.pose[0, :2] if w.num_agents else np.zeros(2) for w in windows])  # (S, 2)
+    pose = np.stack([pad(w.pose) for w in windows])  # (S, A, 3)
+    pose[..., :2] -= origin[:, None]
+    mask = np.stack([pad(np.ones(w.num_agents, dtype=bool)) for w in windows])
+    pose[~mask] = 0.0
+    tensors = {name: torch.from_numpy(np.stack([pad(getattr(w, name)) for w in windows])) for name in _PADDED}
+    return SceneBatch(
+        agent_mask=torch.from_numpy(mask),
+        origin=torch.from_numpy(origin),
+        pose=torch.from_numpy(pose.astype(np.float32)),
+        **{k: v.float() if v.dtype == torch.float64 else v for k, v in tensors.items()},
+    )
+
+
+class WindowDataset(Dataset[SceneWindow]):
+    """Windows of several scenes at every ``stride``-th step with full history and some future.
+
+    Windows are built lazily and cached; a step qualifies when at least one vehicle is present and
+    ``min_future_steps`` of the log remain.
+    """
+
+    def __init__(
+        self,
+        scenes: list[Scene],
+        config: WindowConfig = WindowConfig(),
+        stride: int = 1,
+        min_future_steps: int = 10,
+    ) -> None:
+        self.scenes = scenes
+        self.config = config
+        self.items: list[tuple[int, int]] = []
+        for s, scene in enumerate(scenes):
+            last = scene.agents.num_steps - min_future_steps
+            for step in range(config.history_steps - 1, last, stride):
+                if (scene.agents.is_vehicle & scene.agents.valid[:, step]).any():
+                    self.items.append((s, step))
+        self._cache: dict[int, SceneWindow] = {}
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def __getitem__(self, i: int) -> SceneWindow:
+        if i not in self._cache:
+            s, step = self.items[i]
+            self._cache[i] = build_window(self.scenes[s], step, self.config)
+        return self._cache[i]

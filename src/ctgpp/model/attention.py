@@ -1,0 +1,92 @@
+"""Attention layers of a denoiser block: masked multi-head attention and edge-aware gated spatial
+attention (paper appendix B.2). Every layer is safe on rows whose keys are all masked: such rows
+receive a zero message, never NaN.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+
+class MaskedAttention(nn.Module):
+    """Multi-head attention of queries (B, Tq, d) over keys/values (B, Tk, d).
+
+    ``key_mask`` (B, Tk) bool is True for keys that may be attended to; a query whose keys are all
+    masked gets a zero output.
+    """
+
+    def __init__(self, d_model: int, heads: int, dropout: float = 0.0) -> None:
+        super().__init__()
+        self.heads = heads
+        self.q = nn.Linear(d_model, d_model)
+        self.kv = nn.Linear(d_model, 2 * d_model)
+        self.out = nn.Linear(d_model, d_model)
+        self.dropout = dropout
+
+    def forward(self, query: Tensor, context: Tensor, key_mask: Tensor) -> Tensor:
+        b, tq, d = query.shape
+        tk = context.shape[1]
+        q = self.q(query).view(b, tq, self.heads, d // self.heads).transpose(1, 2)  # (B, h, Tq, dh)
+        k, v = self.kv(context).view(b, tk, 2, self.heads, d // self.heads).permute(2, 0, 3, 1, 4)
+        has_key = key_mask.any(dim=-1)  # (B,)
+        safe = (key_mask | ~has_key[:, None])[:, None, None, :]  # (B, 1, 1, Tk)
+        drop = self.dropout if self.training else 0.0
+        att = F.scaled_dot_product_attention(q, k, v, attn_mask=safe, dropout_p=drop)  # (B, h, Tq, dh)
+        att = att.transpose(1, 2).reshape(b, tq, d)
+        return self.out(att) * has_key[:, None, None].to(att.dtype)
+
+
+class GatedSpatialAttention(nn.Module):
+    """Per time step, each agent attends over agents with keys/values [h_j, e_ij]; a gate fuses the
+    message m_i with the agent's own features: x_i ← g·m_i + (1 − g)·x_i, g = σ(W[h_i, m_i]).
+
+    The edge parts of the keys and values are applied on the small edge features directly
+    (q_i · W_k e_ij = (W_kᵀ q_i) · e_ij), so no (A × A × d) tensor is ever formed.
+    """
+
+    def __init__(self, d_model: int, heads: int, edge_dim: int, dropout: float = 0.0) -> None:
+        super().__init__()
+        self.heads, self.head_dim = heads, d_model // heads
+        self.norm = nn.LayerNorm(d_model)
+        self.q = nn.Linear(d_model, d_model)
+        self.kv = nn.Linear(d_model, 2 * d_model)
+        self.key_edge = nn.Parameter(torch.randn(heads, self.head_dim, edge_dim) / math.sqrt(edge_dim))
+        self.value_edge = nn.Parameter(torch.randn(heads, edge_dim, self.head_dim) / math.sqrt(edge_dim))
+        self.out = nn.Linear(d_model, d_model)
+        self.gate = nn.Linear(2 * d_model, d_model)
+        self.dropout = nn.Dropout(dropout)
+
+    def forward(self, x: Tensor, edges: Tensor, mask: Tensor) -> Tensor:
+        """x (S, T, A, d) residual stream; edges (S, T, A, A, E) embedded e_ij for query i, key j;
+        mask (S, T, A, A) bool, True where i may attend to j. Returns the updated (S, T, A, d).
+        """
+        s, t, a, d = x.shape
+        h = self.norm(x)
+        q = self.q(h).view(s, t, a, self.heads, self.head_dim)  # (S, T, A, h, dh)
+        k, v = self.kv(h).view(s, t, a, 2, self.heads, self.head_dim).unbind(dim=3)
+        q_edge = torch.einsum("stihd,hde->stihe", q, self.key_edge)  # (S, T, A, h, E)
+        logits = torch.einsum("stihd,stjhd->stijh", q, k) + torch.einsum("stihe,stije->stijh", q_edge, edges)
+        logits = logits / math.sqrt(self.head_dim)  # (S, T, A_i, A_j, h)
+        weights = masked_softmax(logits, mask[..., None], dim=3)
+        weights = self.dropout(weights)
+        msg = torch.einsum("stijh,stjhd->stihd", weights, v)
+        edge_msg = torch.einsum("stijh,stije->stihe", weights, edges)  # (S, T, A, h, E)
+        msg = msg + torch.einsum("stihe,hed->stihd", edge_msg, self.value_edge)
+        msg = self.out(msg.reshape(s, t, a, d))
+        g = torch.sigmoid(self.gate(torch.cat([h, msg], dim=-1)))
+        return g * msg + (1 - g) * x
+
+
+def masked_softmax(logits: Tensor, mask: Tensor, dim: int) -> Tensor:
+    """Softmax of ``logits`` over ``dim`` restricted to ``mask`` (broadcastable bool); all-masked
+    slices give zeros instead of NaN.
+    """
+    mask = mask.expand_as(logits)
+    has_any = mask.any(dim=dim, keepdim=True)
+    logits = logits.masked_fill(~mask, float("-inf"))
+    logits = torch.where(has_any, logits, torch.zeros_like(logits))
+    return torch.softmax(logits, dim=dim) * mask.to(logits.dtype)

@@ -1,0 +1,131 @@
+"""The CTG++ scene-level spatio-temporal transformer denoiser (paper §3.3, appendix B).
+
+Every agent has H + F tokens (history states, then noisy future actions with their unicycle
+rollout). A block is temporal attention (per agent over time) → edge-aware gated spatial attention
+(per time step over agents) → map attention (per token over its agent's lane tokens) → FFN, with
+pre-norm residuals. The network predicts the clean normalized actions (x0-prediction).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+from ctgpp.data.batch import SceneBatch
+from ctgpp.dynamics import clip_actions, rollout
+from ctgpp.model.attention import GatedSpatialAttention, MaskedAttention
+from ctgpp.model.config import ModelConfig
+from ctgpp.model.embeddings import RowFFN, StepEmbedding, TimeEmbedding
+from ctgpp.model.inputs import AgentInputs, edge_features, prepare_inputs
+from ctgpp.model.lane_encoder import LaneEncoder
+from ctgpp.model.normalization import Normalizer
+
+
+@dataclass(frozen=True, eq=False)
+class DenoiserContext:
+    """What stays fixed across the denoising steps of one batch (computed once per sample call).
+
+    agent_mask (S, A); current (S, A, 4) current states in the input frame; hist_tokens (S, A, H, d);
+    token_valid (S, A, H+F); edges (S, H+F, A, A, E) embedded e_ij; spatial_mask (S, H+F, A, A);
+    lane_tokens (S, A, L, d); lane_valid (S, A, L).
+    """
+
+    agent_mask: Tensor
+    current: Tensor
+    hist_tokens: Tensor
+    token_valid: Tensor
+    edges: Tensor
+    spatial_mask: Tensor
+    lane_tokens: Tensor
+    lane_valid: Tensor
+
+
+class Block(nn.Module):
+    """Temporal attention → gated spatial attention → map attention → FFN, on (S, A, T, d)."""
+
+    def __init__(self, config: ModelConfig) -> None:
+        super().__init__()
+        d, h, p = config.d_model, config.heads, config.dropout
+        self.temporal_norm, self.map_norm, self.ffn_norm = nn.LayerNorm(d), nn.LayerNorm(d), nn.LayerNorm(d)
+        self.temporal = MaskedAttention(d, h, p)
+        self.spatial = GatedSpatialAttention(d, h, config.edge_dim, p)
+        self.map = MaskedAttention(d, h, p)
+        self.ffn = nn.Sequential(
+            nn.Linear(d, config.ffn_mult * d), nn.GELU(), nn.Dropout(p), nn.Linear(config.ffn_mult * d, d)
+        )
+
+    def forward(self, x: Tensor, ctx: DenoiserContext) -> Tensor:
+        s, a, t, d = x.shape
+        h = self.temporal_norm(x).reshape(s * a, t, d)  # (S, A, T, d) -> (S*A, T, d)
+        x = x + self.temporal(h, h, ctx.token_valid.reshape(s * a, t)).view(s, a, t, d)
+        x = self.spatial(x.transpose(1, 2), ctx.edges, ctx.spatial_mask).transpose(1, 2)  # via (S, T, A, d)
+        h = self.map_norm(x).reshape(s * a, t, d)
+        lanes = ctx.lane_tokens.reshape(s * a, -1, d)  # (S, A, L, d) -> (S*A, L, d)
+        x = x + self.map(h, lanes, ctx.lane_valid.reshape(s * a, -1)).view(s, a, t, d)
+        return x + self.ffn(self.ffn_norm(x))
+
+
+class Denoiser(nn.Module):
+    """forward(noisy_actions (S, A, F, 2) normalized, k (S,) int, batch) -> clean actions (S, A, F, 2)
+    normalized. Padded agents (``batch.agent_mask`` False) never influence real ones; their outputs are 0.
+    """
+
+    def __init__(self, config: ModelConfig) -> None:
+        super().__init__()
+        self.config = config
+        d = config.d_model
+        self.normalizer = Normalizer(config)
+        self.hist_in = RowFFN(5, d)
+        self.fut_in = RowFFN(6, d)
+        self.step_emb = StepEmbedding(d)
+        self.time_emb = TimeEmbedding(config.total_steps, d)
+        self.edge_mlp = nn.Sequential(
+            nn.Linear(7, config.edge_dim), nn.GELU(), nn.Linear(config.edge_dim, config.edge_dim)
+        )
+        self.lane_encoder = LaneEncoder(d, config.lane_hidden)
+        self.blocks = nn.ModuleList(Block(config) for _ in range(config.blocks))
+        self.out_norm = nn.LayerNorm(d)
+        self.out = nn.Linear(d, 2)
+
+    def encode_context(self, batch: SceneBatch) -> DenoiserContext:
+        """Encode everything that does not depend on the noisy actions (history, edges, lanes)."""
+        cfg = self.config
+        inputs: AgentInputs = prepare_inputs(batch, cfg)
+        hist_states = self.normalizer.normalize_states(inputs.hist)  # (S, A, H, 4)
+        hist_feat = torch.cat([hist_states, inputs.hist_valid[..., None].to(hist_states.dtype)], dim=-1)
+        hist_feat = torch.where(inputs.hist_valid[..., None], hist_feat, torch.zeros_like(hist_feat))
+        raw_edges, spatial_mask = edge_features(inputs, cfg)
+        edges = self.edge_mlp(raw_edges)  # (S, T, A, A, E)
+        if not cfg.use_edges:
+            edges = torch.zeros_like(edges)
+        lane_tokens, lane_valid = self.lane_encoder(inputs.lanes, inputs.lanes_valid)
+        future_valid = inputs.agent_mask[..., None].expand(-1, -1, cfg.future_steps)
+        return DenoiserContext(
+            agent_mask=inputs.agent_mask,
+            current=inputs.current,
+            hist_tokens=self.hist_in(hist_feat),
+            token_valid=torch.cat([inputs.hist_valid, future_valid], dim=-1),
+            edges=edges,
+            spatial_mask=spatial_mask,
+            lane_tokens=lane_tokens,
+            lane_valid=lane_valid,
+        )
+
+    def forward(
+        self, noisy_actions: Tensor, k: Tensor, batch: SceneBatch, context: DenoiserContext | None = None
+    ) -> Tensor:
+        ctx = self.encode_context(batch) if context is None else context
+        mask = ctx.agent_mask[..., None, None]  # (S, A, 1, 1)
+        noisy = torch.where(mask, noisy_actions, torch.zeros_like(noisy_actions))
+        actions = clip_actions(self.normalizer.denormalize_actions(noisy))
+        states = rollout(ctx.current, actions, self.config.dt_s)  # (S, A, F, 4) in the input frame
+        states = self.normalizer.normalize_states(states)
+        fut_tokens = self.fut_in(torch.cat([noisy, states], dim=-1))  # (S, A, F, d)
+        x = torch.cat([ctx.hist_tokens, fut_tokens], dim=2)  # (S, A, H+F, d)
+        x = x + self.time_emb()[None, None] + self.step_emb(k.to(x.device))[:, None, None]
+        for block in self.blocks:
+            x = block(x, ctx)
+        out = self.out(self.out_norm(x[:, :, self.config.history_steps :]))  # (S, A, F, 2)
+        return torch.where(mask, out, torch.zeros_like(out))

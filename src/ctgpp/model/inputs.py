@@ -1,0 +1,128 @@
+"""Model inputs from a :class:`SceneBatch`: masked agent-frame (or shared-frame) tensors and the
+pairwise edge features e_ij of the spatial attention (paper appendix B.2).
+
+Edges use each agent's track over the whole window: logged history, and for the future a constant-
+velocity extrapolation of the current state — in training and at inference alike, so the model
+never sees an edge it could not have at sampling time.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ctgpp.data.batch import SceneBatch
+from ctgpp.geometry import rotate
+from ctgpp.model.config import ModelConfig
+
+EDGE_SPEED_SCALE_MPS = 10.0  # relative velocities are divided by this in the edge features
+
+
+@dataclass(frozen=True, eq=False)
+class AgentInputs:
+    """Sanitized inputs: everything masked is zero, so padded garbage cannot leak.
+
+    hist (S, A, H, 4), current (S, A, 4), lanes (S, A, L, P, 4): in each agent's frame, or in the
+    shared world-aligned frame at the batch origin when ``scene_centric``. track_xy (S, A, T, 2),
+    track_yaw / track_speed / track_valid (S, A, T): world-relative tracks (T = H + F) for edges.
+    """
+
+    agent_mask: Tensor
+    hist: Tensor
+    hist_valid: Tensor
+    current: Tensor
+    lanes: Tensor
+    lanes_valid: Tensor
+    pose: Tensor
+    track_xy: Tensor
+    track_yaw: Tensor
+    track_speed: Tensor
+    track_valid: Tensor
+
+
+def _to_world(states: Tensor, pose: Tensor) -> tuple[Tensor, Tensor]:
+    """Agent-frame states (S, A, T, ≥2 or 4) -> world-relative xy (S, A, T, 2) and yaw offset (S, A, 1)."""
+    yaw = pose[..., None, 2]  # (S, A, 1)
+    return rotate(states[..., :2], yaw) + pose[..., None, :2], yaw
+
+
+def prepare_inputs(batch: SceneBatch, config: ModelConfig) -> AgentInputs:
+    """Mask, extrapolate and (for the scene-centric ablation) re-frame the batch's tensors."""
+    m = batch.agent_mask  # (S, A)
+    hist_valid = batch.hist_valid & m[..., None]
+    hist = torch.where(hist_valid[..., None], batch.hist, torch.zeros_like(batch.hist))
+    pose = torch.where(m[..., None], batch.pose, torch.zeros_like(batch.pose))
+    lanes_valid = batch.lanes_valid & m[..., None, None]
+    lanes = torch.where(lanes_valid[..., None], batch.lanes, torch.zeros_like(batch.lanes))
+    speed0 = hist[..., -1, 2]  # (S, A) current speed, m/s
+    zero = torch.zeros_like(speed0)
+    current = torch.stack([zero, zero, speed0, zero], dim=-1)  # (S, A, 4): (0, 0, v, 0) in the own frame
+
+    steps = torch.arange(1, config.future_steps + 1, device=hist.device, dtype=hist.dtype)
+    cv_x = speed0[..., None] * steps * config.dt_s  # (S, A, F) straight ahead in the own frame
+    zeros = torch.zeros_like(cv_x)
+    cv = torch.stack([cv_x, zeros, speed0[..., None].expand_as(cv_x), zeros], dim=-1)  # (S, A, F, 4)
+    local = torch.cat([hist, cv], dim=2)  # (S, A, T, 4)
+    track_xy, yaw0 = _to_world(local, pose)
+    track_valid = torch.cat([hist_valid, m[..., None].expand_as(cv_x)], dim=2)
+
+    if config.scene_centric:
+        hist_xy, _ = _to_world(hist, pose)
+        hist = torch.cat([hist_xy, hist[..., 2:3], hist[..., 3:4] + yaw0[..., None]], dim=-1)
+        hist = torch.where(hist_valid[..., None], hist, torch.zeros_like(hist))
+        current = torch.cat([pose[..., :2], speed0[..., None], pose[..., 2:3]], dim=-1)
+        lane_yaw = pose[..., None, None, 2]  # (S, A, 1, 1)
+        lane_xy = rotate(lanes[..., :2], lane_yaw) + pose[..., None, None, :2]
+        lanes = torch.cat([lane_xy, rotate(lanes[..., 2:4], lane_yaw)], dim=-1)
+        lanes = torch.where(lanes_valid[..., None], lanes, torch.zeros_like(lanes))
+    return AgentInputs(
+        agent_mask=m,
+        hist=hist,
+        hist_valid=hist_valid,
+        current=current,
+        lanes=lanes,
+        lanes_valid=lanes_valid,
+        pose=pose,
+        track_xy=track_xy,
+        track_yaw=local[..., 3] + yaw0,
+        track_speed=local[..., 2],
+        track_valid=track_valid,
+    )
+
+
+def edge_features(inputs: AgentInputs, config: ModelConfig) -> tuple[Tensor, Tensor]:
+    """Raw edge features (S, T, A_i, A_j, 7) and the attention mask (S, T, A_i, A_j).
+
+    Features of key j for query i at step t, in agent i's CURRENT frame (world axes at the batch
+    origin when scene-centric): R_iᵀ(p_j,t − p_i,0) / r, cos Δθ, sin Δθ (Δθ = θ_j,t − θ_i,t),
+    R_iᵀ(v_j,t − v_i,t) / 10 m/s, ‖p_j,t − p_i,t‖ / r, with r the social radius. The mask keeps
+    valid neighbours within r at step t, and always the agent itself.
+    """
+    radius = config.social_radius_m
+    xy = inputs.track_xy.transpose(1, 2)  # (S, A, T, 2) -> (S, T, A, 2)
+    yaw = inputs.track_yaw.transpose(1, 2)  # (S, T, A)
+    vel = inputs.track_speed.transpose(1, 2)[..., None] * torch.stack([torch.cos(yaw), torch.sin(yaw)], -1)
+    frame_yaw = inputs.pose[..., 2] if not config.scene_centric else torch.zeros_like(inputs.pose[..., 2])
+    frame_yaw = frame_yaw[:, None, :, None]  # (S, 1, A_i, 1)
+    origin_i = inputs.pose[:, None, :, None, :2]  # (S, 1, A_i, 1, 2)
+    rel_pos = rotate(xy[:, :, None, :, :] - origin_i, -frame_yaw)  # (S, T, A_i, A_j, 2)
+    rel_vel = rotate(vel[:, :, None, :, :] - vel[:, :, :, None, :], -frame_yaw)
+    d_yaw = yaw[:, :, None, :] - yaw[:, :, :, None]  # (S, T, A_i, A_j)
+    dist = torch.linalg.norm(xy[:, :, None, :, :] - xy[:, :, :, None, :], dim=-1)
+    feats = torch.cat(
+        [
+            rel_pos / radius,
+            torch.cos(d_yaw)[..., None],
+            torch.sin(d_yaw)[..., None],
+            rel_vel / EDGE_SPEED_SCALE_MPS,
+            (dist / radius)[..., None],
+        ],
+        dim=-1,
+    )
+    valid_j = inputs.track_valid.transpose(1, 2)[:, :, None, :]  # (S, T, 1, A_j)
+    n_agents = xy.shape[2]
+    eye = torch.eye(n_agents, dtype=torch.bool, device=xy.device)
+    mask = (valid_j & (dist <= radius)) | eye
+    return feats, mask

@@ -1,0 +1,1 @@
+"""Closed-loop simulation: policies, the simulator and its rollouts."""

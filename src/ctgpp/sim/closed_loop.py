@@ -1,0 +1,123 @@
+"""The closed-loop simulator (DESIGN.md, Closed loop): 10 s, re-plan every 5 steps, others replayed."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from ctgpp.scene.types import AgentTracks, Scene
+from ctgpp.scene.vehicles import controlled_vehicles
+from ctgpp.sim.policy import Observation, Policy
+from ctgpp.sim.rollout import Rollout
+
+STATIONARY_SPEED_MPS = 0.5
+
+
+class EpisodeError(ValueError):
+    """An episode that the scene cannot host (too little history or future)."""
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """history_steps includes the current step; duration_steps are simulated after it."""
+
+    history_steps: int = 31
+    duration_steps: int = 100
+    replan_every: int = 5
+    horizon_steps: int = 52
+
+
+def episode_bounds(scene: Scene, config: SimConfig = SimConfig()) -> tuple[float, float]:
+    """Earliest and latest start time in seconds of an episode in ``scene``."""
+    first = (config.history_steps - 1) * scene.dt_s
+    last = (scene.agents.num_steps - 1 - config.duration_steps) * scene.dt_s
+    return round(first, 6), round(last, 6)
+
+
+def episode_starts(scene: Scene, spacing_s: float = 1.0, config: SimConfig = SimConfig()) -> list[float]:
+    """Every start time with the full history and the full duration of log, ``spacing_s`` apart."""
+    first, last = episode_bounds(scene, config)
+    if last < first:
+        return []
+    return [round(float(t), 6) for t in np.arange(first, last + 1e-9, spacing_s)]
+
+
+def start_step(scene: Scene, start_s: float, config: SimConfig = SimConfig()) -> int:
+    """The scene step of an episode start, checked against the scene's length."""
+    first, last = episode_bounds(scene, config)
+    if last < first:
+        raise EpisodeError(
+            f"{scene.id} is {scene.duration_s:.1f} s long: too short for {first:.1f} s of history and "
+            f"{config.duration_steps * scene.dt_s:.1f} s of simulation"
+        )
+    if not first - 1e-6 <= start_s <= last + 1e-6:
+        raise EpisodeError(
+            f"--start {start_s:g} is outside {first:.1f}-{last:.1f} s, the episode starts of {scene.id}"
+        )
+    return int(round(start_s / scene.dt_s))
+
+
+def simulate(
+    scene: Scene,
+    policy: Policy,
+    start_s: float,
+    seed: int = 0,
+    config: SimConfig = SimConfig(),
+    on_replan: Callable[[int, int], None] | None = None,
+) -> Rollout:
+    """Run one closed-loop episode of ``scene`` from ``start_s`` with ``policy``.
+
+    Every ``replan_every`` steps the policy plans ``horizon_steps`` from the simulated history; the
+    first ``replan_every`` planned states are executed. Vehicles present at the start are controlled;
+    with ``policy.hold_stationary`` those slower than 0.5 m/s at the start stay where they are.
+    ``on_replan(done, total)`` reports progress.
+    """
+    step0 = start_step(scene, start_s, config)
+    first = step0 - (config.history_steps - 1)
+    window = config.history_steps + config.duration_steps
+    tracks = _padded(scene.agents, first + window + config.horizon_steps)
+    controlled = controlled_vehicles(scene, step0)
+    tracks.valid[controlled, step0 + 1 :] = False
+    slow = tracks.speed[controlled, step0] < STATIONARY_SPEED_MPS
+    still = controlled[slow] if policy.hold_stationary else controlled[:0]
+    rng = np.random.default_rng(seed)
+    n_replans = -(-config.duration_steps // config.replan_every)
+    for k in range(n_replans):
+        step = step0 + k * config.replan_every
+        obs = Observation(scene, tracks, step, controlled, config.horizon_steps, rng)
+        plan = policy.plan(obs)
+        n = min(config.replan_every, step0 + config.duration_steps - step)
+        exe = slice(step + 1, step + 1 + n)
+        tracks.xy[controlled, exe] = plan.states[:, :n, :2]
+        tracks.speed[controlled, exe] = plan.states[:, :n, 2]
+        tracks.yaw[controlled, exe] = plan.states[:, :n, 3]
+        tracks.valid[controlled, exe] = plan.valid[:, :n]
+        if len(still):
+            tracks.xy[still, exe] = tracks.xy[still, step0, None]
+            tracks.yaw[still, exe] = tracks.yaw[still, step0, None]
+            tracks.speed[still, exe] = 0.0
+            tracks.valid[still, exe] = True
+        if on_replan is not None:
+            on_replan(k + 1, n_replans)
+    sim = _slice(tracks, first, first + window)
+    number = np.full(scene.agents.num_agents, -1)
+    number[controlled] = np.arange(len(controlled))
+    is_controlled = number >= 0
+    return Rollout(scene, first, config.history_steps - 1, sim, is_controlled, number, policy.name)
+
+
+def _padded(a: AgentTracks, n_steps: int) -> AgentTracks:
+    """A writable copy of ``a`` padded (invalid) to at least ``n_steps`` steps."""
+    pad = max(n_steps - a.num_steps, 0)
+
+    def grow(x: np.ndarray) -> np.ndarray:
+        return np.pad(x, [(0, 0), (0, pad)] + [(0, 0)] * (x.ndim - 2)).copy()
+
+    return AgentTracks(a.ids, a.types, grow(a.xy), grow(a.yaw), grow(a.speed), a.extent.copy(), grow(a.valid))
+
+
+def _slice(a: AgentTracks, lo: int, hi: int) -> AgentTracks:
+    s = slice(lo, hi)
+    return AgentTracks(a.ids, a.types, a.xy[:, s], a.yaw[:, s], a.speed[:, s], a.extent, a.valid[:, s])

@@ -1,0 +1,208 @@
+"""The denoiser on a real nuScenes window: invariances, masking, checkpoints and a training smoke test."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from pathlib import Path
+
+import pytest
+import torch
+
+from ctgpp.data.batch import SceneBatch, collate
+from ctgpp.data.windows import build_window
+from ctgpp.diffusion import CosineSchedule, DDIMSampler, sample
+from ctgpp.model import (
+    CheckpointError,
+    Denoiser,
+    ModelConfig,
+    load_checkpoint,
+    save_checkpoint,
+    training_loss,
+)
+from ctgpp.scene.types import Scene
+
+TINY = ModelConfig(d_model=32, heads=2, blocks=1, edge_dim=8, lane_hidden=16)
+AGENT_AXIS_FIELDS = ("agent_mask", "pose", "extent", "hist", "hist_valid", "fut", "fut_valid", "fut_actions")
+
+
+@pytest.fixture(scope="module")
+def batch(scene_0103: Scene) -> SceneBatch:
+    return collate([build_window(scene_0103, 60)])
+
+
+def make_model(config: ModelConfig = TINY, seed: int = 0) -> Denoiser:
+    torch.manual_seed(seed)
+    return Denoiser(config).eval()
+
+
+def noisy_input(batch: SceneBatch, seed: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
+    gen = torch.Generator().manual_seed(seed)
+    x = torch.randn(batch.num_scenes, batch.num_agents, TINY.future_steps, 2, generator=gen)
+    return x, torch.full((batch.num_scenes,), 37)
+
+
+def predict(model: Denoiser, batch: SceneBatch, x: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
+    with torch.no_grad():
+        return model(x, k, batch)
+
+
+def transformed(batch: SceneBatch, angle: float, shift: tuple[float, float]) -> SceneBatch:
+    """The same scene rotated by ``angle`` about the origin and shifted: only world poses change."""
+    c, s = math.cos(angle), math.sin(angle)
+    rot = torch.tensor([[c, -s], [s, c]])
+    xy = batch.pose[..., :2] @ rot.T + torch.tensor(shift)
+    return dataclasses.replace(batch, pose=torch.cat([xy, batch.pose[..., 2:] + angle], dim=-1))
+
+
+def with_extra_agent(batch: SceneBatch, values: dict[str, torch.Tensor]) -> SceneBatch:
+    """``batch`` with one more agent appended, its per-agent tensors taken from ``values``."""
+    fields = {n: torch.cat([getattr(batch, n), values[n][:, None]], dim=1) for n in AGENT_AXIS_FIELDS}
+    for n in ("lanes", "lanes_valid"):
+        fields[n] = torch.cat([getattr(batch, n), values[n][:, None]], dim=1)
+    return dataclasses.replace(batch, **fields)
+
+
+def test_output_shape_and_real_agents_only(batch: SceneBatch) -> None:
+    x, k = noisy_input(batch)
+    out = predict(make_model(), batch, x, k)
+    assert out.shape == x.shape and torch.isfinite(out).all()
+    assert batch.num_agents > 5
+
+
+def test_agent_centric_outputs_are_invariant_to_rotating_the_scene(batch: SceneBatch) -> None:
+    x, k = noisy_input(batch)
+    moved = transformed(batch, 0.7, (35.0, -12.0))
+    model = make_model()
+    assert torch.allclose(predict(model, batch, x, k), predict(model, moved, x, k), atol=1e-4)
+
+
+def test_scene_centric_outputs_change_when_rotating_the_scene(batch: SceneBatch) -> None:
+    x, k = noisy_input(batch)
+    model = make_model(dataclasses.replace(TINY, scene_centric=True))
+    diff = predict(model, batch, x, k) - predict(model, transformed(batch, 0.7, (35.0, -12.0)), x, k)
+    assert float(diff.abs().max()) > 1e-3
+
+
+def test_padded_agents_with_garbage_do_not_affect_real_agents(batch: SceneBatch) -> None:
+    gen = torch.Generator().manual_seed(3)
+    garbage = {
+        n: (torch.rand(getattr(batch, n)[:, 0].shape, generator=gen) > 0.5)
+        if getattr(batch, n).dtype == torch.bool
+        else torch.randn(getattr(batch, n)[:, 0].shape, generator=gen) * 1e3
+        for n in (*AGENT_AXIS_FIELDS, "lanes", "lanes_valid")
+    }
+    garbage["agent_mask"] = torch.zeros(batch.num_scenes, dtype=torch.bool)
+    garbage["hist"][..., 0, 0] = float("nan")
+    padded = with_extra_agent(batch, garbage)
+    x, k = noisy_input(batch)
+    x_padded = torch.cat([x, torch.randn(1, 1, TINY.future_steps, 2) * 1e3], dim=1)
+    model = make_model()
+    out, out_padded = predict(model, batch, x, k), predict(model, padded, x_padded, k)
+    assert torch.allclose(out, out_padded[:, :-1], atol=1e-5)
+    assert torch.all(out_padded[:, -1] == 0)
+
+
+def test_agent_beyond_the_social_radius_does_not_affect_others(batch: SceneBatch) -> None:
+    """A copy of agent 0 moved 2 km away is invisible to the others; 4 m to the side it is not."""
+
+    def copy_of_agent0(offset: tuple[float, float]) -> SceneBatch:
+        values = {n: getattr(batch, n)[:, 0].clone() for n in (*AGENT_AXIS_FIELDS, "lanes", "lanes_valid")}
+        values["pose"][:, :2] += torch.tensor(offset)
+        return with_extra_agent(batch, values)
+
+    x, k = noisy_input(batch)
+    x_more = torch.cat([x, x[:, :1]], dim=1)
+    model = make_model()
+    out = predict(model, batch, x, k)
+    far = predict(model, copy_of_agent0((2000.0, 0.0)), x_more, k)
+    near = predict(model, copy_of_agent0((0.0, 4.0)), x_more, k)
+    assert torch.allclose(out, far[:, :-1], atol=1e-5)
+    assert float((out - near[:, :-1]).abs().max()) > 1e-3
+
+
+def test_no_edge_variant_differs_from_the_edge_model(batch: SceneBatch) -> None:
+    x, k = noisy_input(batch)
+    model = make_model()
+    no_edge = Denoiser(dataclasses.replace(TINY, use_edges=False)).eval()
+    no_edge.load_state_dict(model.state_dict())
+    assert float((predict(model, batch, x, k) - predict(no_edge, batch, x, k)).abs().max()) > 1e-4
+
+
+def test_fully_masked_rows_give_finite_outputs_and_gradients(scene_0103: Scene) -> None:
+    batch = collate([build_window(scene_0103, 60), build_window(scene_0103, 150)])  # different agent counts
+    assert not batch.agent_mask.all()
+    lanes_valid = batch.lanes_valid.clone()
+    lanes_valid[0, 0] = False  # an agent with no lanes at all
+    hist_valid = batch.hist_valid.clone()
+    hist_valid[0, 1, :-1] = False  # an agent seen only at the current step
+    batch = dataclasses.replace(batch, lanes_valid=lanes_valid, hist_valid=hist_valid)
+    model = make_model()
+    x = torch.randn(2, batch.num_agents, TINY.future_steps, 2, requires_grad=True)
+    out = model(x, torch.tensor([0, 99]), batch)
+    out.square().sum().backward()
+    assert torch.isfinite(out).all() and torch.isfinite(x.grad).all()
+    assert all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None)
+
+
+def test_save_load_gives_identical_outputs_and_samples(batch: SceneBatch, tmp_path: Path) -> None:
+    model = make_model()
+    save_checkpoint(tmp_path / "ckpt", model, TINY, {"steps": 3, "losses": [1.0, 0.5]})
+    loaded, config, extra = load_checkpoint(tmp_path / "ckpt")
+    assert config == TINY and extra == {"steps": 3, "losses": [1.0, 0.5]}
+    x, k = noisy_input(batch)
+    assert torch.equal(predict(model, batch, x, k), predict(loaded, batch, x, k))
+    sampler = DDIMSampler(CosineSchedule(), num_steps=4)
+    shape = (1, batch.num_agents, TINY.future_steps, 2)
+    samples = []
+    for net in (model, loaded):
+        with torch.no_grad():
+            ctx = net.encode_context(batch)
+            fn = lambda x_k, k, net=net, ctx=ctx: net(x_k, torch.tensor([k]), batch, ctx)  # noqa: E731
+            samples.append(sample(fn, shape, sampler, torch.Generator().manual_seed(5)))
+    assert torch.equal(samples[0], samples[1])
+
+
+def test_checkpoint_errors_are_clear(tmp_path: Path) -> None:
+    with pytest.raises(CheckpointError, match="config.json"):
+        load_checkpoint(tmp_path)
+    save_checkpoint(tmp_path, make_model(), TINY, {})
+    header = json.loads((tmp_path / "config.json").read_text())
+    header["model"]["d_model"] = 48
+    (tmp_path / "config.json").write_text(json.dumps(header))
+    with pytest.raises(CheckpointError, match="wrong shape"):
+        load_checkpoint(tmp_path)
+    (tmp_path / "model.safetensors").unlink()
+    with pytest.raises(CheckpointError, match="model.safetensors"):
+        load_checkpoint(tmp_path)
+
+
+def test_config_round_trip_and_unknown_keys() -> None:
+    data = json.loads(json.dumps(TINY.to_dict()))
+    assert ModelConfig.from_dict(data) == TINY
+    with pytest.raises(ValueError, match="d_modle"):
+        ModelConfig.from_dict({**data, "d_modle": 64})
+    with pytest.raises(ValueError):
+        ModelConfig(d_model=30, heads=4)
+
+
+def test_a_few_adam_steps_lower_the_training_loss(batch: SceneBatch) -> None:
+    torch.manual_seed(0)
+    model = Denoiser(TINY)
+    sched = CosineSchedule(TINY.diffusion_steps, TINY.cosine_s)
+    opt = torch.optim.Adam(model.parameters(), lr=3e-3)
+
+    def eval_loss() -> float:
+        with torch.no_grad():
+            return sum(training_loss(model, sched, batch, torch.Generator().manual_seed(s))[0].item() for s in range(4))
+
+    before = eval_loss()
+    gen = torch.Generator().manual_seed(11)
+    for _ in range(30):
+        loss, stats = training_loss(model, sched, batch, gen)
+        assert math.isfinite(stats["loss"]) and stats["valid_steps"] > 0
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert eval_loss() < 0.7 * before
