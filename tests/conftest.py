@@ -25,4 +25,6 @@ def scene_0103(shared_data: Path) -> Scene:
     """nuScenes scene-0103 (mini_val, boston-seaport), loaded from its ScenarioNet pickle."""
     from ctgpp.data.scenarionet import load_scenarionet
 
-    return load_scenarionet(NUSCENES / "scenarionet" / "sd_nuscenes_v1.0-mini_scene-0103.pkl", NUSCENES / "drivable")
+    return load_scenarionet(
+        NUSCENES / "scenarionet" / "sd_nuscenes_v1.0-mini_scene-0103.pkl", NUSCENES / "drivable"
+    )

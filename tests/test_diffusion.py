@@ -52,7 +52,9 @@ def test_posterior_is_the_bayes_posterior_on_a_hand_case() -> None:
     beta, alpha = float(sched.betas[k]), float(sched.alphas[k])
     abar_prev = float(sched.alphas_cumprod[k - 1])
     precision = alpha / beta + 1 / (1 - abar_prev)
-    expected_mean = (math.sqrt(alpha) / beta * -1.2 + math.sqrt(abar_prev) / (1 - abar_prev) * 0.7) / precision
+    expected_mean = (
+        math.sqrt(alpha) / beta * -1.2 + math.sqrt(abar_prev) / (1 - abar_prev) * 0.7
+    ) / precision
     mean, var, log_var = sched.posterior_mean_variance(x0, x_k, k)
     assert float(mean) == pytest.approx(expected_mean, rel=1e-6)
     assert float(var) == pytest.approx(1 / precision, rel=1e-6)
@@ -103,7 +105,9 @@ class SamplerContract:
         assert not torch.allclose(runs[0], runs[2])
 
     def test_clip_x0_bounds_the_prediction(self) -> None:
-        out = sample(lambda x, k: torch.full_like(x, 5.0), (3, 2), self.make(), torch.Generator(), clip_x0=(-1, 1))
+        out = sample(
+            lambda x, k: torch.full_like(x, 5.0), (3, 2), self.make(), torch.Generator(), clip_x0=(-1, 1)
+        )
         assert torch.allclose(out, torch.ones(3, 2), atol=1e-3)
 
 

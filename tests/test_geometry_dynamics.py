@@ -22,8 +22,11 @@ def test_frame_transforms_invert(shape: tuple[int, ...]) -> None:
     back = local_to_world(world_to_local(xy, origin, yaw), origin, yaw)
     np.testing.assert_allclose(back, xy, atol=1e-9)
     t = torch.from_numpy(xy)
-    back_t = world_to_local(local_to_world(t, torch.from_numpy(origin), torch.from_numpy(yaw)),
-                            torch.from_numpy(origin), torch.from_numpy(yaw))
+    back_t = world_to_local(
+        local_to_world(t, torch.from_numpy(origin), torch.from_numpy(yaw)),
+        torch.from_numpy(origin),
+        torch.from_numpy(yaw),
+    )
     torch.testing.assert_close(back_t, t)
 
 
@@ -73,7 +76,9 @@ def test_rollout_is_differentiable() -> None:
 def test_inverse_recovers_feasible_actions_exactly() -> None:
     gen = torch.Generator().manual_seed(1)
     state0 = torch.tensor([[3.0, -2.0, 6.0, 0.3], [0.0, 0.0, 12.0, -2.0]], dtype=torch.float64)
-    actions = torch.stack([torch.rand(2, 40, generator=gen) * 4 - 2, torch.rand(2, 40, generator=gen) - 0.5], -1)
+    actions = torch.stack(
+        [torch.rand(2, 40, generator=gen) * 4 - 2, torch.rand(2, 40, generator=gen) - 0.5], -1
+    )
     states = torch.cat([state0[:, None], rollout(state0, actions.double(), 0.1)], dim=1)
     torch.testing.assert_close(inverse(states, 0.1), actions.double())
 

@@ -3,13 +3,11 @@
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from ctgpp.data.lane_topology import detect_intersections, reconstruct_connectivity
-from ctgpp.data.scenarionet import load_scenarionet
 from ctgpp.scene.lanes import (
     follow_lane,
     lane_length,
@@ -21,8 +19,6 @@ from ctgpp.scene.lanes import (
     right_lane,
 )
 from ctgpp.scene.types import LaneGraph
-
-SCENES = Path(__file__).resolve().parents[2] / "shared" / "data" / "nuscenes-mini" / "scenarionet"
 
 
 def _straight(x0: float, x1: float, y: float, n: int = 21) -> np.ndarray:
@@ -72,9 +68,16 @@ def test_reconstructed_successors_and_neighbours(road: LaneGraph) -> None:
 
 def test_projection_on_a_straight_lane(road: LaneGraph) -> None:
     p = project_to_lane(road, 0, np.array([12.3, 1.2]))
-    assert (p.lane, p.s_m, p.d_m, p.heading) == (0, pytest.approx(12.3), pytest.approx(1.2), pytest.approx(0.0))
+    assert (p.lane, p.s_m, p.d_m, p.heading) == (
+        0,
+        pytest.approx(12.3),
+        pytest.approx(1.2),
+        pytest.approx(0.0),
+    )
     np.testing.assert_allclose(p.xy, [12.3, 0.0], atol=1e-12)
-    assert project_to_lane(road, 4, np.array([30.0, -2.0])).d_m == pytest.approx(-1.5)  # westbound: left is south
+    assert project_to_lane(road, 4, np.array([30.0, -2.0])).d_m == pytest.approx(
+        -1.5
+    )  # westbound: left is south
     end = project_to_lane(road, 0, np.array([55.0, 1.0]))  # past the end: clamped
     assert end.s_m == pytest.approx(50.0) and end.d_m == pytest.approx(1.0)
 
@@ -109,9 +112,7 @@ def test_lanes_ahead_and_points_ahead(road: LaneGraph) -> None:
 # ---- real nuScenes lanes ------------------------------------------------------------------
 
 
-@pytest.fixture(scope="module")
-def scene_0103():
-    return load_scenarionet(SCENES / "sd_nuscenes_v1.0-mini_scene-0103.pkl", None)
+# scene_0103: the session fixture of conftest.py (nuScenes scene-0103 from its ScenarioNet pickle)
 
 
 def test_real_successor_coverage(scene_0103) -> None:
@@ -131,7 +132,9 @@ def test_real_neighbours_are_on_the_correct_side(scene_0103) -> None:
         for i in np.flatnonzero(table >= 0):
             # the neighbour's points beside lane i, as lateral offsets seen from lane i (left +)
             beside = [project_to_lane(lanes, i, q) for q in lanes.lane(int(table[i]))]
-            d = np.array([sign * p.d_m for p in beside if 0 < p.s_m < lane_length(lanes, i) and abs(p.d_m) < 5.5])
+            d = np.array(
+                [sign * p.d_m for p in beside if 0 < p.s_m < lane_length(lanes, i) and abs(p.d_m) < 5.5]
+            )
             correct, wrong = (d >= 1.5).sum(), (d <= -1.5).sum()
             assert correct >= 2 and correct > wrong
     left, right = lanes.left, lanes.right
@@ -167,7 +170,11 @@ def _transitions(scene, follow: bool) -> tuple[int, int, int]:
             xy, yaw = agents.xy[i, t], agents.yaw[i, t]
             proj = None
             if agents.valid[i, t] and agents.speed[i, t] > 1.0:
-                proj = follow_lane(lanes, prev[0] if prev else None, xy, yaw) if follow else nearest_lane(lanes, xy, yaw)
+                proj = (
+                    follow_lane(lanes, prev[0] if prev else None, xy, yaw)
+                    if follow
+                    else nearest_lane(lanes, xy, yaw)
+                )
             if proj is not None and prev is not None and proj.lane != prev[0].lane:
                 step = xy - prev[1]
                 heading = agents.yaw[i, t - 1]
@@ -175,7 +182,11 @@ def _transitions(scene, follow: bool) -> tuple[int, int, int]:
                 lat = -math.sin(heading) * step[0] + math.cos(heading) * step[1]
                 if lon > 0 and abs(lat) < 0.5:  # moving forward, no lateral jump
                     a, b = prev[0].lane, proj.lane
-                    ok = b in succ[a] or any(b in succ[j] for j in succ[a]) or b in (lanes.left[a], lanes.right[a])
+                    ok = (
+                        b in succ[a]
+                        or any(b in succ[j] for j in succ[a])
+                        or b in (lanes.left[a], lanes.right[a])
+                    )
                     n += 1
                     strict += ok
                     loose += ok or bool(pred[a] & pred[b]) or bool(succ[a] & succ[b])

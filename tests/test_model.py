@@ -188,6 +188,8 @@ def test_config_round_trip_and_unknown_keys() -> None:
 
 
 def test_a_few_adam_steps_lower_the_training_loss(batch: SceneBatch) -> None:
+    fields = (*AGENT_AXIS_FIELDS, "lanes", "lanes_valid")
+    batch = dataclasses.replace(batch, **{n: getattr(batch, n)[:, :8] for n in fields})  # 8 agents: fast
     torch.manual_seed(0)
     model = Denoiser(TINY)
     sched = CosineSchedule(TINY.diffusion_steps, TINY.cosine_s)
@@ -195,7 +197,10 @@ def test_a_few_adam_steps_lower_the_training_loss(batch: SceneBatch) -> None:
 
     def eval_loss() -> float:
         with torch.no_grad():
-            return sum(training_loss(model, sched, batch, torch.Generator().manual_seed(s))[0].item() for s in range(4))
+            return sum(
+                training_loss(model, sched, batch, torch.Generator().manual_seed(s))[0].item()
+                for s in range(3)
+            )
 
     before = eval_loss()
     gen = torch.Generator().manual_seed(11)

@@ -21,8 +21,16 @@ from ctgpp.scene.types import AgentType
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "nuscenes-mini"
 SCENES = DATA / "scenarionet"
 VEHICLES = {  # vehicles per scene (README: 19-111)
-    "scene-0061": 24, "scene-0103": 61, "scene-0553": 28, "scene-0655": 111, "scene-0757": 22,
-    "scene-0796": 39, "scene-0916": 62, "scene-1077": 59, "scene-1094": 26, "scene-1100": 19,
+    "scene-0061": 24,
+    "scene-0103": 61,
+    "scene-0553": 28,
+    "scene-0655": 111,
+    "scene-0757": 22,
+    "scene-0796": 39,
+    "scene-0916": 62,
+    "scene-1077": 59,
+    "scene-1094": 26,
+    "scene-1100": 19,
 }
 
 
@@ -59,7 +67,9 @@ def test_malicious_pickle_is_refused_without_side_effect(tmp_path: Path, payload
     marker = tmp_path / "pwned_ctgpp"
     path = tmp_path / "evil.pkl"
     path.write_bytes(pickle.dumps({"tracks": {}, "x": np.zeros(3), "evil": payload(marker)}))
-    with pytest.raises(UnsafePickleError, match=r"refusing to load evil\.pkl: it references \S+, which is not"):
+    with pytest.raises(
+        UnsafePickleError, match=r"refusing to load evil\.pkl: it references \S+, which is not"
+    ):
         safe_load(path)
     assert not marker.exists()
 
@@ -176,7 +186,7 @@ def test_nuscenes_georeferencing(tmp_path: Path) -> None:
 
 
 def test_rasterize_polygons_and_buffered_lines() -> None:
-    # vertices snap to the nearest pixel centre: boundaries are exact to half a pixel (0.05 m) at pixel centres
+    # vertices snap to the nearest pixel centre: boundaries are exact to half a pixel (0.05 m)
     square = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 5.0], [0.0, 5.0]]) + 0.03
     area = rasterize_polygons([square], 0.1, 1.0, np.zeros((0, 2)))
     assert 99 * 49 <= area.mask.sum() <= 101 * 51
@@ -195,13 +205,22 @@ def test_waymo_style_connectivity_is_used(tmp_path: Path) -> None:
         return {"type": "LANE_SURFACE_STREET", "polyline": line, **links}
 
     state = {
-        "position": np.tile([1.0, 0.0, 0.0], (5, 1)), "heading": np.zeros(5), "velocity": np.zeros((5, 2)),
-        "valid": np.ones(5), "length": np.full((5, 1), 4.5), "width": np.full((5, 1), 2.0),
+        "position": np.tile([1.0, 0.0, 0.0], (5, 1)),
+        "heading": np.zeros(5),
+        "velocity": np.zeros((5, 2)),
+        "valid": np.ones(5),
+        "length": np.full((5, 1), 4.5),
+        "width": np.full((5, 1), 2.0),
     }
     raw = {
-        "id": "toy", "length": 5, "dynamic_map_states": {},
+        "id": "toy",
+        "length": 5,
+        "dynamic_map_states": {},
         "metadata": {"sdc_id": "car", "map": "nowhere", "sample_rate": 0.1, "dataset": "waymo"},
-        "tracks": {"cone": {"type": "TRAFFIC_CONE", "state": state}, "car": {"type": "VEHICLE", "state": state}},
+        "tracks": {
+            "cone": {"type": "TRAFFIC_CONE", "state": state},
+            "car": {"type": "VEHICLE", "state": state},
+        },
         "map_features": {
             "1": lane(0, 0, exit_lanes=["2"], left_neighbor=[{"feature_id": "3"}]),
             "2": lane(20, 0, entry_lanes=["1"]),
@@ -218,3 +237,16 @@ def test_waymo_style_connectivity_is_used(tmp_path: Path) -> None:
     assert scene.lanes.left.tolist() == [2, -1, -1] and scene.lanes.right.tolist() == [-1, -1, 0]
     assert scene.drivable.is_drivable(np.array([[10.0, 1.0], [10.0, 8.0]])).all()
     assert not scene.drivable.is_drivable(np.array([10.0, 4.5]))
+
+
+@pytest.mark.parametrize("protocol", [2, 4, 5])
+def test_plain_data_round_trips(tmp_path: Path, protocol: int) -> None:
+    from collections import defaultdict
+
+    counts = defaultdict(int, {"VEHICLE": 3})
+    data = {"a": np.arange(6.0).reshape(2, 3), "s": np.float32(1.5), "c": counts, "t": (1, "x", None)}
+    path = tmp_path / "ok.pkl"
+    path.write_bytes(pickle.dumps(data, protocol=protocol))
+    loaded = safe_load(path)
+    np.testing.assert_array_equal(loaded["a"], data["a"])
+    assert loaded["s"] == np.float32(1.5) and loaded["c"]["VEHICLE"] == 3 and loaded["t"] == (1, "x", None)

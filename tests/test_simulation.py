@@ -39,7 +39,9 @@ def test_constant_velocity_keeps_speed_and_heading(scene_0103: Scene) -> None:
     np.testing.assert_array_equal(r.sim.xy[still, -1], r.sim.xy[still, r.current])
     # Other agents are replayed from the log.
     others = ~r.controlled
-    np.testing.assert_array_equal(r.sim.xy[others][r.log.valid[others]], r.log.xy[others][r.log.valid[others]])
+    np.testing.assert_array_equal(
+        r.sim.xy[others][r.log.valid[others]], r.log.xy[others][r.log.valid[others]]
+    )
 
 
 def test_episode_bounds(scene_0103: Scene) -> None:

@@ -10,7 +10,7 @@ from tqdm import tqdm
 
 from ctgpp.cli.common import add_data_arg, open_catalog
 from ctgpp.io.atomic import write_text_atomic
-from ctgpp.sim.closed_loop import episode_bounds, simulate
+from ctgpp.sim.closed_loop import episode_bounds, simulate, start_step
 from ctgpp.sim.export import write_rollout
 from ctgpp.sim.policy import POLICIES
 
@@ -37,6 +37,7 @@ def run_simulate(args: argparse.Namespace) -> int:
 
     scene = open_catalog(args).load(args.scene)
     start = episode_bounds(scene)[0] if args.start is None else args.start
+    start_step(scene, start)  # a bad --start is reported before any work starts
     policy = POLICIES[args.policy]()
     with tqdm(total=20, desc=f"simulating {scene.id}", unit="plan") as bar:
 

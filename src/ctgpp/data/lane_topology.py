@@ -71,7 +71,9 @@ def resample_lanes(centerlines: list[np.ndarray], spacing_m: float) -> tuple[np.
     return np.concatenate(xy), np.concatenate(heading), np.concatenate(lane), np.concatenate(arc)
 
 
-def _successor_edges(starts: np.ndarray, ends: np.ndarray, h_start: np.ndarray, h_end: np.ndarray) -> np.ndarray:
+def _successor_edges(
+    starts: np.ndarray, ends: np.ndarray, h_start: np.ndarray, h_end: np.ndarray
+) -> np.ndarray:
     pairs = cKDTree(ends).query_ball_tree(cKDTree(starts), JOIN_RADIUS_M)
     i = np.repeat(np.arange(len(pairs)), [len(p) for p in pairs])
     j = np.concatenate([np.asarray(p, dtype=np.int64) for p in pairs]) if len(pairs) else np.zeros(0, int)
@@ -107,7 +109,9 @@ def _neighbours(centerlines: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         votes = np.unique(np.stack([a[on_side], lane[b[on_side]]], axis=1), axis=0)
         if len(votes) == 0:
             continue
-        pair, count = np.unique(np.stack([lane[votes[:, 0]], votes[:, 1]], axis=1), axis=0, return_counts=True)
+        pair, count = np.unique(
+            np.stack([lane[votes[:, 0]], votes[:, 1]], axis=1), axis=0, return_counts=True
+        )
         # mean |lateral| of each (lane, other) pair
         key = lane[a[on_side]] * n_lanes + lane[b[on_side]]
         ukey, inv = np.unique(key, return_inverse=True)

@@ -110,7 +110,9 @@ def nuscenes_drivable(png: Path, xy_min: np.ndarray, xy_max: np.ndarray) -> Driv
     window = crop_mask_png(png, (c0, r0, c1, r1))  # (rows north -> south, cols)
     mask = window[::-1] > 127  # row 0 = PNG row r1 - 1, the southern edge
     origin = np.array([c0, height - r1], dtype=np.float64) / NUSCENES_PX_PER_M
-    return DrivableArea(mask=np.ascontiguousarray(mask), origin_xy=origin, resolution_m=1.0 / NUSCENES_PX_PER_M)
+    return DrivableArea(
+        mask=np.ascontiguousarray(mask), origin_xy=origin, resolution_m=1.0 / NUSCENES_PX_PER_M
+    )
 
 
 def rasterize_polygons(
@@ -163,7 +165,9 @@ def rasterize_polygons(
         length = np.linalg.norm(seg, axis=1, keepdims=True)
         normal = np.stack([-seg[:, 1], seg[:, 0]], axis=1) / np.maximum(length, 1e-9) * buffer_m  # (n-1, 2)
         for k in np.flatnonzero(length[:, 0] > 1e-9):
-            quad = np.stack([line[k] + normal[k], line[k + 1] + normal[k], line[k + 1] - normal[k], line[k] - normal[k]])
+            quad = np.stack(
+                [line[k] + normal[k], line[k + 1] + normal[k], line[k + 1] - normal[k], line[k] - normal[k]]
+            )
             draw.polygon(to_px(quad), fill=255)
         for u, v in to_px(line):
             draw.ellipse((u - radius_px, v - radius_px, u + radius_px, v + radius_px), fill=255)

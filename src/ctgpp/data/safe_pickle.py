@@ -4,9 +4,10 @@ A pickle is a small program: every global it names is imported and may be called
 ``pickle.load`` on a file from elsewhere runs whatever code the file asks for (``os.system``,
 ``builtins.eval``, ...). :func:`safe_load` resolves only an allow list of globals that rebuild plain
 data: numpy arrays, dtypes and scalars, ``collections.defaultdict``/``OrderedDict`` (ScenarioNet's
-``metadata.number_summary`` holds a ``defaultdict(int)``) and the builtin value types. Calling any of
-these with data arguments cannot reach the file system, processes or the interpreter. Everything else
-raises :class:`UnsafePickleError` before anything is called.
+``metadata.number_summary`` holds a ``defaultdict(int)``), ``_codecs.encode`` (how protocol 2 stores
+bytes) and the builtin value types. Calling any of these with data arguments cannot reach the file
+system, processes or the interpreter. Everything else raises :class:`UnsafePickleError` before
+anything is called.
 """
 
 from __future__ import annotations
@@ -28,14 +29,27 @@ _ALLOWED = {
     ("numpy", "dtype"),
     ("collections", "defaultdict"),
     ("collections", "OrderedDict"),
+    ("_codecs", "encode"),  # protocol <= 2 writes bytes (array buffers) as encode(str, "latin1")
     *(
         ("builtins", name)
         for name in (
-            "int", "float", "complex", "bool", "str", "bytes", "bytearray",
-            "list", "tuple", "dict", "set", "frozenset",
+            "int",
+            "float",
+            "complex",
+            "bool",
+            "str",
+            "bytes",
+            "bytearray",
+            "list",
+            "tuple",
+            "dict",
+            "set",
+            "frozenset",
         )
     ),
 }
+
+_PY2_NAMES = {"long": "int", "unicode": "str"}
 
 
 class UnsafePickleError(ValueError):
@@ -56,7 +70,7 @@ def is_allowed_global(module: str, name: str) -> bool:
     if (module, name) in _ALLOWED:
         return True
     for prefix in ("numpy.core.", "numpy._core."):
-        if module.startswith(prefix) and (module[len(prefix):], name) in _NUMPY_GLOBALS:
+        if module.startswith(prefix) and (module[len(prefix) :], name) in _NUMPY_GLOBALS:
             return True
     return False
 
@@ -69,13 +83,15 @@ class RestrictedUnpickler(pickle.Unpickler):
         self._source_name = source_name
 
     def find_class(self, module: str, name: str) -> object:
+        if module == "__builtin__":  # protocol <= 2 spells builtins the Python 2 way
+            module, name = "builtins", _PY2_NAMES.get(name, name)
         if not is_allowed_global(module, name):
             raise UnsafePickleError(
                 f"refusing to load {self._source_name}: it references {module}.{name}, which is not allowed"
             )
         for prefix in ("numpy.core.", "numpy._core."):
             if module.startswith(prefix):
-                module = _numpy_core_module(module[len(prefix):])
+                module = _numpy_core_module(module[len(prefix) :])
         return super().find_class(module, name)
 
     def persistent_load(self, pid: object) -> object:

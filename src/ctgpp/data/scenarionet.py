@@ -102,7 +102,9 @@ def _lanes(features: dict) -> tuple[LaneGraph, list[np.ndarray | None]]:
         ids.append(str(key))
         lines.append(line)
         poly = feat.get("polygon")
-        polygons.append(np.asarray(poly, dtype=np.float64)[:, :2] if poly is not None and len(poly) >= 3 else None)
+        polygons.append(
+            np.asarray(poly, dtype=np.float64)[:, :2] if poly is not None and len(poly) >= 3 else None
+        )
         records.append(feat)
     keys = ("entry_lanes", "exit_lanes", "left_neighbor", "right_neighbor")
     if any(k in feat for feat in records for k in keys):
@@ -141,7 +143,11 @@ def _given_connectivity(ids: list[str], records: list[dict]) -> tuple[np.ndarray
 
 
 def _drivable(
-    agents: AgentTracks, lanes: LaneGraph, polygons: list[np.ndarray | None], map_name: str, drivable_dir: Path | None
+    agents: AgentTracks,
+    lanes: LaneGraph,
+    polygons: list[np.ndarray | None],
+    map_name: str,
+    drivable_dir: Path | None,
 ) -> DrivableArea:
     """nuScenes mask crop when available, else rasterised lane polygons; covers the agents + margin."""
     points = agents.xy[agents.valid]
@@ -159,8 +165,13 @@ def _drivable(
             continue  # wholly outside the raster
         (rings if poly is not None else lines).append(src)
     return rasterize_polygons(
-        rings, POLYGON_RESOLUTION_M, DRIVABLE_MARGIN_M, points,
-        buffered_lines=lines, buffer_m=LANE_HALF_WIDTH_M, extent_xy=extent,
+        rings,
+        POLYGON_RESOLUTION_M,
+        DRIVABLE_MARGIN_M,
+        points,
+        buffered_lines=lines,
+        buffer_m=LANE_HALF_WIDTH_M,
+        extent_xy=extent,
     )
 
 
@@ -174,7 +185,9 @@ def load_scenarionet(path: Path, drivable_dir: Path | None = None) -> Scene:
     path = Path(path)
     raw = safe_load(path)
     if not isinstance(raw, dict) or not {"tracks", "map_features", "metadata"} <= raw.keys():
-        raise ValueError(f"{path.name} is not a ScenarioNet scenario (expected a dict with tracks, map_features)")
+        raise ValueError(
+            f"{path.name} is not a ScenarioNet scenario (expected a dict with tracks, map_features)"
+        )
     meta = raw["metadata"]
     agents, ego = _tracks(raw, path)
     lanes, polygons = _lanes(raw["map_features"])

@@ -61,9 +61,10 @@ class CosineSchedule:
         self, x0_pred: Tensor, x_k: Tensor, k: Tensor | int
     ) -> tuple[Tensor, Tensor, Tensor]:
         """q(x_{k−1} | x_k, x_0): (mean, variance, log_variance), each broadcast to ``x_k``'s shape."""
-        mean = _gather(self.posterior_mean_coef_x0, k, x_k) * x0_pred + _gather(
-            self.posterior_mean_coef_xk, k, x_k
-        ) * x_k
+        mean = (
+            _gather(self.posterior_mean_coef_x0, k, x_k) * x0_pred
+            + _gather(self.posterior_mean_coef_xk, k, x_k) * x_k
+        )
         variance = _gather(self.posterior_variance, k, x_k).expand_as(x_k)
         log_variance = _gather(self.posterior_log_variance, k, x_k).expand_as(x_k)
         return mean, variance, log_variance

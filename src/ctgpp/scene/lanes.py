@@ -171,7 +171,9 @@ def _ordered_successors(lanes: LaneGraph, lane: int) -> list[int]:
     return sorted(lanes.successors_of(lane), key=lambda j: (turn(j), j))
 
 
-def lanes_ahead(lanes: LaneGraph, proj: LaneProjection, distance_m: float, max_paths: int = 64) -> list[list[int]]:
+def lanes_ahead(
+    lanes: LaneGraph, proj: LaneProjection, distance_m: float, max_paths: int = 64
+) -> list[list[int]]:
     """Lane sequences reachable within ``distance_m`` ahead of ``proj`` through successors.
 
     Each path starts with ``proj.lane`` and ends when it covers the distance or has no successor;
@@ -190,7 +192,9 @@ def lanes_ahead(lanes: LaneGraph, proj: LaneProjection, distance_m: float, max_p
     return paths
 
 
-def lane_points_ahead(lanes: LaneGraph, proj: LaneProjection, distance_m: float, spacing_m: float) -> np.ndarray:
+def lane_points_ahead(
+    lanes: LaneGraph, proj: LaneProjection, distance_m: float, spacing_m: float
+) -> np.ndarray:
     """(n, 2) centerline points every ``spacing_m`` from ``proj`` up to ``distance_m`` ahead.
 
     Follows ``lanes_ahead(...)[0]`` (the straightest chain); n = floor(available / spacing) + 1, where

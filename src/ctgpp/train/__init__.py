@@ -1,0 +1,1 @@
+"""Training the denoiser: the loop, EMA weights, resumable state, the training record."""

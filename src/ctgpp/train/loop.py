@@ -1,0 +1,169 @@
+"""The training loop (issue 3): plain PyTorch, Adam, EMA weights, validation, resumable checkpoints.
+
+Runs on one device, or on several processes under ``torchrun`` through DistributedDataParallel
+(gloo on CPU, NCCL on GPU): every process draws its own batches, gradients are averaged by DDP,
+process 0 validates and writes the checkpoint.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import math
+import os
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+import torch.distributed as dist
+from torch import nn
+from tqdm import tqdm
+
+from ctgpp.data.batch import SceneBatch, WindowDataset, collate
+from ctgpp.data.windows import WindowConfig
+from ctgpp.diffusion import CosineSchedule
+from ctgpp.model.checkpoint import save_checkpoint
+from ctgpp.model.config import ModelConfig
+from ctgpp.model.denoiser import Denoiser
+from ctgpp.model.loss import training_loss
+from ctgpp.scene.types import Scene
+from ctgpp.train.plot import plot_curve
+from ctgpp.train.state import has_train_state, load_train_state, save_train_state
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Optimisation settings. ``batch_scenes`` windows (scenes at one step) per batch and process."""
+
+    steps: int = 3000
+    batch_scenes: int = 4
+    lr: float = 1e-4
+    ema_decay: float = 0.995
+    seed: int = 0
+    stride: int = 2
+    val_every: int = 250
+    val_windows: int = 32
+    max_agents: int = 32
+
+
+def _world() -> tuple[int, int]:
+    if int(os.environ.get("WORLD_SIZE", "1")) > 1 and not dist.is_initialized():
+        dist.init_process_group(backend="nccl" if torch.cuda.is_available() else "gloo")
+    if dist.is_initialized():
+        return dist.get_rank(), dist.get_world_size()
+    return 0, 1
+
+
+def _device(rank: int) -> torch.device:
+    if torch.cuda.is_available():
+        local = int(os.environ.get("LOCAL_RANK", rank)) % torch.cuda.device_count()
+        torch.cuda.set_device(local)
+        return torch.device("cuda", local)
+    return torch.device("cpu")
+
+
+@torch.no_grad()
+def validation_loss(model: Denoiser, schedule: CosineSchedule, batches: list[SceneBatch], seed: int) -> float:
+    """Mean loss over fixed batches with fixed noise: comparable from one evaluation to the next."""
+    gen = torch.Generator().manual_seed(seed)
+    device = next(model.parameters()).device
+    losses = [training_loss(model, schedule, b.to(device), gen)[1]["loss"] for b in batches]
+    return sum(losses) / max(len(losses), 1)
+
+
+def _ema_update(ema: nn.Module, model: nn.Module, decay: float) -> None:
+    with torch.no_grad():
+        for e, p in zip(ema.parameters(), model.parameters(), strict=True):
+            e.lerp_(p.detach(), 1.0 - decay)
+
+
+def train(
+    train_scenes: list[Scene],
+    val_scenes: list[Scene],
+    model_config: ModelConfig,
+    config: TrainConfig,
+    out: Path,
+    data_note: str = "",
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Train (or resume training in ``out``) and write the checkpoint, curve and record there."""
+    rank, world = _world()
+    device = _device(rank)
+    torch.manual_seed(config.seed)
+    windows = WindowConfig(max_agents=config.max_agents)
+    train_set = WindowDataset(train_scenes, windows, stride=config.stride)
+    val_set = WindowDataset(val_scenes, windows, stride=config.stride)
+    if len(train_set) == 0:
+        raise ValueError("no training windows: the training scenes are too short or hold no vehicles")
+    n_val = min(config.val_windows, len(val_set))
+    val_idx = [round(i * (len(val_set) - 1) / max(n_val - 1, 1)) for i in range(n_val)]
+    val_batches = [collate([val_set[i] for i in val_idx[j : j + 4]]) for j in range(0, n_val, 4)]
+
+    model = Denoiser(model_config).to(device)
+    ema = copy.deepcopy(model).eval()
+    optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
+    schedule = CosineSchedule(model_config.diffusion_steps, model_config.cosine_s)
+    out = Path(out)
+    state: dict[str, Any] = {"step": 0, "history": [], "wall_s": 0.0}
+    if has_train_state(out):
+        state = load_train_state(out, model, ema, optimizer)
+        log.info("resuming from step %d in %s", state["step"], out)
+    ddp = nn.parallel.DistributedDataParallel(model) if world > 1 else model
+    gen = torch.Generator().manual_seed(config.seed * 1000 + rank + 7919 * state["step"])
+    start_wall = time.monotonic() - state["wall_s"]
+    show = progress and rank == 0
+    bar = tqdm(total=config.steps, initial=state["step"], desc="training", unit="step", disable=not show)
+    sizes = {"train_windows": len(train_set), "val_windows": len(val_set)}
+    recent: list[float] = []
+    while state["step"] < config.steps:
+        idx = torch.randint(len(train_set), (config.batch_scenes,), generator=gen).tolist()
+        batch = collate([train_set[i] for i in idx]).to(device)
+        loss, stats = training_loss(ddp, schedule, batch, gen)  # type: ignore[arg-type]
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+        optimizer.step()
+        _ema_update(ema, model, config.ema_decay)
+        state["step"] += 1
+        recent.append(stats["loss"])
+        bar.update(1)
+        if state["step"] % config.val_every == 0 or state["step"] == config.steps:
+            entry = {"step": state["step"], "train_loss": sum(recent) / len(recent)}
+            recent = []
+            if rank == 0:
+                val = validation_loss(ema, schedule, val_batches, config.seed) if val_batches else math.nan
+                entry["val_loss"] = val
+                state["history"].append(entry)
+                state["wall_s"] = time.monotonic() - start_wall
+                bar.set_postfix(train=f"{entry['train_loss']:.3f}", val=f"{entry['val_loss']:.3f}")
+                record = _record(config, state, data_note, sizes)
+                save_train_state(out, model, ema, optimizer, state)
+                save_checkpoint(out, ema, model_config, record)  # sampling uses the EMA weights
+                plot_curve(state["history"], out / "curve.png", title=f"training: {data_note}")
+            if world > 1:
+                dist.barrier()
+    bar.close()
+    record = _record(config, state, data_note, sizes)
+    if dist.is_initialized():
+        dist.destroy_process_group()
+    return record
+
+
+def _record(
+    config: TrainConfig, state: dict[str, Any], data_note: str, sizes: dict[str, int]
+) -> dict[str, Any]:
+    last = state["history"][-1] if state["history"] else {}
+    return {
+        "data": data_note,
+        **sizes,
+        "steps": state["step"],
+        "wall_s": round(state["wall_s"], 1),
+        "final_train_loss": last.get("train_loss"),
+        "final_val_loss": last.get("val_loss"),
+        "train": asdict(config),
+        "history": state["history"],
+    }

@@ -1,0 +1,31 @@
+"""The training curve picture: train and validation loss against the step."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from ctgpp.io.atomic import atomic_path
+
+
+def plot_curve(history: list[dict[str, Any]], out: Path, title: str = "training") -> Path:
+    """Plot ``history`` entries ({step, train_loss, val_loss}) to a PNG, log-scaled loss."""
+    fig = Figure(figsize=(7, 4.5), dpi=120)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    steps = [h["step"] for h in history]
+    ax.plot(steps, [h["train_loss"] for h in history], "-o", ms=3, label="train (mean since last point)")
+    ax.plot(steps, [h.get("val_loss") for h in history], "-s", ms=3, label="validation (EMA weights)")
+    ax.set_yscale("log")
+    ax.set_xlabel("step")
+    ax.set_ylabel("loss (normalized actions + states)")
+    ax.set_title(title, fontsize=10)
+    ax.grid(alpha=0.3, which="both")
+    ax.legend()
+    fig.tight_layout()
+    with atomic_path(Path(out)) as tmp:
+        fig.savefig(tmp, format="png")
+    return Path(out)

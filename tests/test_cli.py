@@ -1,0 +1,100 @@
+"""The command line end to end on real data: listing, pictures, simulation files, conversion, errors."""
+
+from __future__ import annotations
+
+import json
+import pickle
+import shutil
+from pathlib import Path
+
+import pyarrow.parquet as pq
+import pytest
+from PIL import Image
+
+from ctgpp.cli.main import main
+
+from .conftest import NGSIM, NUSCENES
+
+
+def test_scenes_lists_the_embedded_data(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["scenes"]) == 0
+    out = capsys.readouterr().out
+    for scene_id in ("scene-0061", "scene-0103", "scene-0916", "scene-1100"):
+        assert scene_id in out
+    assert "mini_val" in out and "boston-seaport" in out and "10 scenes" in out
+
+
+def test_simulate_writes_rollout_metrics_picture_and_animation(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    assert (
+        main(["simulate", "--scene", "0916", "--policy", "constvel", "--start", "4", "--out", str(out)]) == 0
+    )
+    metrics = json.loads((out / "metrics.json").read_text())
+    for key in ("fail", "collision_rate", "offroad_rate", "real", "rel_real"):
+        assert 0.0 <= metrics[key] <= 1.0 or key in ("real", "rel_real")
+    assert metrics["scene"] == "scene-0916" and metrics["start_s"] == 4.0
+    table = pq.read_table(out / "rollout.parquet").to_pydict()
+    assert max(table["time_s"]) == 10.0
+    assert Image.open(out / "scene.png").size == (1600, 1600)
+    gif = Image.open(out / "rollout.gif")
+    assert gif.n_frames > 50
+
+
+def test_show_draws_the_numbered_picture(tmp_path: Path) -> None:
+    out = tmp_path / "s.png"
+    assert main(["show", "scene-0103", "--start", "5", "--out", str(out)]) == 0
+    assert Image.open(out).size == (1600, 1600)
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["simulate", "--scene", "scene-9999", "--out", "{tmp}/x"], "no scene 'scene-9999'"),
+        (["simulate", "--scene", "0103", "--start", "1.0", "--out", "{tmp}/x"], "outside 3.0-"),
+        (["simulate", "--data", "{tmp}/missing"], "does not exist"),
+        (["scenes", "--split", "nope"], "no scenes in split 'nope'"),
+        (["data", "convert", "{tmp}/missing", "{tmp}/out"], "does not exist"),
+    ],
+)
+def test_user_mistakes_get_one_clear_line_and_exit_2(
+    argv: list[str], message: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main([a.replace("{tmp}", str(tmp_path)) for a in argv]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("ctgpp: error:") and message in err and "Traceback" not in err
+    assert not (tmp_path / "x").exists()
+
+
+def test_convert_nuscenes_and_ngsim_then_list(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    src = tmp_path / "src"
+    (src / "scenarionet").mkdir(parents=True)
+    shutil.copy(NUSCENES / "scenarionet" / "sd_nuscenes_v1.0-mini_scene-0916.pkl", src / "scenarionet")
+    dst = tmp_path / "converted"
+    args = ["data", "convert", str(src / "scenarionet"), str(dst), "--drivable", str(NUSCENES / "drivable")]
+    assert main([*args, "--no-progress"]) == 0
+    ngsim = tmp_path / "ngsim"
+    ngsim.mkdir()
+    shutil.copy(NGSIM / "Peachtree" / "USA_Peach-1_1_T-1.xml", ngsim)
+    assert main(["data", "convert", str(ngsim), str(dst), "--no-progress"]) == 0
+    capsys.readouterr()
+    assert main(["scenes", "--data", str(dst)]) == 0
+    out = capsys.readouterr().out
+    assert "scene-0916" in out and "USA_Peach-1_1_T-1" in out and "heldout" in out and "2 scenes" in out
+
+
+def test_convert_refuses_a_malicious_pickle_and_reports_it(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    class Exploit:
+        def __reduce__(self):  # noqa: ANN204 - the shape of a pickle exploit
+            return (shutil.rmtree, (str(tmp_path / "victim"),))
+
+    (tmp_path / "victim").mkdir()
+    src = tmp_path / "evil"
+    src.mkdir()
+    (src / "sd_evil.pkl").write_bytes(pickle.dumps({"id": "x", "tracks": Exploit()}))
+    assert main(["data", "convert", str(src), str(tmp_path / "out"), "--no-progress"]) == 1
+    out = capsys.readouterr().out
+    assert "shutil.rmtree" in out and "failed" in out
+    assert (tmp_path / "victim").is_dir()  # nothing ran
+    assert not (tmp_path / "out" / "index.json").exists()
