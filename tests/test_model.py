@@ -159,7 +159,7 @@ def test_save_load_gives_identical_outputs_and_samples(batch: SceneBatch, tmp_pa
     for net in (model, loaded):
         with torch.no_grad():
             ctx = net.encode_context(batch)
-            fn = lambda x_k, k, net=net, ctx=ctx: net(x_k, torch.tensor([k]), batch, ctx)  # noqa: E731
+            fn = lambda x_k, k, net=net, ctx=ctx: net(x_k, k, batch, ctx)  # noqa: E731
             samples.append(sample(fn, shape, sampler, torch.Generator().manual_seed(5)))
     assert torch.equal(samples[0], samples[1])
 

@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from ctgpp.data.catalog import Catalog
+from ctgpp.sim.diffusion_policy import SamplingConfig
 
 
 def add_data_arg(parser: argparse.ArgumentParser) -> None:
@@ -16,6 +17,33 @@ def add_data_arg(parser: argparse.ArgumentParser) -> None:
         metavar="DIR",
         help="directory of converted scenes (default: the embedded nuScenes v1.0-mini scenes)",
     )
+
+
+def add_model_args(parser: argparse.ArgumentParser) -> None:
+    """Checkpoint and sampler options of the ctgpp policy."""
+    parser.add_argument(
+        "--checkpoint",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="CTG++ checkpoint directory (default: the one shipped with ctgpp)",
+    )
+    parser.add_argument(
+        "--sampler",
+        choices=["ddim", "ddpm"],
+        default=SamplingConfig.sampler,
+        help="diffusion sampler (ddpm: all K steps, as in the paper)",
+    )
+    parser.add_argument("--steps", type=int, default=SamplingConfig.steps, help="DDIM steps")
+    parser.add_argument(
+        "--samples", type=int, default=SamplingConfig.num_samples, help="samples per plan (N)"
+    )
+
+
+def sampling_config(args: argparse.Namespace) -> SamplingConfig:
+    if args.steps < 1 or args.samples < 1:
+        raise ValueError("--steps and --samples must be positive")
+    return SamplingConfig(args.sampler, args.steps, args.samples)
 
 
 def open_catalog(args: argparse.Namespace) -> Catalog:

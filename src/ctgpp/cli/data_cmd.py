@@ -14,8 +14,13 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p = data_sub.add_parser("convert", help="convert ScenarioNet pickles or CommonRoad XML into ctgpp scenes")
     p.add_argument("src", type=Path, help="a scene file or a directory searched recursively")
     p.add_argument("dst", type=Path, help="output directory (created; its index.json is updated)")
-    p.add_argument("--drivable", type=Path, default=None, metavar="DIR",
-                   help="nuScenes drivable-area masks <map>.png (default: a 'drivable' folder beside SRC)")
+    p.add_argument(
+        "--drivable",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="nuScenes drivable-area masks <map>.png (default: a 'drivable' folder beside SRC)",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(run=run_convert)
 

@@ -5,34 +5,48 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ctgpp.cli.common import add_data_arg, open_catalog
+from ctgpp.cli.common import add_data_arg, add_model_args, open_catalog, sampling_config
 from ctgpp.eval.runner import markdown_table, plan_episodes, run_episodes, summarize
 from ctgpp.io.atomic import write_text_atomic
-from ctgpp.sim.policy import POLICIES
+from ctgpp.sim.factory import POLICY_NAMES, make_policy
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("evaluate", help="closed-loop metrics of policies over the episodes of a split")
-    p.add_argument("--methods", default="replay,constvel", help=f"comma-separated, of {', '.join(POLICIES)}")
+    p.add_argument(
+        "--methods", default="ctgpp,replay,constvel", help=f"comma-separated, of {', '.join(POLICY_NAMES)}"
+    )
+    add_model_args(p)
     p.add_argument("--split", default="mini_val", help="scenes of this split (default: mini_val)")
     p.add_argument("--seeds", type=int, default=1, help="number of seeds (0, 1, ...)")
     p.add_argument("--spacing", type=float, default=1.0, metavar="SEC", help="seconds between episode starts")
-    p.add_argument("--out", type=Path, default=Path("ctgpp-eval"), metavar="DIR",
-                   help="results directory: episodes.csv (resumable) and table.md")
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=Path("ctgpp-eval"),
+        metavar="DIR",
+        help="results directory: episodes.csv (resumable) and table.md",
+    )
     add_data_arg(p)
     p.set_defaults(run=run_evaluate)
 
 
 def run_evaluate(args: argparse.Namespace) -> int:
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
-    unknown = [m for m in methods if m not in POLICIES]
+    unknown = [m for m in methods if m not in POLICY_NAMES]
     if unknown or not methods:
-        raise ValueError(f"unknown methods {unknown}; known: {', '.join(POLICIES)}")
+        raise ValueError(f"unknown methods {unknown}; known: {', '.join(POLICY_NAMES)}")
     if args.seeds < 1 or args.spacing <= 0:
         raise ValueError("--seeds must be at least 1 and --spacing positive")
+    sampling = sampling_config(args)
     catalog = open_catalog(args)
     episodes = plan_episodes(catalog, args.split, methods, range(args.seeds), args.spacing)
-    records = run_episodes(catalog, episodes, lambda name: POLICIES[name](), args.out / "episodes.csv")
+    records = run_episodes(
+        catalog,
+        episodes,
+        lambda name: make_policy(name, args.checkpoint, sampling),
+        args.out / "episodes.csv",
+    )
     table = markdown_table(summarize(records, methods))
     write_text_atomic(args.out / "table.md", table)
     print(table)

@@ -17,8 +17,13 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser("show", help="draw a scene with every vehicle's number (the numbers queries use)")
     p.add_argument("scene", help="scene id, e.g. scene-0103 (a unique suffix such as 0103 works)")
-    p.add_argument("--start", type=float, default=None, metavar="SEC",
-                   help="time to show in seconds (default: the first episode start, 3 s)")
+    p.add_argument(
+        "--start",
+        type=float,
+        default=None,
+        metavar="SEC",
+        help="time to show in seconds (default: the first episode start, 3 s)",
+    )
     p.add_argument("--out", type=Path, default=None, metavar="FILE", help="picture file (default: SCENE.png)")
     p.add_argument("--radius", type=float, default=None, metavar="M", help="half-size of the view in metres")
     add_data_arg(p)

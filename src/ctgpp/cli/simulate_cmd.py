@@ -8,24 +8,39 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from ctgpp.cli.common import add_data_arg, open_catalog
+from ctgpp.cli.common import add_data_arg, add_model_args, open_catalog, sampling_config
 from ctgpp.io.atomic import write_text_atomic
 from ctgpp.sim.closed_loop import episode_bounds, simulate, start_step
 from ctgpp.sim.export import write_rollout
-from ctgpp.sim.policy import POLICIES
+from ctgpp.sim.factory import POLICY_NAMES, make_policy
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("simulate", help="simulate a scene in closed loop (10 s, re-plan at 2 Hz)")
     p.add_argument("--scene", default="scene-0103", help="scene id (default: scene-0103, mini_val)")
-    p.add_argument("--policy", choices=sorted(POLICIES), default="constvel", help="traffic policy")
-    p.add_argument("--start", type=float, default=None, metavar="SEC",
-                   help="simulation start in seconds (default: the earliest, 3 s)")
+    p.add_argument(
+        "--policy",
+        choices=POLICY_NAMES,
+        default="ctgpp",
+        help="traffic policy: the CTG++ diffusion model (default), log replay or constant velocity",
+    )
+    add_model_args(p)
+    p.add_argument(
+        "--start",
+        type=float,
+        default=None,
+        metavar="SEC",
+        help="simulation start in seconds (default: the earliest, 3 s)",
+    )
     p.add_argument("--seed", type=int, default=0, help="random seed")
     p.add_argument("--out", type=Path, default=Path("ctgpp-out"), metavar="DIR", help="output directory")
     p.add_argument("--format", choices=["parquet", "csv"], default="parquet", help="rollout table format")
-    p.add_argument("--animation", choices=["gif", "mp4", "none"], default="gif",
-                   help="animation format (mp4 needs ffmpeg; falls back to gif)")
+    p.add_argument(
+        "--animation",
+        choices=["gif", "mp4", "none"],
+        default="gif",
+        help="animation format (mp4 needs ffmpeg; falls back to gif)",
+    )
     add_data_arg(p)
     p.set_defaults(run=run_simulate)
 
@@ -38,7 +53,7 @@ def run_simulate(args: argparse.Namespace) -> int:
     scene = open_catalog(args).load(args.scene)
     start = episode_bounds(scene)[0] if args.start is None else args.start
     start_step(scene, start)  # a bad --start is reported before any work starts
-    policy = POLICIES[args.policy]()
+    policy = make_policy(args.policy, args.checkpoint, sampling_config(args))
     with tqdm(total=20, desc=f"simulating {scene.id}", unit="plan") as bar:
 
         def on_replan(done: int, total: int) -> None:

@@ -114,8 +114,17 @@ class Denoiser(nn.Module):
         )
 
     def forward(
-        self, noisy_actions: Tensor, k: Tensor, batch: SceneBatch, context: DenoiserContext | None = None
+        self,
+        noisy_actions: Tensor,
+        k: Tensor | int,
+        batch: SceneBatch,
+        context: DenoiserContext | None = None,
     ) -> Tensor:
+        """Predict clean normalized actions (S, A, F, 2) from noisy ones at step k ((S,) or one int).
+
+        ``context`` (from :meth:`encode_context` on the same batch) skips re-encoding what does not
+        depend on the noisy actions; sampling loops compute it once per batch.
+        """
         ctx = self.encode_context(batch) if context is None else context
         mask = ctx.agent_mask[..., None, None]  # (S, A, 1, 1)
         noisy = torch.where(mask, noisy_actions, torch.zeros_like(noisy_actions))
@@ -124,7 +133,8 @@ class Denoiser(nn.Module):
         states = self.normalizer.normalize_states(states)
         fut_tokens = self.fut_in(torch.cat([noisy, states], dim=-1))  # (S, A, F, d)
         x = torch.cat([ctx.hist_tokens, fut_tokens], dim=2)  # (S, A, H+F, d)
-        x = x + self.time_emb()[None, None] + self.step_emb(k.to(x.device))[:, None, None]
+        k_t = torch.as_tensor(k, device=x.device).long().expand(x.shape[0])  # (S,)
+        x = x + self.time_emb()[None, None] + self.step_emb(k_t)[:, None, None]
         for block in self.blocks:
             x = block(x, ctx)
         out = self.out(self.out_norm(x[:, :, self.config.history_steps :]))  # (S, A, F, 2)

@@ -7,7 +7,7 @@ L = masked mean over valid future steps of the per-channel normalized squared er
 from __future__ import annotations
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from ctgpp.data.batch import SceneBatch
 from ctgpp.diffusion.schedule import CosineSchedule, randn_like
@@ -16,15 +16,17 @@ from ctgpp.model.denoiser import Denoiser
 
 
 def training_loss(
-    model: Denoiser, scheduler: CosineSchedule, batch: SceneBatch, generator: torch.Generator | None = None
+    model: nn.Module, scheduler: CosineSchedule, batch: SceneBatch, generator: torch.Generator | None = None
 ) -> tuple[Tensor, dict[str, float]]:
     """One noisy-step loss on ``batch``: k ~ U{0, …, K−1} per scene, x_k = add_noise(x0, ε, k).
 
     Returns the scalar loss (differentiable) and stats: ``loss``, ``action_loss``, ``state_loss``
     (each a mean over channels and valid steps) and ``valid_steps``. Targets are masked by
-    ``fut_valid & agent_mask``; a batch without a valid future step gives a zero loss.
+    ``fut_valid & agent_mask``; a batch without a valid future step gives a zero loss. ``model`` may be
+    a DistributedDataParallel wrapper of a :class:`Denoiser` (its forward is called, so gradients sync).
     """
-    norm = model.normalizer
+    core: Denoiser = getattr(model, "module", model)  # unwrap DistributedDataParallel
+    norm = core.normalizer
     device = batch.fut_actions.device
     n_scenes = batch.num_scenes
     gen_device = generator.device if generator is not None else device
@@ -37,7 +39,7 @@ def training_loss(
     speed0 = batch.hist[..., -1, 2]  # (S, A) current speed; the current state is (0, 0, v, 0)
     zeros = torch.zeros_like(speed0)
     current = torch.stack([zeros, zeros, speed0, zeros], dim=-1)
-    states = rollout(current, norm.denormalize_actions(x0_pred), model.config.dt_s)  # (S, A, F, 4)
+    states = rollout(current, norm.denormalize_actions(x0_pred), core.config.dt_s)  # (S, A, F, 4)
     state_err = norm.state_error(states, batch.fut) ** 2
     count = valid.sum().clamp(min=1.0)
     action_loss = (action_err.mean(dim=-1) * valid).sum() / count

@@ -82,5 +82,3 @@ class ConstantVelocityPolicy:
         )
         return Plan(states=states, valid=np.ones(states.shape[:2], dtype=bool))
 
-
-POLICIES = {"replay": ReplayPolicy, "constvel": ConstantVelocityPolicy}
