@@ -38,6 +38,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         help="the model or one of the paper's ablations",
     )
     p.add_argument("--val-every", type=int, default=TrainConfig.val_every, help="steps between validations")
+    p.add_argument("--val-windows", type=int, default=TrainConfig.val_windows, help="validation windows")
     p.set_defaults(run=run_train)
 
 
@@ -67,12 +68,20 @@ def run_train(args: argparse.Namespace) -> int:
         scene_centric=args.variant == "scene_centric",
     )
     config = TrainConfig(
-        steps=args.steps, batch_scenes=args.batch, lr=args.lr, seed=args.seed, val_every=args.val_every
+        steps=args.steps,
+        batch_scenes=args.batch,
+        lr=args.lr,
+        seed=args.seed,
+        val_every=args.val_every,
+        val_windows=args.val_windows,
     )
     note = f"train {' + '.join(specs)} ({len(train_scenes)} scenes), val {args.val}, variant {args.variant}"
     record = train(train_scenes, val_scenes, model_config, config, args.out, data_note=note)
+    if record["rank"] != 0:
+        return 0
     print(
         f"trained {record['steps']} steps in {record['wall_s']:.0f} s: "
-        f"train loss {record['final_train_loss']:.4f}, val loss {record['final_val_loss']:.4f}; checkpoint in {args.out}"
+        f"train loss {record['final_train_loss']:.4f}, val loss {record['final_val_loss']:.4f}; "
+        f"checkpoint in {args.out}"
     )
     return 0

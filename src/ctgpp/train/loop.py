@@ -90,7 +90,10 @@ def train(
     data_note: str = "",
     progress: bool = True,
 ) -> dict[str, Any]:
-    """Train (or resume training in ``out``) and write the checkpoint, curve and record there."""
+    """Train (or resume training in ``out``) and write the checkpoint, curve and record there.
+
+    Returns the training record; under torchrun only process 0's (``rank`` 0) holds the history.
+    """
     rank, world = _world()
     device = _device(rank)
     torch.manual_seed(config.seed)
@@ -147,7 +150,7 @@ def train(
             if world > 1:
                 dist.barrier()
     bar.close()
-    record = _record(config, state, data_note, sizes)
+    record = {**_record(config, state, data_note, sizes), "rank": rank}
     if dist.is_initialized():
         dist.destroy_process_group()
     return record
