@@ -1,0 +1,1 @@
+"""Guidance: differentiable losses that steer the sampler, the rules library and helpers."""

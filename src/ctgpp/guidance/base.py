@@ -1,0 +1,51 @@
+"""The guidance-loss contract of the paper's LLM API (DESIGN.md, Guided sampling), and its registry.
+
+A guidance loss is a ``torch.nn.Module`` whose ``forward(x, data_batch, agt_mask=None)`` takes
+x of shape (B, N, T, 6): B vehicles (the controlled vehicles in displayed order: row i is
+"vehicle i"), N samples, T future steps of 0.1 s, channels (x, y, vel, yaw, acc, yawvel) in each
+vehicle's own current frame; and returns a differentiable cost of shape (B, N) (per vehicle) or (N)
+(per sample, for rules that couple vehicles). Lower is better. ``data_batch`` is whatever the
+sampler passes (a :class:`ctgpp.guidance.context.GuidanceBatch`); loss code only hands it on to the
+helpers. ``agt_mask`` (B,) bool, when given, selects the vehicles the loss applies to.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, ClassVar
+
+from torch import Tensor, nn
+
+
+class GuidanceLoss(nn.Module):
+    """Base class of every guidance loss: rules of the library, compiled queries, generated code.
+
+    ``couples_agents`` is True when the cost depends on several vehicles jointly (collision,
+    keep distance): filtration then keeps one sample index for the whole scene.
+    """
+
+    couples_agents: ClassVar[bool] = False
+
+    def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
+        raise NotImplementedError
+
+
+LossFactory = Callable[..., GuidanceLoss]
+_REGISTRY: dict[str, LossFactory] = {}
+
+
+def register_loss(name: str) -> Callable[[LossFactory], LossFactory]:
+    """Register a loss class (or factory) under ``name``; a name may be registered once."""
+
+    def decorator(factory: LossFactory) -> LossFactory:
+        if name in _REGISTRY:
+            raise ValueError(f"guidance loss {name!r} is already registered")
+        _REGISTRY[name] = factory
+        return factory
+
+    return decorator
+
+
+def registered_losses() -> dict[str, LossFactory]:
+    """Name -> factory of every registered loss (a copy)."""
+    return dict(_REGISTRY)

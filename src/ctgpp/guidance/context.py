@@ -1,0 +1,154 @@
+"""What guidance losses see of a scene: :class:`GuidanceBatch`, the ``data_batch`` of the paper's API.
+
+The sampler builds one batch per re-plan with :func:`build_guidance_batch` and passes it to every
+loss; loss code (library rules, compiled queries, generated programs) only hands it on to the
+helpers of :mod:`ctgpp.guidance.helpers`. All tensors are float32 in a *local world frame*: world
+metres minus ``origin`` (the first controlled vehicle's current position, float64), so that small
+motions keep their precision in float32; yaws are world yaws (rad).
+"""
+
+from __future__ import annotations
+
+import weakref
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ctgpp.scene.types import DrivableArea, Scene
+from ctgpp.sim.policy import Observation
+
+
+@dataclass(frozen=True, eq=False)
+class GuidanceBatch:
+    """One scene at one re-plan step, as the guidance losses see it.
+
+    B = controlled vehicles (row i is "vehicle i" of the displayed numbering), O = replayed agents
+    (everything not controlled: pedestrians, cyclists, static objects, vehicles that appear later),
+    T = future steps (``future_steps``, steps ``step + 1 … step + T``).
+
+    pose: (B, 3) current x m, y m (local world frame), world yaw rad. speed: (B,) m/s.
+    extent: (B, 2) length, width m. agent_index: (B,) numpy indices into ``scene.agents``.
+    obstacles_xy: (O, T, 2) m local world frame, logged future. obstacles_yaw: (O, T) rad.
+    obstacles_extent: (O, 2) m. obstacles_valid: (O, T) bool. obstacles_index: (O,) numpy.
+    sdf: (H, W) signed distance to the drivable boundary, m, positive off-road; cell (r, c) centre is
+    ``sdf_origin + ((c + 0.5), (r + 0.5)) · sdf_resolution_m`` (local world frame).
+    lane_points: (P, 2) all lane centerline points, local world frame; lane_offsets: (L + 1,)
+    numpy, lane i is ``lane_points[lane_offsets[i]:lane_offsets[i + 1]]``.
+    scene, step, origin (2,) float64: for non-differentiable lane-graph lookups (world = local +
+    origin). dt_s: step length s. ``memo`` caches per-batch lane choices of the helpers.
+    """
+
+    scene: Scene
+    step: int
+    origin: np.ndarray
+    agent_index: np.ndarray
+    pose: Tensor
+    speed: Tensor
+    extent: Tensor
+    obstacles_index: np.ndarray
+    obstacles_xy: Tensor
+    obstacles_yaw: Tensor
+    obstacles_extent: Tensor
+    obstacles_valid: Tensor
+    sdf: Tensor
+    sdf_origin: Tensor
+    sdf_resolution_m: float
+    lane_points: Tensor
+    lane_offsets: np.ndarray
+    dt_s: float
+    future_steps: int
+    memo: dict[Any, Any] = field(default_factory=dict, repr=False, compare=False)
+
+    @property
+    def num_vehicles(self) -> int:
+        return int(self.pose.shape[0])
+
+    @property
+    def num_obstacles(self) -> int:
+        return int(self.obstacles_xy.shape[0])
+
+    @property
+    def device(self) -> torch.device:
+        return self.pose.device
+
+    def to(self, device: torch.device | str) -> GuidanceBatch:
+        """A copy with every tensor on ``device`` (lane choices are recomputed there)."""
+        moved = {
+            name: getattr(self, name).to(device)
+            for name in (
+                "pose", "speed", "extent", "obstacles_xy", "obstacles_yaw", "obstacles_extent",
+                "obstacles_valid", "sdf", "sdf_origin", "lane_points",
+            )
+        }
+        return replace(self, memo={}, **moved)
+
+    def to_world(self, xy_local: np.ndarray) -> np.ndarray:
+        """(..., 2) local world frame -> (..., 2) scene world metres (float64)."""
+        return np.asarray(xy_local, dtype=np.float64) + self.origin
+
+    def to_local(self, xy_world: np.ndarray) -> np.ndarray:
+        """(..., 2) scene world metres -> (..., 2) local world frame (float64)."""
+        return np.asarray(xy_world, dtype=np.float64) - self.origin
+
+
+_SDF_CACHE: weakref.WeakKeyDictionary[DrivableArea, Tensor] = weakref.WeakKeyDictionary()
+
+
+def _sdf_tensor(drivable: DrivableArea) -> Tensor:
+    """The drivable area's SDF as a float32 tensor, computed once per DrivableArea."""
+    sdf = _SDF_CACHE.get(drivable)
+    if sdf is None:
+        sdf = torch.from_numpy(np.ascontiguousarray(drivable.sdf_m, dtype=np.float32))
+        _SDF_CACHE[drivable] = sdf
+    return sdf
+
+
+def build_guidance_batch(obs: Observation, future_steps: int = 52) -> GuidanceBatch:
+    """The guidance view of an observation: current states of the controlled vehicles (from the
+    simulated past in ``obs.tracks``), the logged future of every other agent (what replay will do,
+    from ``obs.scene.agents``), the drivable SDF and the lanes, in the local world frame."""
+    scene, step, idx = obs.scene, obs.step, np.asarray(obs.controlled, dtype=np.int64)
+    tr = obs.tracks
+    origin = tr.xy[idx[0], step].astype(np.float64) if len(idx) else np.zeros(2)
+
+    def f32(a: np.ndarray) -> Tensor:
+        return torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))
+
+    pose = np.concatenate([tr.xy[idx, step] - origin, tr.yaw[idx, step][:, None]], axis=-1)  # (B, 3)
+
+    log = scene.agents
+    steps = np.arange(step + 1, step + 1 + future_steps)
+    inside = steps < log.num_steps
+    t = np.clip(steps, 0, log.num_steps - 1)
+    others = np.ones(log.num_agents, dtype=bool)
+    others[idx] = False
+    others &= (log.valid[:, t] & inside[None]).any(axis=1)  # (A,): present at some future step
+    obst = np.flatnonzero(others)
+    obst_valid = log.valid[obst][:, t] & inside[None]  # (O, T)
+    obst_xy = np.where(obst_valid[..., None], log.xy[obst][:, t] - origin, 0.0)  # (O, T, 2)
+
+    drivable = scene.drivable
+    return GuidanceBatch(
+        scene=scene,
+        step=step,
+        origin=origin,
+        agent_index=idx,
+        pose=f32(pose),
+        speed=f32(tr.speed[idx, step]),
+        extent=f32(tr.extent[idx]),
+        obstacles_index=obst,
+        obstacles_xy=f32(obst_xy),
+        obstacles_yaw=f32(log.yaw[obst][:, t]),
+        obstacles_extent=f32(log.extent[obst]),
+        obstacles_valid=torch.from_numpy(obst_valid),
+        sdf=_sdf_tensor(drivable),
+        sdf_origin=f32(np.asarray(drivable.origin_xy, dtype=np.float64) - origin),
+        sdf_resolution_m=float(drivable.resolution_m),
+        lane_points=f32(scene.lanes.points - origin),
+        lane_offsets=np.asarray(scene.lanes.offsets),
+        dt_s=float(scene.dt_s),
+        future_steps=future_steps,
+    )
