@@ -211,3 +211,14 @@ def test_a_few_adam_steps_lower_the_training_loss(batch: SceneBatch) -> None:
         loss.backward()
         opt.step()
     assert eval_loss() < 0.7 * before
+
+
+def test_context_encoded_once_and_expanded_matches_a_repeated_batch(scene_0103: Scene) -> None:
+    window = build_window(scene_0103, 40)
+    model = make_model()
+    x = torch.randn(3, window.num_agents, 52, 2, generator=torch.Generator().manual_seed(3))
+    k = torch.tensor([5, 50, 90])
+    with torch.no_grad():
+        repeated = model(x, k, collate([window] * 3))
+        expanded = model(x, k, collate([window]), model.encode_context(collate([window])).expand(3))
+    torch.testing.assert_close(expanded, repeated)

@@ -1,1 +1,27 @@
-"""Guidance: differentiable losses that steer the sampler, the rules library and helpers."""
+"""Guidance: differentiable losses that steer the sampler, the rules library and helpers.
+
+- :mod:`~ctgpp.guidance.base`: the paper's loss contract and the registry.
+- :mod:`~ctgpp.guidance.context`: :class:`GuidanceBatch`, the ``data_batch`` losses receive.
+- :mod:`~ctgpp.guidance.helpers`: the paper's six helpers; :mod:`~ctgpp.guidance.lane_helpers`: the
+  map-aware ones (adjacent / rightmost lanes, next intersection, turns).
+- :mod:`~ctgpp.guidance.rules`: the rules library; :mod:`~ctgpp.guidance.composite`: "and" of
+  weighted losses, ``make_loss`` by name, ``describe_rules``.
+"""
+
+import ctgpp.guidance.rules_map  # noqa: F401  (registers the map-aware and relative rules)
+from ctgpp.guidance.base import GuidanceLoss, register_loss, registered_losses
+from ctgpp.guidance.composite import CompositeLoss, ParamInfo, RuleInfo, describe_rules, make_loss
+from ctgpp.guidance.context import GuidanceBatch, build_guidance_batch
+
+__all__ = [
+    "CompositeLoss",
+    "GuidanceBatch",
+    "GuidanceLoss",
+    "ParamInfo",
+    "RuleInfo",
+    "build_guidance_batch",
+    "describe_rules",
+    "make_loss",
+    "register_loss",
+    "registered_losses",
+]

@@ -8,7 +8,7 @@ pre-norm residuals. The network predicts the clean normalized actions (x0-predic
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import torch
 from torch import Tensor, nn
@@ -40,6 +40,18 @@ class DenoiserContext:
     spatial_mask: Tensor
     lane_tokens: Tensor
     lane_valid: Tensor
+
+    def expand(self, n: int) -> DenoiserContext:
+        """The context of a one-scene batch repeated for ``n`` samples: (1, ...) -> (n, ...) views.
+
+        Encoding once and expanding saves n − 1 encodings of the same scene (history, edges, lanes).
+        """
+        return DenoiserContext(
+            **{
+                f.name: getattr(self, f.name).expand(n, *getattr(self, f.name).shape[1:])
+                for f in fields(self)
+            }
+        )
 
 
 class Block(nn.Module):

@@ -1,4 +1,5 @@
-"""The CTG++ policy: joint diffusion sampling of every controlled vehicle's next 5.2 s (unguided)."""
+"""The CTG++ policy: joint diffusion sampling of every controlled vehicle's next 5.2 s, optionally
+guided by a rule (paper §3.4, Algorithm 2) with filtration among the N samples."""
 
 from __future__ import annotations
 
@@ -7,12 +8,16 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from torch import Tensor
 
 from ctgpp.data.batch import collate
 from ctgpp.data.windows import WindowConfig, build_window
-from ctgpp.diffusion import CosineSchedule, DDIMSampler, DDPMSampler, Sampler, sample
+from ctgpp.diffusion import CosineSchedule, DDIMSampler, DDPMSampler, Sampler
+from ctgpp.diffusion.guided import GuidanceConfig, action_trajectories, filtration, guided_sample
 from ctgpp.dynamics import clip_actions, rollout
 from ctgpp.geometry import local_to_world
+from ctgpp.guidance.base import GuidanceLoss
+from ctgpp.guidance.context import build_guidance_batch
 from ctgpp.model.checkpoint import load_checkpoint
 from ctgpp.model.denoiser import Denoiser
 from ctgpp.sim.policy import Observation, Plan
@@ -34,51 +39,109 @@ class SamplingConfig:
         raise ValueError(f"unknown sampler {self.sampler!r} (ddim or ddpm)")
 
 
+@dataclass(frozen=True, eq=False)
+class PlanSamples:
+    """The N joint samples of one re-plan.
+
+    actions: (N, V, F, 2) acceleration m/s², yaw rate rad/s (clipped to the bounds). current: (V, 4)
+    current states (0, 0, v, 0) in each vehicle's frame. trajectories: (V, N, F, 6) the guidance
+    contract's x. loss: the guidance loss of each sample, (V, N) or (N), None when unguided.
+    chosen: (V,) the sample each vehicle executes (filtration; all 0 when unguided).
+    """
+
+    actions: Tensor
+    current: Tensor
+    trajectories: Tensor
+    loss: Tensor | None
+    chosen: Tensor
+
+
 class DiffusionPolicy:
     """Samples N joint futures of all controlled vehicles from the scene-level denoiser.
 
-    Unguided, every sample is a plausible future; the first is executed. (Guided sampling and
-    filtration among the N samples come with the rules.)
+    Unguided, every sample is a plausible future and the first is executed. With a ``guidance``
+    loss, sampling follows Algorithm 2 (``guidance_config``) and filtration picks, per vehicle or for
+    the whole scene when the loss couples vehicles, the sample with the lowest loss.
     """
 
     name = "ctgpp"
     hold_stationary = True
 
-    def __init__(self, model: Denoiser, sampling: SamplingConfig = SamplingConfig()) -> None:
+    def __init__(
+        self,
+        model: Denoiser,
+        sampling: SamplingConfig = SamplingConfig(),
+        guidance: GuidanceLoss | None = None,
+        guidance_config: GuidanceConfig = GuidanceConfig(),
+    ) -> None:
         self.model = model.eval()
         self.sampling = sampling
+        self.guidance = guidance
+        self.guidance_config = guidance_config
         cfg = model.config
         self.schedule = CosineSchedule(cfg.diffusion_steps, cfg.cosine_s)
         self.sampler = sampling.make(self.schedule)
 
     @classmethod
-    def from_checkpoint(cls, path: Path, sampling: SamplingConfig = SamplingConfig()) -> DiffusionPolicy:
+    def from_checkpoint(
+        cls,
+        path: Path,
+        sampling: SamplingConfig = SamplingConfig(),
+        guidance: GuidanceLoss | None = None,
+        guidance_config: GuidanceConfig = GuidanceConfig(),
+    ) -> DiffusionPolicy:
         model, _, _ = load_checkpoint(path)
-        return cls(model, sampling)
+        return cls(model, sampling, guidance, guidance_config)
 
-    @torch.inference_mode()
-    def sample_actions(self, obs: Observation) -> tuple[np.ndarray, np.ndarray]:
-        """N sampled action trajectories (N, V, F, 2) and the current states (V, 4) in agent frames."""
+    @torch.no_grad()
+    def sample_plans(self, obs: Observation) -> PlanSamples:
+        """Sample N joint futures (guided when the policy has a loss) and choose one per vehicle.
+
+        The denoiser runs without gradients; only the guidance steps enable them (no inference mode,
+        whose tensors autograd refuses).
+        """
         cfg = self.model.config
         windows = WindowConfig(cfg.history_steps, cfg.future_steps, max_agents=len(obs.controlled))
         seen = replace(obs.scene, agents=obs.tracks)  # the simulated past, never the logged future
         window = build_window(seen, obs.step, windows, agent_index=obs.controlled)
-        n = self.sampling.num_samples
+        n, v = self.sampling.num_samples, window.num_agents
         batch = collate([window] * n)  # (N, V, ...): the samples share one scene
         context = self.model.encode_context(batch)
         gen = torch.Generator().manual_seed(int(obs.rng.integers(2**31)))
+        current = batch.hist[0, :, -1]  # (V, 4)
+        normalizer = self.model.normalizer
 
-        def denoise(x: torch.Tensor, k: int) -> torch.Tensor:
+        def denoise(x: Tensor, k: int) -> Tensor:
             return self.model(x, torch.full((n,), k, dtype=torch.long), batch, context)
 
-        x0 = sample(denoise, (n, window.num_agents, cfg.future_steps, 2), self.sampler, gen)
-        actions = clip_actions(self.model.normalizer.denormalize_actions(x0))
-        return actions.numpy(), window.hist[:, -1]
+        objective = None
+        if self.guidance is not None:
+            loss_fn, data_batch = self.guidance, build_guidance_batch(obs, cfg.future_steps)
+
+            def objective(x: Tensor) -> Tensor:  # normalized actions (N, V, F, 2) -> loss
+                traj = action_trajectories(normalizer.denormalize_actions(x), current, cfg.dt_s)
+                return loss_fn(traj, data_batch)
+
+        shape = (n, v, cfg.future_steps, 2)
+        x0 = guided_sample(denoise, shape, self.sampler, objective, self.guidance_config, gen)
+        actions = clip_actions(normalizer.denormalize_actions(x0))  # (N, V, F, 2)
+        traj = action_trajectories(actions, current, cfg.dt_s)  # (V, N, F, 6)
+        if objective is None:
+            return PlanSamples(actions, current, traj, None, torch.zeros(v, dtype=torch.long))
+        loss = objective(x0)
+        chosen = filtration(loss, bool(self.guidance.couples_agents), v)
+        return PlanSamples(actions, current, traj, loss, chosen)
+
+    def sample_actions(self, obs: Observation) -> tuple[np.ndarray, np.ndarray]:
+        """N sampled action trajectories (N, V, F, 2) and the current states (V, 4) in agent frames."""
+        samples = self.sample_plans(obs)
+        return samples.actions.numpy(), samples.current.numpy()
 
     def plan(self, obs: Observation) -> Plan:
-        actions, current = self.sample_actions(obs)
-        chosen = torch.from_numpy(actions[0]).double()  # (V, F, 2)
-        local = rollout(torch.from_numpy(current).double(), chosen, obs.scene.dt_s).numpy()  # (V, F, 4)
+        samples = self.sample_plans(obs)
+        v = samples.chosen.shape[0]
+        chosen = samples.actions[samples.chosen, torch.arange(v)].double()  # (V, F, 2)
+        local = rollout(samples.current.double(), chosen, obs.scene.dt_s).numpy()  # (V, F, 4)
         tr, idx, step = obs.tracks, obs.controlled, obs.step
         xy = local_to_world(local[..., :2], tr.xy[idx, step][:, None], tr.yaw[idx, step][:, None])
         yaw = local[..., 3] + tr.yaw[idx, step][:, None]

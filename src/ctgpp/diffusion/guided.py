@@ -1,0 +1,137 @@
+"""Guided sampling (paper §3.4, Algorithm 2) and filtration among the N samples.
+
+At every denoising step k the sampler's posterior mean μ of x_{k−1} is moved by W inner Adam steps
+on the guidance loss J, evaluated on the dynamics rollout of μ taken as clean actions; the total
+change is clipped to ±r_k (Algorithm 2, line 9); then x_{k−1} = μ + σ_k·noise as in plain sampling.
+
+The clip radius r_k. The paper (DDPM) clips to the posterior standard deviation σ_k. That is zero at
+the last step (k = 0) and at every step of deterministic DDIM (η = 0), which would switch guidance
+off. So r_k is the *ancestral* standard deviation of the transition k → k_prev that the sampler
+takes, sqrt((1 − ᾱ_prev) / (1 − ᾱ_k) · (1 − ᾱ_k / ᾱ_prev)): for DDPM exactly σ_k, for DDIM the
+η = 1 value of the same (larger) step. At the last step, where that radius is zero, the radius of the
+step visited just before is used — for DDPM this is σ_1, the "clipped log variance" convention of
+the reference implementation — so the paper's guidance at every step, the last included, is kept.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ctgpp.diffusion.schedule import Sampler, randn_like
+from ctgpp.dynamics import clip_actions, rollout
+
+Objective = Callable[[Tensor], Tensor]
+
+
+@dataclass(frozen=True)
+class GuidanceConfig:
+    """Algorithm 2's settings: ``inner_steps`` (W) Adam steps of learning rate ``lr`` per denoising step.
+
+    guide_from_step: guide only at diffusion steps k ≤ this value (None: at every step, as the paper).
+    """
+
+    inner_steps: int = 1
+    lr: float = 0.3
+    guide_from_step: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.inner_steps < 0 or self.lr <= 0:
+            raise ValueError(f"inner_steps must be ≥ 0 and lr positive, got {self.inner_steps}, {self.lr}")
+
+
+def clip_radii(sampler: Sampler) -> dict[int, float]:
+    """The clip radius r_k of each of ``sampler``'s timesteps (module docstring), in units of x."""
+    abar = sampler.schedule.alphas_cumprod
+    steps = sampler.timesteps
+    radii: dict[int, float] = {}
+    last = 0.0
+    for k, prev in zip(steps, steps[1:] + [-1], strict=True):
+        a_k = float(abar[k])
+        a_prev = float(abar[prev]) if prev >= 0 else 1.0
+        r = max((1 - a_prev) / (1 - a_k) * (1 - a_k / a_prev), 0.0) ** 0.5
+        radii[k] = r if r > 0 else last
+        last = radii[k]
+    return radii
+
+
+def guide_mean(mean: Tensor, objective: Objective, radius: float, config: GuidanceConfig) -> Tensor:
+    """Algorithm 2, lines 6–9: W Adam steps on J(μ + δ), δ clipped to ±radius; returns μ + δ.
+
+    ``objective`` maps a tensor shaped like ``mean`` to the loss (any shape; its sum is minimized:
+    samples are independent, so the gradient of the sum is each sample's own). No gradient reaches
+    ``mean`` or anything it was computed from.
+    """
+    base = mean.detach()
+    delta = torch.zeros_like(base, requires_grad=True)
+    optimizer = torch.optim.Adam([delta], lr=config.lr)
+    with torch.enable_grad():
+        for _ in range(config.inner_steps):
+            optimizer.zero_grad(set_to_none=True)
+            loss = objective(base + delta).sum()
+            loss.backward()
+            if delta.grad is not None:
+                delta.grad = torch.nan_to_num(delta.grad, nan=0.0, posinf=0.0, neginf=0.0)
+            optimizer.step()
+            with torch.no_grad():
+                delta.clamp_(-radius, radius)  # line 9: clip the change to ±σ_k
+    return base + delta.detach()
+
+
+def guided_sample(
+    denoise_fn: Callable[[Tensor, int], Tensor],
+    shape: tuple[int, ...],
+    sampler: Sampler,
+    objective: Objective | None,
+    config: GuidanceConfig = GuidanceConfig(),
+    generator: torch.Generator | None = None,
+    device: torch.device | str = "cpu",
+) -> Tensor:
+    """Ancestral sampling with guidance (Algorithm 2): x_K ~ N(0, I), then per timestep k
+    x̂_0 = denoise(x_k, k), (μ, σ) = sampler.prev_mean_std, μ ← guide_mean(μ), x_{k−1} = μ + σ·noise.
+
+    With ``objective`` None (or W = 0) this draws exactly the same noise and returns exactly what
+    :func:`ctgpp.diffusion.sample` returns for the same generator. Works with DDPM and DDIM.
+    """
+    radii = clip_radii(sampler)
+    x = randn_like(torch.empty(shape, device=device), generator)
+    for k in sampler.timesteps:
+        x0_pred = denoise_fn(x, k)
+        mean, std = sampler.prev_mean_std(x0_pred, x, k)
+        guided = config.guide_from_step is None or k <= config.guide_from_step
+        if objective is not None and config.inner_steps > 0 and guided:
+            mean = guide_mean(mean, objective, radii[k], config)
+        x = mean + std * randn_like(mean, generator)
+    return x
+
+
+def action_trajectories(actions: Tensor, current: Tensor, dt_s: float) -> Tensor:
+    """The guidance contract's x from sampled actions.
+
+    actions (N, V, F, 2) acceleration m/s², yaw rate rad/s (denormalized; clipped here to the action
+    bounds); current (V, 4) each vehicle's current state (0, 0, v, 0) in its own frame.
+    Returns (V, N, F, 6): (x m, y m, vel m/s, yaw rad, acc m/s², yawvel rad/s) in each vehicle's frame.
+    """
+    acts = clip_actions(actions)
+    states = rollout(current[None].to(acts.dtype), acts, dt_s)  # (N, V, F, 4)
+    x = torch.cat([states, acts], dim=-1)  # (N, V, F, 6)
+    return x.transpose(0, 1)  # (N, V, F, 6) -> (V, N, F, 6)
+
+
+def filtration(loss: Tensor, couples_agents: bool, num_vehicles: int) -> Tensor:
+    """Which sample each vehicle keeps (paper §3.4): (V,) long indices into the N samples.
+
+    loss (B, N) per vehicle and sample, or (N) per sample. One index for the whole scene — the
+    argmin of the per-sample total — when the loss couples vehicles or has no vehicle axis; else the
+    argmin over N per vehicle. NaN losses never win.
+    """
+    loss = torch.nan_to_num(loss.detach(), nan=float("inf"))
+    if loss.ndim == 1 or couples_agents:
+        total = loss if loss.ndim == 1 else loss.sum(dim=0)  # (N,)
+        return torch.full((num_vehicles,), int(torch.argmin(total)), dtype=torch.long)
+    if loss.shape[0] != num_vehicles:
+        raise ValueError(f"loss has {loss.shape[0]} vehicle rows, expected {num_vehicles}")
+    return torch.argmin(loss, dim=1)  # (B, N) -> (B,)

@@ -1,0 +1,98 @@
+"""Shared pieces of the rules library: vehicle arguments, world positions, vehicle discs, SDF sampling."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import ClassVar
+
+import torch
+from torch import Tensor
+
+from ctgpp.guidance.base import GuidanceLoss
+from ctgpp.guidance.context import GuidanceBatch
+from ctgpp.guidance.helpers import transform_coord_agents_to_world
+
+NUM_DISCS = 3  # discs along a vehicle's length for collision and off-road checks
+
+
+class Rule(GuidanceLoss):
+    """A loss of the rules library. ``param_doc`` maps constructor parameters to (unit, help) for
+    ``ctgpp rules``; the class docstring's first paragraph is the rule's description."""
+
+    param_doc: ClassVar[dict[str, tuple[str, str]]] = {}
+
+
+def as_list(value: int | float | Sequence[int] | Sequence[float]) -> list:
+    """A scalar or a sequence as a list."""
+    return list(value) if isinstance(value, Sequence) and not isinstance(value, str) else [value]
+
+
+def check_vehicle(i: int, data_batch: GuidanceBatch | None, num_vehicles: int) -> int:
+    """Validate a displayed vehicle number against the B vehicles of x; returns it."""
+    if not 0 <= int(i) < num_vehicles:
+        raise IndexError(f"vehicle {i} does not exist: this scene has vehicles 0-{num_vehicles - 1}")
+    return int(i)
+
+
+def apply_mask(cost: Tensor, agt_mask: Tensor | None) -> Tensor:
+    """Zero the (B, N) cost of vehicles outside ``agt_mask`` (B,) bool."""
+    if agt_mask is None:
+        return cost
+    return cost * agt_mask.to(cost.device, cost.dtype)[:, None]
+
+
+def world_states(x: Tensor, data_batch: GuidanceBatch) -> tuple[Tensor, Tensor]:
+    """x (B, N, T, 6) in agent frames -> world positions (B, N, T, 2) m and yaws (B, N, T) rad."""
+    pos, yaw = transform_coord_agents_to_world(x[..., :2], x[..., 3:4], data_batch)
+    return pos, yaw[..., 0]
+
+
+def disc_layout(extent: Tensor) -> tuple[Tensor, Tensor]:
+    """Discs covering boxes of extent (..., 2) length, width m: centre offsets along the length
+    (..., D) m and the common radius (...) m, D = NUM_DISCS equal sections each covered by a disc."""
+    length, width = extent[..., 0].clamp_min(0.1), extent[..., 1].clamp_min(0.1)
+    frac = (torch.arange(NUM_DISCS, dtype=extent.dtype, device=extent.device) + 0.5) / NUM_DISCS - 0.5
+    offsets = length[..., None] * frac  # (..., D)
+    radius = torch.sqrt((length / (2 * NUM_DISCS)) ** 2 + (width / 2) ** 2)
+    return offsets, radius
+
+
+def disc_centres(pos: Tensor, yaw: Tensor, offsets: Tensor) -> Tensor:
+    """Disc centres (..., D, 2) of boxes at pos (..., 2), yaw (...) with offsets (..., D) m, where the
+    leading dimensions of ``offsets`` broadcast against ``pos``'s."""
+    heading = torch.stack([torch.cos(yaw), torch.sin(yaw)], dim=-1)  # (..., 2)
+    return pos[..., None, :] + offsets[..., None] * heading[..., None, :]
+
+
+def time_weights(num_steps: int, decay: float, like: Tensor) -> Tensor:
+    """(T,) weights decay**t, normalized to sum 1 (decay 1 weighs every step equally)."""
+    w = decay ** torch.arange(num_steps, dtype=like.dtype, device=like.device)
+    return w / w.sum()
+
+
+def sample_sdf(data_batch: GuidanceBatch, xy: Tensor) -> Tensor:
+    """Bilinear sample of the drivable SDF (m, positive off-road) at local-world points (..., 2);
+    differentiable w.r.t. ``xy``. Points beyond the raster take the border values."""
+    sdf = data_batch.sdf.to(xy.device, xy.dtype)
+    h, w = sdf.shape
+    cr = (xy - data_batch.sdf_origin.to(xy)) / data_batch.sdf_resolution_m - 0.5  # (..., 2) col, row
+    c = cr[..., 0].clamp(0.0, w - 1.0)
+    r = cr[..., 1].clamp(0.0, h - 1.0)
+    c0 = c.detach().floor().clamp(max=w - 2).long()
+    r0 = r.detach().floor().clamp(max=h - 2).long()
+    fc, fr = c - c0, r - r0  # (...) fractions, differentiable
+    v00, v01 = sdf[r0, c0], sdf[r0, c0 + 1]
+    v10, v11 = sdf[r0 + 1, c0], sdf[r0 + 1, c0 + 1]
+    top = v00 * (1 - fc) + v01 * fc
+    bottom = v10 * (1 - fc) + v11 * fc
+    return top * (1 - fr) + bottom * fr
+
+
+def soft_abs(v: Tensor, eps: float = 1e-3) -> Tensor:
+    """|v| smoothed at zero: sqrt(v² + eps²) - eps."""
+    return torch.sqrt(v * v + eps * eps) - eps
+
+
+def finite_or(value: float, default: float) -> float:
+    return value if math.isfinite(value) else default

@@ -1,0 +1,171 @@
+"""Rules that couple vehicles (``couples_agents``): no collision, keep distance, collide.
+
+They return one cost per sample (N) — the sum over the vehicles involved — so that filtration keeps
+one sample index for the whole scene. Vehicle arguments are displayed numbers (rows of x).
+"""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+import torch
+from torch import Tensor
+
+from ctgpp.guidance.base import register_loss
+from ctgpp.guidance.context import GuidanceBatch
+from ctgpp.guidance.rules_common import (
+    Rule,
+    check_vehicle,
+    disc_centres,
+    disc_layout,
+    time_weights,
+    world_states,
+)
+
+
+def _penetration(a: Tensor, ra: Tensor, b: Tensor, rb: Tensor, buffer_m: float) -> Tensor:
+    """Hinged overlap (m) of disc sets: a (..., Da, 2), ra (...), b (..., Db, 2), rb (...) -> (...),
+    the largest over disc pairs of max(ra + rb + buffer - distance, 0)."""
+    d = torch.sqrt(((a[..., :, None, :] - b[..., None, :, :]) ** 2).sum(-1) + 1e-6)  # (..., Da, Db)
+    pen = torch.relu((ra + rb + buffer_m)[..., None, None] - d)
+    return pen.flatten(-2).max(-1).values
+
+
+@register_loss("no_collision")
+class NoCollision(Rule):
+    """No vehicle collides with another vehicle or with a replayed agent (pedestrians, cyclists,
+    static objects, vehicles not controlled): each box is covered by 3 discs along its length; the
+    cost is the overlap (m) of the closest disc pair plus ``buffer_m``, hinged at zero, weighted by
+    ``decay``**t over the horizon (normalized), summed over vehicles and obstacles."""
+
+    couples_agents: ClassVar[bool] = True
+    param_doc = {
+        "buffer_m": ("m", "extra clearance required between discs"),
+        "decay": ("per step", "weight of step t is decay**t: near-term collisions matter more"),
+    }
+
+    def __init__(self, buffer_m: float = 0.2, decay: float = 0.95) -> None:
+        super().__init__()
+        self.buffer_m = float(buffer_m)
+        self.decay = float(decay)
+
+    def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
+        n_b, _, n_t, _ = x.shape
+        pos, yaw = world_states(x, data_batch)  # (B, N, T, 2), (B, N, T)
+        offsets, radius = disc_layout(data_batch.extent.to(x))  # (B, D), (B,)
+        discs = disc_centres(pos, yaw, offsets[:, None, None])  # (B, N, T, D, 2)
+        w = time_weights(n_t, self.decay, x)  # (T,)
+        # vehicle pairs: (B, 1, N, T, D, 2) against (1, B, N, T, D, 2)
+        pen = _penetration(
+            discs[:, None], radius[:, None, None, None], discs[None], radius[None, :, None, None],
+            self.buffer_m,
+        )  # (B, B, N, T)
+        pen = pen * (1 - torch.eye(n_b, dtype=x.dtype, device=x.device))[..., None, None]
+        if agt_mask is not None:
+            m = agt_mask.to(x)
+            pen = pen * torch.maximum(m[:, None], m[None, :])[..., None, None]
+        cost = 0.5 * (pen * w).sum((0, 1, 3))  # (N,): each pair counted once
+        return cost + self._obstacles(discs, radius, w, data_batch, x, agt_mask)
+
+    def _obstacles(
+        self, discs: Tensor, radius: Tensor, w: Tensor, data_batch: GuidanceBatch, x: Tensor,
+        agt_mask: Tensor | None,
+    ) -> Tensor:
+        """Penetration into the replayed agents, (N,)."""
+        if data_batch.num_obstacles == 0:
+            return x.new_zeros(x.shape[1])
+        n_t = x.shape[2]
+        o_xy = data_batch.obstacles_xy[:, :n_t].to(x)  # (O, T, 2)
+        o_valid = data_batch.obstacles_valid[:, :n_t].to(x.device)
+        o_off, o_rad = disc_layout(data_batch.obstacles_extent.to(x))  # (O, D), (O,)
+        near = _near_obstacles(discs, radius, o_xy, o_valid, o_off, o_rad, self.buffer_m)
+        if near.numel() == 0:
+            return x.new_zeros(x.shape[1])
+        o_xy, o_valid, o_off, o_rad = o_xy[near], o_valid[near], o_off[near], o_rad[near]
+        o_yaw = data_batch.obstacles_yaw[near, :n_t].to(x)
+        o_discs = disc_centres(o_xy, o_yaw, o_off[:, None])  # (O', T, D, 2)
+        # (B, 1, N, T, D, 2) against (1, O, 1, T, D, 2)
+        pen = _penetration(
+            discs[:, None], radius[:, None, None, None], o_discs[None, :, None],
+            o_rad[None, :, None, None], self.buffer_m,
+        )  # (B, O, N, T)
+        pen = pen * o_valid[None, :, None, :]
+        if agt_mask is not None:
+            pen = pen * agt_mask.to(x)[:, None, None, None]
+        return (pen * w).sum((0, 1, 3))
+
+
+def _near_obstacles(
+    discs: Tensor, radius: Tensor, o_xy: Tensor, o_valid: Tensor, o_off: Tensor, o_rad: Tensor,
+    buffer_m: float,
+) -> Tensor:
+    """Indices of the obstacles that some vehicle disc may overlap (a cheap bound on centre
+    distances, without gradient); the others contribute nothing."""
+    with torch.no_grad():
+        centre = discs.mean(-2)  # (B, N, T, 2)
+        reach_v = (discs - centre[..., None, :]).norm(dim=-1).amax(-1) + radius[:, None, None]  # (B, N, T)
+        reach_o = o_off.abs().amax(-1) + o_rad  # (O,)
+        d = (centre[:, None] - o_xy[None, :, None]).norm(dim=-1)  # (B, O, N, T)
+        close = (d < reach_v[:, None] + reach_o[None, :, None, None] + buffer_m) & o_valid[None, :, None]
+        return torch.nonzero(close.flatten(2).any(-1).any(0)).flatten()
+
+
+def _pair_distance(x: Tensor, data_batch: GuidanceBatch, a: int, b: int) -> Tensor:
+    """Centre distance (N, T) m between vehicles a and b over the horizon."""
+    pos, _ = world_states(x, data_batch)
+    return torch.sqrt(((pos[a] - pos[b]) ** 2).sum(-1) + 1e-6)
+
+
+@register_loss("keep_distance")
+class KeepDistance(Rule):
+    """The follower keeps its distance to the leader within [min_m, max_m] (centre to centre):
+    the mean over the horizon of how far (m) the distance lies outside that range."""
+
+    couples_agents: ClassVar[bool] = True
+    param_doc = {
+        "follower": ("", "displayed number of the following vehicle"),
+        "leader": ("", "displayed number of the leading vehicle"),
+        "min_m": ("m", "smallest allowed distance"),
+        "max_m": ("m", "largest allowed distance"),
+    }
+
+    def __init__(self, follower: int, leader: int, min_m: float = 10.0, max_m: float = 30.0) -> None:
+        super().__init__()
+        if follower == leader:
+            raise ValueError("follower and leader must be different vehicles")
+        if min_m > max_m:
+            raise ValueError(f"min_m ({min_m}) must not exceed max_m ({max_m})")
+        self.follower, self.leader = int(follower), int(leader)
+        self.min_m, self.max_m = float(min_m), float(max_m)
+
+    def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
+        a = check_vehicle(self.follower, data_batch, x.shape[0])
+        b = check_vehicle(self.leader, data_batch, x.shape[0])
+        d = _pair_distance(x, data_batch, a, b)  # (N, T)
+        return (torch.relu(self.min_m - d) + torch.relu(d - self.max_m)).mean(-1)
+
+
+@register_loss("collision")
+class Collision(Rule):
+    """Two vehicles collide: the smallest centre distance (m) between them over the horizon, hinged
+    at ``contact_m`` (centres closer than that count as a collision)."""
+
+    couples_agents: ClassVar[bool] = True
+    param_doc = {
+        "vehicle_a": ("", "displayed number of one vehicle"),
+        "vehicle_b": ("", "displayed number of the other vehicle"),
+        "contact_m": ("m", "centre distance that counts as a collision"),
+    }
+
+    def __init__(self, vehicle_a: int, vehicle_b: int, contact_m: float = 1.0) -> None:
+        super().__init__()
+        if vehicle_a == vehicle_b:
+            raise ValueError("a collision needs two different vehicles")
+        self.vehicle_a, self.vehicle_b = int(vehicle_a), int(vehicle_b)
+        self.contact_m = float(contact_m)
+
+    def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
+        a = check_vehicle(self.vehicle_a, data_batch, x.shape[0])
+        b = check_vehicle(self.vehicle_b, data_batch, x.shape[0])
+        d = _pair_distance(x, data_batch, a, b)  # (N, T)
+        return torch.relu(d.min(-1).values - self.contact_m)

@@ -1,0 +1,275 @@
+"""Map-aware rules the paper could not express (DESIGN.md, Language interface): lane changes, the
+rightmost lane, turns at the next intersection, lane following and cut-ins.
+
+Each rule picks a target centerline from the lane graph (:mod:`ctgpp.guidance.lane_paths`) and costs
+the signed lateral offset (m) of the vehicle's predicted positions from it, differentiably. A lane
+change, the rightmost lane and a turn are *committed*: the target lane is chosen at the first re-plan
+of an episode and kept for the rest of it (up to ``COMMIT_STEPS``), so a vehicle that has changed
+lanes is not asked to change again from its new lane. One loss instance serves one episode at a time
+(:meth:`CommittedLaneRule.reset` forgets the choices). Importing this module also registers the
+rules of :mod:`ctgpp.guidance.rules_relative`.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, ClassVar
+
+import numpy as np
+import torch
+from torch import Tensor
+
+import ctgpp.guidance.rules_relative  # noqa: F401  (registers the relative rules)
+from ctgpp.guidance.base import register_loss
+from ctgpp.guidance.context import GuidanceBatch
+from ctgpp.guidance.helpers import get_current_lane_projection
+from ctgpp.guidance.lane_helpers import lane_offset
+from ctgpp.guidance.lane_paths import (
+    get_adjacent_lane,
+    get_current_lane,
+    get_rightmost_lane,
+    get_turn_lane,
+    project_onto_polyline,
+)
+from ctgpp.guidance.rules_common import Rule, apply_mask, check_vehicle, soft_abs, world_states
+from ctgpp.guidance.rules_relative import relative_position
+from ctgpp.scene.lanes import lane_points_ahead, nearest_lane
+
+COMMIT_STEPS = 150  # a committed target lane is kept this many scene steps (15 s)
+EPISODE_REACH_S = 15.0  # committed target lanes reach this long ahead at 1.5x the current speed
+
+
+def signed_offset(points: Tensor, line: Tensor) -> Tensor:
+    """Signed lateral offset (...) m of points (..., 2) from a polyline (M, 2), left of its direction
+    positive; beyond the polyline's ends the end segments continue straight."""
+    foot, heading = project_onto_polyline(points, line)
+    rel = points - foot
+    return -torch.sin(heading) * rel[..., 0] + torch.cos(heading) * rel[..., 1]
+
+
+def ramp_weights(num_steps: int, dt_s: float, ramp_s: float, like: Tensor) -> Tensor:
+    """(T,) weights rising linearly to 1 over the first ``ramp_s`` seconds, normalized to sum 1:
+    a manoeuvre needs time, so its first steps count less."""
+    t = torch.arange(1, num_steps + 1, dtype=like.dtype, device=like.device) * dt_s
+    w = (t / max(ramp_s, 1e-6)).clamp(max=1.0)
+    return w / w.sum()
+
+
+def shifted(line: Tensor, offset_m: float) -> Tensor:
+    """The polyline (M, 2) moved ``offset_m`` to its left (negative: right)."""
+    seg = line[1:] - line[:-1]  # (M-1, 2)
+    tangent = torch.cat([seg[:1], seg[:-1] + seg[1:], seg[-1:]])  # (M, 2) per point
+    tangent = tangent / tangent.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+    normal = torch.stack([-tangent[:, 1], tangent[:, 0]], dim=-1)
+    return line + offset_m * normal
+
+
+def extended(data_batch: GuidanceBatch, line: Tensor, extra_m: float) -> Tensor:
+    """The polyline (M, 2), local world frame, continued ``extra_m`` further along the lanes ahead of
+    its end (straight on where no lane continues it)."""
+    end = line[-1].detach().cpu().double().numpy()
+    d = end - line[-2].detach().cpu().double().numpy()
+    heading = math.atan2(d[1], d[0])
+    proj = nearest_lane(data_batch.scene.lanes, data_batch.to_world(end), heading)
+    more = None if proj is None else lane_points_ahead(data_batch.scene.lanes, proj, extra_m, 2.0)
+    if more is None or len(more) < 2:
+        steps = np.arange(1, int(extra_m // 2.0) + 2)[:, None] * 2.0  # (K, 1) m
+        more = data_batch.to_world(end) + steps * np.array([math.cos(heading), math.sin(heading)])
+    tail = torch.as_tensor(data_batch.to_local(more[1:]), dtype=line.dtype, device=line.device)
+    return torch.cat([line, tail])
+
+
+def _one_row(x: Tensor, row: int, cost: Tensor) -> Tensor:
+    """(B, N) cost that is ``cost`` (N,) at row ``row`` and zero elsewhere."""
+    index = (torch.tensor([row], device=x.device),)
+    return x.new_zeros(x.shape[:2]).index_put(index, cost[None])
+
+
+class CommittedLaneRule(Rule):
+    """A per-vehicle rule toward a target lane chosen once per episode (see the module docstring).
+
+    Subclasses implement :meth:`choose` (the target polyline of the vehicle now, or None) and
+    :meth:`cost` ((N,) from the vehicle's world positions and the polyline)."""
+
+    ramp_s: ClassVar[float] = 3.0
+
+    def __init__(self, vehicle: int) -> None:
+        super().__init__()
+        self.vehicle = int(vehicle)
+        self._lines: dict[tuple[str, int], tuple[int, np.ndarray | None]] = {}
+
+    def reset(self) -> None:
+        """Forget the committed target lanes (before another episode)."""
+        self._lines.clear()
+
+    def choose(self, data_batch: GuidanceBatch, i: int) -> Tensor | None:
+        raise NotImplementedError
+
+    def target_line(self, data_batch: GuidanceBatch, i: int) -> Tensor | None:
+        """Vehicle i's committed target polyline (M, 2), local world frame, or None."""
+        key = (data_batch.scene.id, i)
+        hit = self._lines.get(key)
+        if hit is None or not 0 <= data_batch.step - hit[0] <= COMMIT_STEPS:
+            line = self.choose(data_batch, i)
+            world = None
+            if line is not None:
+                reach = min(30.0 + 1.5 * float(data_batch.speed[i]) * EPISODE_REACH_S, 400.0)
+                world = data_batch.to_world(extended(data_batch, line, reach).detach().cpu().numpy())
+            hit = self._lines[key] = (data_batch.step, world)
+        if hit[1] is None:
+            return None
+        local = data_batch.to_local(hit[1])
+        return torch.as_tensor(local, dtype=data_batch.pose.dtype, device=data_batch.device)
+
+    def cost(self, pos: Tensor, x_row: Tensor, line: Tensor, dt_s: float) -> Tensor:
+        """(N,) lateral offset cost of positions pos (N, T, 2) from ``line``, ramped over ``ramp_s``."""
+        w = ramp_weights(pos.shape[1], dt_s, self.ramp_s, pos)
+        return (soft_abs(signed_offset(pos, line)) * w).sum(-1)
+
+    def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
+        row = check_vehicle(self.vehicle, data_batch, x.shape[0])
+        line = self.target_line(data_batch, row)
+        if line is None:  # nothing to steer toward: zero cost, still part of the graph
+            return x[..., 0].sum(-1) * 0.0
+        pos, _ = world_states(x, data_batch)  # (B, N, T, 2)
+        cost = self.cost(pos[row], x[row], line.to(x), data_batch.dt_s)
+        return apply_mask(_one_row(x, row, cost), agt_mask)
+
+
+@register_loss("lane_change")
+class LaneChange(CommittedLaneRule):
+    """A vehicle changes to the lane on its left or right: the lateral offset (m) from that lane's
+    centerline, weighted up over the first 3 s. Where the lane graph has no such lane, the target is
+    the current lane (or the vehicle's heading line) moved ``lane_width_m`` to that side."""
+
+    param_doc = {
+        "vehicle": ("", "displayed number of the vehicle"),
+        "side": ("", "'left' or 'right'"),
+        "lane_width_m": ("m", "offset of the target when the map has no lane on that side"),
+    }
+
+    def __init__(self, vehicle: int, side: str = "left", lane_width_m: float = 3.5) -> None:
+        super().__init__(vehicle)
+        if side not in ("left", "right"):
+            raise ValueError(f"side must be 'left' or 'right', not {side!r}")
+        self.side, self.lane_width_m = side, float(lane_width_m)
+
+    def choose(self, data_batch: GuidanceBatch, i: int) -> Tensor | None:
+        line = get_adjacent_lane(data_batch, i, self.side)  # type: ignore[arg-type]
+        if line is not None:
+            return line
+        base = get_current_lane(data_batch, i)
+        if base is None:  # the vehicle's heading line, 10 m behind to 30 m ahead
+            pose = data_batch.pose[i].detach()
+            ahead = torch.stack([torch.cos(pose[2]), torch.sin(pose[2])])
+            along = torch.tensor([-10.0, 30.0], dtype=pose.dtype, device=pose.device)[:, None]  # (2, 1) m
+            base = pose[:2] + along * ahead  # (2, 2)
+        sign = 1.0 if self.side == "left" else -1.0
+        return shifted(base, sign * self.lane_width_m)
+
+
+@register_loss("move_to_rightmost_lane")
+class MoveToRightmostLane(CommittedLaneRule):
+    """A vehicle moves to the rightmost same-direction lane beside its lane (stays when already
+    there): the lateral offset (m) from that lane's centerline, weighted up over the first 3 s."""
+
+    param_doc = {"vehicle": ("", "displayed number of the vehicle")}
+
+    def choose(self, data_batch: GuidanceBatch, i: int) -> Tensor | None:
+        return get_rightmost_lane(data_batch, i)
+
+
+@register_loss("turn_at_next_intersection")
+class TurnAtNextIntersection(CommittedLaneRule):
+    """A vehicle turns left or right (or goes straight) at the next intersection ahead: the mean
+    lateral offset (m) from the lane path through it that turns that way, plus the mean shortfall
+    below ``min_speed_mps`` (m/s) so that it keeps going. Zero when no intersection lies ahead
+    within 150 m or none of its paths turns that way."""
+
+    ramp_s: ClassVar[float] = 0.5
+    param_doc = {
+        "vehicle": ("", "displayed number of the vehicle"),
+        "direction": ("", "'left', 'right' or 'straight'"),
+        "min_speed_mps": ("m/s", "speed to keep while turning"),
+    }
+
+    def __init__(self, vehicle: int, direction: str = "right", min_speed_mps: float = 2.0) -> None:
+        super().__init__(vehicle)
+        if direction not in ("left", "right", "straight"):
+            raise ValueError(f"direction must be 'left', 'right' or 'straight', not {direction!r}")
+        self.direction, self.min_speed_mps = direction, float(min_speed_mps)
+
+    def choose(self, data_batch: GuidanceBatch, i: int) -> Tensor | None:
+        return get_turn_lane(data_batch, i, self.direction)  # type: ignore[arg-type]
+
+    def cost(self, pos: Tensor, x_row: Tensor, line: Tensor, dt_s: float) -> Tensor:
+        return super().cost(pos, x_row, line, dt_s) + torch.relu(self.min_speed_mps - x_row[..., 2]).mean(-1)
+
+
+@register_loss("follow_lane")
+class FollowLane(Rule):
+    """A vehicle (or every vehicle: ``vehicle=None``) follows its current lane: the mean distance
+    (m) over the horizon from the centerline of the lane it is on at each re-plan."""
+
+    param_doc = {"vehicle": ("", "displayed number of the vehicle; None for every vehicle")}
+
+    def __init__(self, vehicle: int | None = None) -> None:
+        super().__init__()
+        self.vehicle = None if vehicle is None else int(vehicle)
+
+    def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
+        proj = get_current_lane_projection(x[..., :2], x[..., 3:4], data_batch)  # (B, N, T, 3)
+        cost = lane_offset(x[..., :2], proj).mean(-1)  # (B, N)
+        if self.vehicle is not None:
+            row = check_vehicle(self.vehicle, data_batch, x.shape[0])
+            cost = _one_row(x, row, cost[row])
+        return apply_mask(cost, agt_mask)
+
+
+@register_loss("cut_in")
+class CutIn(Rule):
+    """A vehicle cuts in ahead of another: it should end up in the other's lane (lateral offset from
+    that lane's centerline, or from the other's heading line off the lane graph) with a bumper gap
+    ahead of it between 0.5 m and ``gap_m`` (shortfall or excess in m, in the other's predicted
+    frame); both weighted up over the first 3 s. One cost per sample (N)."""
+
+    couples_agents: ClassVar[bool] = True
+    param_doc = {
+        "vehicle": ("", "displayed number of the vehicle that cuts in"),
+        "ahead_of": ("", "displayed number of the vehicle it cuts in front of"),
+        "gap_m": ("m", "largest bumper-to-bumper gap ahead of the other vehicle"),
+    }
+
+    def __init__(self, vehicle: int, ahead_of: int, gap_m: float = 10.0) -> None:
+        super().__init__()
+        if int(vehicle) == int(ahead_of):
+            raise ValueError(f"a vehicle cannot cut in ahead of itself (vehicle {vehicle})")
+        self.vehicle, self.ahead_of, self.gap_m = int(vehicle), int(ahead_of), float(gap_m)
+
+    def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
+        a = check_vehicle(self.vehicle, data_batch, x.shape[0])
+        b = check_vehicle(self.ahead_of, data_batch, x.shape[0])
+        lon, lat = relative_position(x, data_batch, a, b)  # (N, T)
+        line = get_current_lane(data_batch, b)
+        if line is not None:
+            pos, _ = world_states(x, data_batch)
+            lat = signed_offset(pos[a], line.to(x))
+        half = data_batch.extent[:, 0].to(x) / 2
+        gap = lon - half[a] - half[b]  # (N, T) bumper gap ahead of vehicle b
+        lon_cost = torch.relu(0.5 - gap) + torch.relu(gap - self.gap_m)
+        w = ramp_weights(x.shape[2], data_batch.dt_s, 3.0, x)
+        return ((soft_abs(lat) + lon_cost) * w).sum(-1)
+
+
+__all__ = [
+    "CommittedLaneRule",
+    "CutIn",
+    "FollowLane",
+    "LaneChange",
+    "MoveToRightmostLane",
+    "TurnAtNextIntersection",
+    "extended",
+    "ramp_weights",
+    "shifted",
+    "signed_offset",
+]

@@ -1,0 +1,228 @@
+"""Per-vehicle rules (DESIGN.md, Rules of the evaluation): speed, acceleration, road, goals, stops.
+
+Each returns a cost (B, N) per vehicle and sample, zero when the rule is satisfied; vehicle
+arguments are displayed numbers (rows of x); positions are scene world metres.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ctgpp.guidance.base import register_loss
+from ctgpp.guidance.context import GuidanceBatch
+from ctgpp.guidance.rules_common import (
+    Rule,
+    apply_mask,
+    as_list,
+    check_vehicle,
+    disc_centres,
+    disc_layout,
+    sample_sdf,
+    soft_abs,
+    world_states,
+)
+
+
+@register_loss("speed_limit")
+class SpeedLimit(Rule):
+    """Every vehicle stays at or below a speed limit: the mean excess speed over the horizon
+    (m/s), mean over t of max(v - limit, 0)."""
+
+    param_doc = {"limit_mps": ("m/s", "the speed limit")}
+
+    def __init__(self, limit_mps: float = 10.0) -> None:
+        super().__init__()
+        self.limit_mps = float(limit_mps)
+
+    def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
+        cost = torch.relu(x[..., 2] - self.limit_mps).mean(-1)  # (B, N)
+        return apply_mask(cost, agt_mask)
+
+
+@register_loss("target_speed")
+class TargetSpeed(Rule):
+    """Every vehicle drives at a target speed: the mean absolute deviation (m/s) over the horizon.
+
+    ``speed_mps`` is one speed for all, or a tensor (B, S) per vehicle and step: column t is future
+    step t (t = 0 is the step after the current one), or with ``absolute_steps`` column j is scene
+    step j (e.g. 50% of each vehicle's logged speed, :meth:`from_log`); NaN entries are ignored.
+    """
+
+    param_doc = {
+        "speed_mps": ("m/s", "target speed, one for all or a (B, S) tensor per vehicle and step"),
+        "absolute_steps": ("", "columns of a tensor speed_mps are scene steps, not future steps"),
+    }
+
+    def __init__(self, speed_mps: float | Tensor = 5.0, absolute_steps: bool = False) -> None:
+        super().__init__()
+        self.speed_mps = speed_mps if isinstance(speed_mps, Tensor) else float(speed_mps)
+        self.absolute_steps = bool(absolute_steps)
+
+    @classmethod
+    def from_log(cls, data_batch: GuidanceBatch, fraction: float = 0.5) -> TargetSpeed:
+        """Evaluation rule 5: ``fraction`` of each controlled vehicle's logged speed at every scene
+        step (NaN where the log is invalid), with absolute steps."""
+        log = data_batch.scene.agents
+        idx = data_batch.agent_index
+        speed = np.where(log.valid[idx], log.speed[idx] * fraction, np.nan)  # (B, scene T)
+        return cls(torch.from_numpy(speed.astype(np.float32)), absolute_steps=True)
+
+    def targets(self, x: Tensor, data_batch: GuidanceBatch) -> Tensor:
+        """(B, T) target speeds for x's horizon, NaN where there is none."""
+        n_b, _, n_t, _ = x.shape
+        if not isinstance(self.speed_mps, Tensor):
+            return x.new_full((n_b, n_t), self.speed_mps)
+        table = self.speed_mps.to(x.device, x.dtype)
+        first = data_batch.step + 1 if self.absolute_steps else 0
+        cols = torch.arange(first, first + n_t, device=x.device)
+        out = x.new_full((n_b, n_t), float("nan"))
+        inside = cols < table.shape[1]
+        out[:, inside] = table[:n_b, cols[inside]]
+        return out
+
+    def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
+        target = self.targets(x, data_batch)[:, None]  # (B, 1, T)
+        has = ~torch.isnan(target)
+        dev = soft_abs(x[..., 2] - torch.nan_to_num(target)) * has  # (B, N, T)
+        cost = dev.sum(-1) / has.sum(-1).clamp_min(1)
+        return apply_mask(cost, agt_mask)
+
+
+@register_loss("acceleration_limit")
+class AccelerationLimit(Rule):
+    """Every vehicle keeps its acceleration magnitude, sqrt(longitudinal² + lateral²) with lateral =
+    speed × yaw rate, at or below a limit: mean excess over the horizon (m/s²)."""
+
+    param_doc = {"max_mps2": ("m/s²", "the largest allowed acceleration magnitude")}
+
+    def __init__(self, max_mps2: float = 3.0) -> None:
+        super().__init__()
+        self.max_mps2 = float(max_mps2)
+
+    def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
+        lat = x[..., 2] * x[..., 5]
+        mag = torch.sqrt(x[..., 4] ** 2 + lat**2 + 1e-6)
+        return apply_mask(torch.relu(mag - self.max_mps2).mean(-1), agt_mask)
+
+
+@register_loss("no_offroad")
+class NoOffroad(Rule):
+    """Every vehicle stays on the drivable area: the signed distance to the drivable boundary (m,
+    bilinear in the SDF raster) at its disc centres along its length, hinged at ``-margin_m`` (the
+    discs should stay ``margin_m`` inside), averaged over discs and the horizon."""
+
+    param_doc = {"margin_m": ("m", "how far inside the drivable area the disc centres should stay")}
+
+    def __init__(self, margin_m: float = 0.5) -> None:
+        super().__init__()
+        self.margin_m = float(margin_m)
+
+    def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
+        pos, yaw = world_states(x, data_batch)  # (B, N, T, 2), (B, N, T)
+        offsets, _ = disc_layout(data_batch.extent.to(x))  # (B, D)
+        centres = disc_centres(pos, yaw, offsets[:, None, None])  # (B, N, T, D, 2)
+        sdf = sample_sdf(data_batch, centres)  # (B, N, T, D)
+        return apply_mask(torch.relu(sdf + self.margin_m).mean((-1, -2)), agt_mask)
+
+
+class _Targets(Rule):
+    """Rules with target points: ``vehicle`` and ``x``, ``y`` (scene world metres), one or several."""
+
+    def __init__(
+        self, vehicle: int | Sequence[int], x: float | Sequence[float], y: float | Sequence[float]
+    ) -> None:
+        super().__init__()
+        self.vehicles = [int(v) for v in as_list(vehicle)]
+        xs, ys = as_list(x), as_list(y)
+        if not len(self.vehicles) == len(xs) == len(ys):
+            raise ValueError("vehicle, x and y must have the same number of entries")
+        self.goals_world = np.array([xs, ys], dtype=np.float64).T  # (G, 2)
+
+    def goal_distances(self, x: Tensor, data_batch: GuidanceBatch) -> tuple[list[int], Tensor]:
+        """Vehicles (G) and their distances (G, N, T) m to their targets over the horizon."""
+        rows = [check_vehicle(v, data_batch, x.shape[0]) for v in self.vehicles]
+        pos, _ = world_states(x[rows], _rows(data_batch, rows))  # (G, N, T, 2)
+        goal = torch.as_tensor(data_batch.to_local(self.goals_world), dtype=x.dtype, device=x.device)
+        return rows, torch.sqrt(((pos - goal[:, None, None]) ** 2).sum(-1) + 1e-6)
+
+
+def _rows(data_batch: GuidanceBatch, rows: list[int]) -> GuidanceBatch:
+    """A view of the batch with only vehicles ``rows`` (for the frame transforms)."""
+    return replace(data_batch, pose=data_batch.pose[rows], memo={})
+
+
+@register_loss("goal_waypoint")
+class GoalWaypoint(_Targets):
+    """A vehicle reaches a goal point: the minimum over the horizon of its distance (m) to the goal
+    (x, y in scene world metres); with ``target_speed_mps`` also the mean absolute deviation from
+    that speed times ``speed_weight``. Several vehicles: pass lists of equal length."""
+
+    param_doc = {
+        "vehicle": ("", "displayed vehicle number(s)"),
+        "x": ("m", "goal x, scene world frame"),
+        "y": ("m", "goal y, scene world frame"),
+        "target_speed_mps": ("m/s", "optional speed to hold on the way (None: no speed term)"),
+        "speed_weight": ("m per m/s", "weight of the speed term"),
+    }
+
+    def __init__(
+        self,
+        vehicle: int | Sequence[int],
+        x: float | Sequence[float],
+        y: float | Sequence[float],
+        target_speed_mps: float | None = None,
+        speed_weight: float = 1.0,
+    ) -> None:
+        super().__init__(vehicle, x, y)
+        self.target_speed_mps = None if target_speed_mps is None else float(target_speed_mps)
+        self.speed_weight = float(speed_weight)
+
+    def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
+        rows, dist = self.goal_distances(x, data_batch)  # (G, N, T)
+        term = dist.min(-1).values  # (G, N)
+        if self.target_speed_mps is not None:
+            term = term + self.speed_weight * soft_abs(x[rows, ..., 2] - self.target_speed_mps).mean(-1)
+        return apply_mask(_scatter(x, rows, term), agt_mask)
+
+
+@register_loss("stop_region")
+class StopRegion(_Targets):
+    """A vehicle ends the horizon stopped inside a circular region around (x, y) (scene world
+    metres): its distance (m) outside the region at the last step, plus its mean speed (m/s) while
+    inside (a soft indicator of being inside, 0.5 m wide)."""
+
+    param_doc = {
+        "vehicle": ("", "displayed vehicle number(s)"),
+        "x": ("m", "region centre x, scene world frame"),
+        "y": ("m", "region centre y, scene world frame"),
+        "radius_m": ("m", "region radius"),
+    }
+
+    def __init__(
+        self,
+        vehicle: int | Sequence[int],
+        x: float | Sequence[float],
+        y: float | Sequence[float],
+        radius_m: float = 3.0,
+    ) -> None:
+        super().__init__(vehicle, x, y)
+        self.radius_m = float(radius_m)
+
+    def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
+        rows, dist = self.goal_distances(x, data_batch)  # (G, N, T)
+        outside_end = torch.relu(dist[..., -1] - self.radius_m)  # (G, N)
+        inside = torch.sigmoid((self.radius_m - dist) / 0.5)  # (G, N, T)
+        term = outside_end + (x[rows, ..., 2] * inside).mean(-1)
+        return apply_mask(_scatter(x, rows, term), agt_mask)
+
+
+def _scatter(x: Tensor, rows: list[int], term: Tensor) -> Tensor:
+    """(B, N) cost with ``term`` (G, N) added at rows ``rows`` (a vehicle may appear twice)."""
+    index = (torch.tensor(rows, device=x.device),)
+    return x.new_zeros(x.shape[:2]).index_put(index, term, accumulate=True)

@@ -1,0 +1,165 @@
+"""Rules about one vehicle relative to another, and :class:`ForVehicles`, a rule restricted to some vehicles.
+
+Rules that couple two vehicles (``couples_agents``) return one cost per sample (N); vehicle arguments
+are displayed numbers (rows of x). The relative position of a vehicle is measured in the *other*
+vehicle's predicted frame at the same step (x forward along its heading, y to its left).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any, ClassVar
+
+import torch
+from torch import Tensor
+
+from ctgpp.guidance.base import GuidanceLoss, register_loss
+from ctgpp.guidance.rules_common import Rule, as_list, check_vehicle, world_states
+
+
+class ForVehicles(GuidanceLoss):
+    """A loss applied only to some vehicles: ``loss`` evaluated with ``agt_mask`` selecting
+    ``vehicles`` (displayed numbers; and-ed with the caller's mask). "Vehicle 3 obeys a 10 m/s
+    limit" is ``ForVehicles(make_loss("speed_limit", limit_mps=10), vehicles=[3])``."""
+
+    def __init__(self, loss: GuidanceLoss, vehicles: int | Sequence[int]) -> None:
+        super().__init__()
+        self.loss = loss
+        self.vehicles = [int(v) for v in as_list(vehicles)]
+        if not self.vehicles:
+            raise ValueError("ForVehicles needs at least one vehicle")
+
+    @property
+    def couples_agents(self) -> bool:  # type: ignore[override]
+        return bool(self.loss.couples_agents)
+
+    def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
+        mask = torch.zeros(x.shape[0], dtype=torch.bool, device=x.device)
+        for v in self.vehicles:
+            mask[check_vehicle(v, data_batch, x.shape[0])] = True
+        if agt_mask is not None:
+            mask = mask & agt_mask.to(device=x.device, dtype=torch.bool)
+        return self.loss(x, data_batch, mask)
+
+
+def relative_position(x: Tensor, data_batch: Any, vehicle: int, other: int) -> tuple[Tensor, Tensor]:
+    """Vehicle's centre in ``other``'s predicted frame at each step: longitudinal and lateral (N, T) m."""
+    pos, yaw = world_states(x, data_batch)  # (B, N, T, 2), (B, N, T)
+    rel = pos[vehicle] - pos[other]  # (N, T, 2)
+    c, s = torch.cos(yaw[other]), torch.sin(yaw[other])
+    return rel[..., 0] * c + rel[..., 1] * s, -rel[..., 0] * s + rel[..., 1] * c
+
+
+class _Pair(Rule):
+    """A rule on ``vehicle`` relative to ``other`` (two different displayed numbers)."""
+
+    couples_agents: ClassVar[bool] = True
+
+    def __init__(self, vehicle: int, other: int) -> None:
+        super().__init__()
+        if int(vehicle) == int(other):
+            raise ValueError(f"{type(self).__name__} needs two different vehicles, got {vehicle} twice")
+        self.vehicle, self.other = int(vehicle), int(other)
+
+    def rows(self, x: Tensor, data_batch: Any) -> tuple[int, int]:
+        n_b = x.shape[0]
+        return check_vehicle(self.vehicle, data_batch, n_b), check_vehicle(self.other, data_batch, n_b)
+
+
+@register_loss("stay_side_of")
+class StaySideOf(_Pair):
+    """A vehicle stays on one side of another: its lateral coordinate (m) in the other's frame at
+    each step should be at least ``margin_m`` to the left (positive) or right (negative); the cost
+    is the mean shortfall over the horizon (m)."""
+
+    param_doc = {
+        "vehicle": ("", "displayed number of the vehicle that keeps to a side"),
+        "other": ("", "displayed number of the reference vehicle"),
+        "side": ("", "'left' or 'right' of the reference vehicle"),
+        "margin_m": ("m", "smallest lateral offset on that side"),
+    }
+
+    def __init__(self, vehicle: int, other: int, side: str = "left", margin_m: float = 1.5) -> None:
+        super().__init__(vehicle, other)
+        if side not in ("left", "right"):
+            raise ValueError(f"side must be 'left' or 'right', not {side!r}")
+        self.side, self.margin_m = side, float(margin_m)
+
+    def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
+        a, b = self.rows(x, data_batch)
+        _, lat = relative_position(x, data_batch, a, b)  # (N, T)
+        sign = 1.0 if self.side == "left" else -1.0
+        return torch.relu(self.margin_m - sign * lat).mean(-1)
+
+
+@register_loss("same_direction")
+class SameDirection(_Pair):
+    """A vehicle drives in the same direction as another: the mean over the horizon of
+    1 - cos(heading difference), each step weighted by its index (the end matters most)."""
+
+    param_doc = {
+        "vehicle": ("", "displayed number of the vehicle that turns"),
+        "other": ("", "displayed number of the reference vehicle"),
+    }
+
+    def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
+        a, b = self.rows(x, data_batch)
+        _, yaw = world_states(x, data_batch)  # (B, N, T)
+        w = torch.arange(1, x.shape[2] + 1, dtype=x.dtype, device=x.device)
+        w = w / w.sum()  # (T,) later steps weigh more
+        return ((1 - torch.cos(yaw[a] - yaw[b])) * w).sum(-1)
+
+
+@register_loss("stay_away")
+class StayAway(_Pair):
+    """A vehicle keeps at least ``min_m`` (centre to centre) from another: the mean over the horizon
+    of the shortfall (m)."""
+
+    param_doc = {
+        "vehicle": ("", "displayed number of one vehicle"),
+        "other": ("", "displayed number of the other vehicle"),
+        "min_m": ("m", "smallest allowed centre distance"),
+    }
+
+    def __init__(self, vehicle: int, other: int, min_m: float = 10.0) -> None:
+        super().__init__(vehicle, other)
+        self.min_m = float(min_m)
+
+    def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
+        a, b = self.rows(x, data_batch)
+        pos, _ = world_states(x, data_batch)
+        d = torch.sqrt(((pos[a] - pos[b]) ** 2).sum(-1) + 1e-6)  # (N, T)
+        return torch.relu(self.min_m - d).mean(-1)
+
+
+@register_loss("collide_from_behind")
+class CollideFromBehind(_Pair):
+    """A vehicle rear-ends another: the smallest distance (m) over the horizon between the middle of
+    its front bumper and the middle of the target's rear bumper, hinged at ``contact_m``."""
+
+    param_doc = {
+        "vehicle": ("", "displayed number of the vehicle that hits"),
+        "target": ("", "displayed number of the vehicle hit from behind"),
+        "contact_m": ("m", "bumper distance that counts as contact"),
+    }
+
+    def __init__(self, vehicle: int, target: int, contact_m: float = 0.3) -> None:
+        super().__init__(vehicle, target)
+        self.contact_m = float(contact_m)
+
+    @property
+    def target(self) -> int:
+        return self.other
+
+    def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
+        a, b = self.rows(x, data_batch)
+        pos, yaw = world_states(x, data_batch)  # (B, N, T, 2), (B, N, T)
+        half = data_batch.extent[:, 0].to(x) / 2  # (B,) half lengths
+        heading = torch.stack([torch.cos(yaw), torch.sin(yaw)], dim=-1)  # (B, N, T, 2)
+        front = pos[a] + half[a] * heading[a]
+        rear = pos[b] - half[b] * heading[b]
+        d = torch.sqrt(((front - rear) ** 2).sum(-1) + 1e-6)  # (N, T)
+        return torch.relu(d.min(-1).values - self.contact_m)
+
+
+__all__ = ["CollideFromBehind", "ForVehicles", "SameDirection", "StayAway", "StaySideOf", "relative_position"]

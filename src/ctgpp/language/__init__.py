@@ -1,0 +1,1 @@
+"""Language interface (DESIGN.md): a sentence becomes a checked guidance loss."""

@@ -1,0 +1,294 @@
+"""The query families of the offline compiler: how a :class:`Clause` is recognised and which rules of
+the library it becomes.
+
+Families are tried in order; the first whose ``matches`` holds handles the clause. A handler returns
+:class:`PartSpec` values (rule name, parameters, an optional restriction to some vehicles) or raises
+:class:`QueryError` when the clause names too few vehicles or a needed quantity is missing.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from ctgpp.language.compiler_patterns import Clause
+
+DEFAULT_NEAR_M = 10.0  # "stay close to" without a distance
+DEFAULT_AWAY_M = 10.0  # "stay away from" without a distance
+DEFAULT_CUT_IN_GAP_M = 10.0
+DEFAULT_STOP_RADIUS_M = 3.0
+FOLLOW_RANGE_M = (10.0, 30.0)  # "follow vehicle N": the paper's keep-distance range
+
+
+class QueryError(ValueError):
+    """A query the compiler cannot turn into a loss (the message says why)."""
+
+
+@dataclass(frozen=True)
+class PartSpec:
+    """A rule to build: ``rule`` name, its ``params``, ``only`` (vehicles it is restricted to, None
+    for the rule's own scope) and the query ``family`` it came from."""
+
+    family: str
+    rule: str
+    params: dict[str, Any]
+    only: tuple[int, ...] | None = None
+
+
+@dataclass(frozen=True)
+class Context:
+    """What a clause inherits: the subject vehicle of the previous clause (None at the start) and
+    whether the clause is joined by "while"/"then" (so a global rule applies to that subject)."""
+
+    subject: int | None
+    joined: bool
+
+
+Handler = Callable[[Clause, Context], list[PartSpec]]
+
+
+def _subjects(c: Clause, ctx: Context) -> list[int]:
+    """The vehicles a one-vehicle rule applies to: those named, else the inherited subject."""
+    if c.vehicles:
+        return list(c.vehicles)
+    if ctx.subject is not None:
+        return [ctx.subject]
+    raise QueryError(f"{c.text.strip()!r} does not say which vehicle (e.g. 'vehicle 3 should ...')")
+
+
+def _scope(c: Clause, ctx: Context) -> tuple[int, ...] | None:
+    """The vehicles a global rule is restricted to: None for everyone."""
+    if c.vehicles:
+        return c.vehicles
+    if c.everyone:
+        return None
+    if ctx.subject is not None and (c.pronoun or c.modal_start or ctx.joined):
+        return (ctx.subject,)
+    return None
+
+
+def _pairs(c: Clause, ctx: Context, what: str) -> list[tuple[int, int]]:
+    """(subject, other) pairs of a two-vehicle rule: the first named vehicle with each other one,
+    or the inherited subject with the one named."""
+    v = list(c.vehicles)
+    if len(v) == 1 and ctx.subject is not None and ctx.subject != v[0]:
+        v = [ctx.subject, *v]
+    if len(v) < 2:
+        raise QueryError(f"{c.text.strip()!r}: {what} needs two vehicles (e.g. 'vehicle 1 ... vehicle 2')")
+    return [(v[0], other) for other in v[1:]]
+
+
+def _speed(c: Clause) -> float | None:
+    if c.speeds:
+        return c.speeds[0]
+    return c.bare[0] if c.bare else None
+
+
+def _distance(c: Clause, default: float) -> float:
+    if c.distances:
+        return c.distances[0]
+    return c.bare[0] if c.bare else default
+
+
+def _rear_end(c: Clause, ctx: Context) -> list[PartSpec]:
+    return [PartSpec("collide_from_behind", "collide_from_behind", {"vehicle": a, "target": b})
+            for a, b in _pairs(c, ctx, "a rear-end collision")]
+
+
+def _collision(c: Clause, ctx: Context) -> list[PartSpec]:
+    if c.negated or c.has(r"collision[- ]free"):
+        return [PartSpec("no_collision", "no_collision", {}, _scope(c, ctx))]
+    return [PartSpec("collision", "collision", {"vehicle_a": a, "vehicle_b": b})
+            for a, b in _pairs(c, ctx, "a collision")]
+
+
+def _cut_in(c: Clause, ctx: Context) -> list[PartSpec]:
+    gap = _distance(c, DEFAULT_CUT_IN_GAP_M)
+    return [PartSpec("cut_in", "cut_in", {"vehicle": a, "ahead_of": b, "gap_m": gap})
+            for a, b in _pairs(c, ctx, "a cut-in")]
+
+
+def _follow_lane(c: Clause, ctx: Context) -> list[PartSpec]:
+    if c.everyone or (not c.vehicles and ctx.subject is None):
+        return [PartSpec("follow_lane", "follow_lane", {"vehicle": None})]
+    return [PartSpec("follow_lane", "follow_lane", {"vehicle": v}) for v in _subjects(c, ctx)]
+
+
+def _rightmost(c: Clause, ctx: Context) -> list[PartSpec]:
+    return [PartSpec("rightmost_lane", "move_to_rightmost_lane", {"vehicle": v}) for v in _subjects(c, ctx)]
+
+
+def _side_word(c: Clause, pattern: str) -> str:
+    m = c.has(pattern)
+    return "left" if m is None or "left" in m.group(0) else "right"
+
+
+_LANE_CHANGE = (
+    r"(?:chang|switch|mov|go|shift|merg|get|pull)\w*\s+(?:\w+\s+){0,3}?(?:to|into|onto|in)\s+(?:the\s+)?"
+    r"(?:left|right)(?:[- ]hand)?\s+lane|lane[- ]change\s+(?:to\s+the\s+)?(?:left|right)"
+    r"|chang\w*\s+lanes?\s+(?:to\s+(?:the\s+)?)?(?:left|right)|(?:left|right)\s+lane[- ]change"
+)
+
+
+def _lane_change(c: Clause, ctx: Context) -> list[PartSpec]:
+    side = _side_word(c, _LANE_CHANGE)
+    return [PartSpec("lane_change", "lane_change", {"vehicle": v, "side": side}) for v in _subjects(c, ctx)]
+
+
+_TURN = (
+    r"\bturn\w*\s+(?:to\s+the\s+)?(?:left|right)|\b(?:left|right)\s*-?\s*turn"
+    r"|\btak\w*\s+(?:a\s+)?(?:left|right)"
+)
+_STRAIGHT = r"\b(?:go|goes|going|drive\w*|continu\w*|head\w*|keep\w*\s+going)\s+straight"
+
+
+def _turn(c: Clause, ctx: Context) -> list[PartSpec]:
+    direction = "straight" if c.has(_STRAIGHT) else _side_word(c, _TURN)
+    return [PartSpec("turn", "turn_at_next_intersection", {"vehicle": v, "direction": direction})
+            for v in _subjects(c, ctx)]
+
+
+_SIDE_OF = r"(?:on|to)\s+(?:the\s+)?(?:left|right)(?:[- ]hand)?\s+(?:side\s+)?of\b"
+
+
+def _side_of(c: Clause, ctx: Context) -> list[PartSpec]:
+    side = _side_word(c, _SIDE_OF)
+    return [PartSpec("stay_side_of", "stay_side_of", {"vehicle": a, "other": b, "side": side})
+            for a, b in _pairs(c, ctx, "staying beside a vehicle")]
+
+
+def _same_direction(c: Clause, ctx: Context) -> list[PartSpec]:
+    return [PartSpec("same_direction", "same_direction", {"vehicle": a, "other": b})
+            for a, b in _pairs(c, ctx, "driving in the same direction")]
+
+
+def _stop(c: Clause, ctx: Context) -> list[PartSpec]:
+    if c.points:
+        radius = _distance(c, DEFAULT_STOP_RADIUS_M)
+        x, y = c.points[0]
+        return [PartSpec("stop_region", "stop_region", {"vehicle": v, "x": x, "y": y, "radius_m": radius})
+                for v in _subjects(c, ctx)]
+    return [PartSpec("stop", "target_speed", {"speed_mps": 0.0}, _scope(c, ctx))]
+
+
+def _reach(c: Clause, ctx: Context) -> list[PartSpec]:
+    x, y = c.points[0]
+    params: dict[str, Any] = {"x": x, "y": y}
+    if c.speeds:
+        params["target_speed_mps"] = c.speeds[0]
+    return [PartSpec("reach", "goal_waypoint", {"vehicle": v, **params}) for v in _subjects(c, ctx)]
+
+
+def _speed_limit(c: Clause, ctx: Context) -> list[PartSpec]:
+    return [PartSpec("speed_limit", "speed_limit", {"limit_mps": _speed(c)}, _scope(c, ctx))]
+
+
+def _target_speed(c: Clause, ctx: Context) -> list[PartSpec]:
+    return [PartSpec("target_speed", "target_speed", {"speed_mps": _speed(c)}, _scope(c, ctx))]
+
+
+def _keep_range(c: Clause, ctx: Context) -> list[PartSpec]:
+    lo, hi = c.ranges[0]
+    return [PartSpec("keep_distance", "keep_distance", {"follower": a, "leader": b, "min_m": lo, "max_m": hi})
+            for a, b in _pairs(c, ctx, "keeping a distance")]
+
+
+def _stay_away(c: Clause, ctx: Context) -> list[PartSpec]:
+    d = _distance(c, DEFAULT_AWAY_M)
+    return [PartSpec("stay_away", "stay_away", {"vehicle": a, "other": b, "min_m": d})
+            for a, b in _pairs(c, ctx, "staying away")]
+
+
+def _keep_within(c: Clause, ctx: Context) -> list[PartSpec]:
+    d = _distance(c, DEFAULT_NEAR_M)
+    return [PartSpec("keep_within", "keep_distance", {"follower": a, "leader": b, "min_m": 0.0, "max_m": d})
+            for a, b in _pairs(c, ctx, "staying close")]
+
+
+def _follow_vehicle(c: Clause, ctx: Context) -> list[PartSpec]:
+    lo, hi = FOLLOW_RANGE_M
+    return [PartSpec("keep_distance", "keep_distance", {"follower": a, "leader": b, "min_m": lo, "max_m": hi})
+            for a, b in _pairs(c, ctx, "following a vehicle")]
+
+
+def _offroad(c: Clause, ctx: Context) -> list[PartSpec]:
+    return [PartSpec("no_offroad", "no_offroad", {}, _scope(c, ctx))]
+
+
+_COLLIDE = (
+    r"\bcollid\w*|\bcollision\w*|\bcrash\w*|\bhit\b|\bhits\b|\bsmash\w*|\brams?\b|\bbump\w*\s+into"
+    r"|accident"
+)
+_REAR_END = r"rear[- ]?end|from\s+behind|into\s+the\s+(?:back|rear)\s+of"
+_CUT_IN = r"\bcut\w*\s+(?:in|off|ahead|in\s+front)\b|\bmerg\w*\s+(?:\w+\s+){0,2}?(?:ahead|in\s+front)\s+of"
+_RIGHTMOST = r"right-?\s?most\s+lane|far(?:thest)?[- ]right\s+lane"
+_FOLLOW_VEHICLE = r"\bfollow\w*|\btail\w*|\bbehind\b"
+_SPEED_LIMIT = (
+    r"speed\s+limit|exceed|slower\s+than|(?:no|not)\s+(?:faster|quicker|more)\s+than|at\s+most|\bbelow\b"
+    r"|\bunder\b|max(?:imum)?\s+(?:speed|of)|\blimit\w*|(?:faster|above|over)\s+than"
+)
+_TARGET_SPEED = (
+    r"target\s+speed|(?:drive|travel|go|move|cruise|run|ride|proceed)\w*\s+(?:at|with)|speed\s+of|\bat\s+"
+    r"|maintain\w*|hold\w*|keep\w*|speed\s+(?:up|down)|accelerat\w*|slow\w*|decelerat\w*|\bspeed\b"
+)
+_STAY_AWAY = (
+    r"away\s+from|at\s+least|(?<!no )(?:more|further|farther)\s+than|keep\w*\s+(?:a\s+)?(?:safe\s+)?distance"
+    r"|(?:not|n't|never)\s+(?:get|come|go|drive)\w*\s+(?:too\s+)?(?:close|near)|minimum\s+distance|\bavoid\w*\s+"
+)
+_WITHIN = (
+    r"within|close\s+to|\bnear\b|closer\s+than|less\s+than|no\s+more\s+than|no\s+(?:farther|further)\s+than"
+    r"|at\s+most|\bstay\w*\s+with\b|\bstick\w*\s+(?:close\s+)?to\b"
+)
+_FOLLOW_LANE = (
+    r"follow\w*\s+(?:its|their|his|her|the|a|current)?\s*(?:own\s+|current\s+)?lanes?\b"
+    r"|(?:stay|remain)\w*\s+in\s+(?:its|their|the|his|her)?\s*(?:own\s+|current\s+)?lanes?\b"
+    r"|keep\w*\s+(?:to\s+)?(?:its|their|the)\s+(?:own\s+|current\s+)?lanes?\b|lane[- ]keeping"
+    r"|(?:not|n't|never)\s+change\s+lanes?"
+)
+_OFFROAD = (
+    r"(?:stay|remain|keep|drive)\w*\s+on\s+(?:the\s+)?(?:road|drivable|pavement|street)|off[- ]?road"
+    r"|leave\s+the\s+road|drivable\s+area"
+)
+_REACH = (
+    r"\breach\w*|\b(?:go|drive|head|move|navigate|travel|get)\w*\s+(?:\w+\s+)?(?:to|towards?)\b|arriv\w*"
+    r"|\bgoal\b|destination|waypoint"
+)
+
+
+def _names_vehicle(c: Clause) -> bool:
+    return len(c.vehicles) >= 1
+
+
+# (family, recogniser, handler): the first recogniser that holds handles the clause.
+FAMILIES: tuple[tuple[str, Callable[[Clause], bool], Handler], ...] = (
+    ("rear_end", lambda c: bool(c.has(_REAR_END)), _rear_end),
+    ("cut_in", lambda c: bool(c.has(_CUT_IN)), _cut_in),
+    ("follow_lane", lambda c: bool(c.has(_FOLLOW_LANE)), _follow_lane),
+    ("rightmost_lane", lambda c: bool(c.has(_RIGHTMOST)), _rightmost),
+    ("lane_change", lambda c: bool(c.has(_LANE_CHANGE)), _lane_change),
+    ("turn", lambda c: bool(c.has(_TURN) or (c.has(_STRAIGHT) and c.has(r"intersection|junction"))), _turn),
+    ("stay_side_of", lambda c: bool(c.has(_SIDE_OF)) and _names_vehicle(c), _side_of),
+    ("same_direction", lambda c: bool(c.has(r"same\s+(?:direction|heading|way)|parallel\s+(?:to|with)")),
+     _same_direction),
+    ("collision", lambda c: bool(c.has(_COLLIDE)), _collision),
+    ("stop", lambda c: bool(c.has(r"\bstop\w*|\bhalt\w*|standstill|\bpark\w*")) and not c.negated, _stop),
+    ("reach", lambda c: bool(c.points) and bool(c.has(_REACH)), _reach),
+    ("speed_limit", lambda c: bool(c.has(_SPEED_LIMIT)) and _speed(c) is not None
+     and (bool(c.speeds) or bool(c.has(r"speed|fast|slow"))), _speed_limit),
+    ("target_speed", lambda c: bool(c.has(_TARGET_SPEED)) and _speed(c) is not None
+     and (bool(c.speeds) or bool(c.has(r"speed"))), _target_speed),
+    ("keep_distance", lambda c: bool(c.ranges) and _names_vehicle(c), _keep_range),
+    ("stay_away", lambda c: bool(c.has(_STAY_AWAY)) and _names_vehicle(c), _stay_away),
+    ("keep_within", lambda c: bool(c.has(_WITHIN)) and _names_vehicle(c), _keep_within),
+    ("follow_vehicle", lambda c: bool(c.has(_FOLLOW_VEHICLE)) and _names_vehicle(c), _follow_vehicle),
+    ("no_offroad", lambda c: bool(c.has(_OFFROAD)), _offroad),
+)
+
+
+def recognise(c: Clause) -> tuple[str, Handler] | None:
+    """The family of a clause and its handler, or None when no family recognises it."""
+    for name, matches, handler in FAMILIES:
+        if matches(c):
+            return name, handler
+    return None

@@ -1,0 +1,145 @@
+"""The prompt for the language model, from the template files in ``ctgpp/language/templates``.
+
+The user message is: the loss API (``api.md``, with the vocabulary of the sandbox and the helper
+descriptions filled in), the paired examples (``examples.md``: query -> loss class), then the query
+(``query.md``). The system message (``system.md``) states the rules of the sandbox; ``repair.md``
+sends a refusal back. Helper descriptions are generated from the helpers' signatures and docstrings,
+so the prompt never drifts from the code. :data:`PROMPT_VERSION` hashes everything that goes into a
+prompt except the query, and keys the cache of accepted programs.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import inspect
+import re
+from dataclasses import dataclass
+from importlib import resources
+
+from ctgpp.language.vocabulary import (
+    FUNCTIONAL_FUNCTIONS,
+    LINALG_FUNCTIONS,
+    MATH_NAMES,
+    SAFE_BUILTIN_NAMES,
+    TORCH_FUNCTIONS,
+    prebound_names,
+)
+
+__all__ = [
+    "PROMPT_VERSION",
+    "TEMPLATE_NAMES",
+    "Example",
+    "Message",
+    "build_messages",
+    "examples",
+    "helper_descriptions",
+    "load_template",
+    "repair_message",
+]
+
+Message = dict[str, str]
+"""One chat message: ``{"role": "system" | "user" | "assistant", "content": text}``."""
+
+TEMPLATE_NAMES = ("system.md", "api.md", "examples.md", "query.md", "repair.md")
+DEFAULT_DT_S = 0.1
+DEFAULT_FUTURE_STEPS = 52
+_ROLE = re.compile(r":[a-z]+:`~?([^`]+)`")  # Sphinx roles such as :func:`get_turn_lane`
+
+
+def load_template(name: str) -> str:
+    """The text of one template file (package data of ``ctgpp.language``)."""
+    if name not in TEMPLATE_NAMES:
+        raise ValueError(f"unknown template {name!r}; templates: {', '.join(TEMPLATE_NAMES)}")
+    return resources.files("ctgpp.language").joinpath("templates", name).read_text(encoding="utf-8")
+
+
+def _fill(template: str, **values: str) -> str:
+    """Replace ``{{name}}`` markers (braces in code stay untouched)."""
+    for key, value in values.items():
+        template = template.replace("{{" + key + "}}", value)
+    return template
+
+
+def helper_descriptions() -> str:
+    """One Markdown entry per helper: ``name(signature)`` and its docstring (roles stripped)."""
+    names = prebound_names()
+    from ctgpp.language.vocabulary import HELPER_NAMES
+
+    entries = []
+    for name in HELPER_NAMES:
+        fn = names[name]
+        signature = str(inspect.signature(fn)).replace("'", "")
+        doc = _ROLE.sub(lambda m: m.group(1).split(".")[-1], inspect.getdoc(fn) or "")
+        body = "\n".join("  " + line if line else "" for line in doc.splitlines())
+        entries.append(f"- `{name}{signature}`\n{body}")
+    return "\n".join(entries)
+
+
+def _api_text() -> str:
+    def listing(names: frozenset[str] | list[str]) -> str:
+        return ", ".join(f"`{n}`" for n in sorted(names))
+
+    return _fill(
+        load_template("api.md"),
+        dt_s=f"{DEFAULT_DT_S:g}",
+        future_steps=str(DEFAULT_FUTURE_STEPS),
+        torch_functions=listing(TORCH_FUNCTIONS - {"linalg"}),
+        linalg_functions=listing(LINALG_FUNCTIONS),
+        functional_functions=listing(FUNCTIONAL_FUNCTIONS),
+        math_names=listing(MATH_NAMES),
+        builtins=listing(SAFE_BUILTIN_NAMES),
+        helpers=helper_descriptions(),
+    )
+
+
+@dataclass(frozen=True)
+class Example:
+    """One paired example of ``examples.md``: the query and its program."""
+
+    query: str
+    code: str
+
+
+_EXAMPLE = re.compile(r"^### Query: (?P<query>.+?)\n+```python\n(?P<code>.*?)^```", re.M | re.S)
+
+
+def examples() -> tuple[Example, ...]:
+    """The paired examples of the prompt, in order."""
+    return tuple(Example(m["query"].strip(), m["code"]) for m in _EXAMPLE.finditer(load_template("examples.md")))
+
+
+def _scene_line(num_vehicles: int | None) -> str:
+    if num_vehicles is None:
+        return ""
+    return (f"The scene has {num_vehicles} vehicles, numbered 0 to {num_vehicles - 1} "
+            f"(B = {num_vehicles}).\n\n")
+
+
+def build_messages(query: str, num_vehicles: int | None = None) -> list[Message]:
+    """The chat messages for ``query``: system rules, then API + helpers + examples + the query."""
+    if not query.strip():
+        raise ValueError("the query is empty")
+    user = "\n\n".join([
+        _api_text().rstrip(),
+        load_template("examples.md").rstrip(),
+        _fill(load_template("query.md"), scene=_scene_line(num_vehicles), query=query.strip()).rstrip(),
+    ])
+    return [{"role": "system", "content": load_template("system.md").rstrip()},
+            {"role": "user", "content": user + "\n"}]
+
+
+def repair_message(error: str) -> Message:
+    """The user message that sends a refusal (sandbox, checks or extraction) back to the model."""
+    return {"role": "user", "content": _fill(load_template("repair.md"), error=error).rstrip()}
+
+
+def _prompt_version() -> str:
+    digest = hashlib.sha256()
+    for name in TEMPLATE_NAMES:
+        digest.update(name.encode() + b"\0" + load_template(name).encode() + b"\0")
+    digest.update(_api_text().encode())  # the generated parts: helper docs, vocabulary
+    return digest.hexdigest()[:16]
+
+
+PROMPT_VERSION = _prompt_version()
+"""16 hex digits of SHA-256 over the templates and the generated helper descriptions."""

@@ -1,0 +1,336 @@
+"""The syntax-tree walk of the sandbox: which statements, names, attributes and calls a generated
+program may contain (see :mod:`ctgpp.language.sandbox` for the policy in words)."""
+
+from __future__ import annotations
+
+import ast
+
+from ctgpp.language.vocabulary import (
+    BATCH_ATTRIBUTES,
+    FORBIDDEN_CALLS,
+    HELPER_MODULES,
+    MAX_INT_CONSTANT,
+    MODULE_ATTRIBUTES,
+    PLAIN_IMPORTS,
+    SAFE_BUILTIN_NAMES,
+    TENSOR_ATTRIBUTES,
+    prebound_names,
+)
+
+PREBOUND = frozenset(prebound_names())
+MODULE_NAMES = frozenset({"torch", "math", "F"})
+LOOP_CALLS = frozenset({"range", "enumerate", "zip", "reversed"})
+EXPRESSIONS = (
+    ast.BoolOp, ast.BinOp, ast.UnaryOp, ast.Lambda, ast.IfExp, ast.Dict, ast.Set, ast.ListComp,
+    ast.SetComp, ast.DictComp, ast.GeneratorExp, ast.Compare, ast.Call, ast.Constant, ast.Attribute,
+    ast.Subscript, ast.Starred, ast.Name, ast.List, ast.Tuple, ast.Slice, ast.NamedExpr, ast.JoinedStr,
+    ast.FormattedValue, ast.comprehension, ast.keyword, ast.arguments, ast.arg, ast.operator,
+    ast.boolop, ast.unaryop, ast.cmpop, ast.expr_context,
+)
+FUNCTION_STATEMENTS = (
+    ast.Assign, ast.AugAssign, ast.AnnAssign, ast.Return, ast.If, ast.For, ast.Expr, ast.Pass, ast.Break,
+    ast.Continue, ast.Assert, ast.Raise, ast.FunctionDef,
+)
+REFUSED_STATEMENTS = {
+    "While": "while loops are not allowed (they may never end): use `for i in range(n)`",
+    "Try": "try/except is not allowed (it could hide errors and time limits)",
+    "TryStar": "try/except is not allowed (it could hide errors and time limits)",
+    "With": "with statements are not allowed",
+    "AsyncWith": "async code is not allowed",
+    "AsyncFor": "async code is not allowed",
+    "AsyncFunctionDef": "async code is not allowed",
+    "Global": "global statements are not allowed",
+    "Nonlocal": "nonlocal statements are not allowed",
+    "Delete": "del statements are not allowed",
+    "Import": "imports are only allowed at the top of the program",
+    "ImportFrom": "imports are only allowed at the top of the program",
+    "ClassDef": "only one class, at the top level of the program, is allowed",
+    "Match": "match statements are not allowed",
+}
+
+
+class SandboxError(ValueError):
+    """Generated code refused by the sandbox; ``reason`` and ``lineno`` say why and where."""
+
+    def __init__(self, reason: str, lineno: int) -> None:
+        super().__init__(f"line {lineno}: {reason}")
+        self.reason = reason
+        self.lineno = lineno
+
+
+def _refuse(node: ast.AST, reason: str) -> SandboxError:
+    return SandboxError(reason, getattr(node, "lineno", 1))
+
+
+def _is_literal(node: ast.expr) -> bool:
+    """Constants, negated constants and lists/tuples of literals (safe to evaluate at definition time)."""
+    if isinstance(node, ast.Constant):
+        return True
+    if isinstance(node, ast.UnaryOp) and isinstance(node.op, ast.USub | ast.UAdd):
+        return _is_literal(node.operand)
+    return isinstance(node, ast.List | ast.Tuple) and all(_is_literal(e) for e in node.elts)
+
+
+def _fold_int(node: ast.AST) -> int | None:
+    """The value of an integer-literal expression (``10 ** 12``, ``4 * 10**9``), refusing huge ones."""
+    if isinstance(node, ast.Constant) and type(node.value) is int:
+        return node.value
+    if isinstance(node, ast.BinOp) and isinstance(node.op, ast.Pow | ast.Mult | ast.LShift):
+        left, right = _fold_int(node.left), _fold_int(node.right)
+        if left is None or right is None:
+            return None
+        if abs(left) > 2**64 or abs(right) > 2**64 or (isinstance(node.op, ast.Pow | ast.LShift) and right > 64):
+            raise _refuse(node, "integer constant too large (allocation or computation bomb)")
+        if isinstance(node.op, ast.Pow):
+            return left**right
+        return left * right if isinstance(node.op, ast.Mult) else left << right
+    return None
+
+
+def _bound_names(tree: ast.Module) -> set[str]:
+    """Every name the program binds anywhere (assignments, arguments, loop targets, definitions)."""
+    bound: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Name) and isinstance(node.ctx, ast.Store):
+            bound.add(node.id)
+        elif isinstance(node, ast.arg):
+            bound.add(node.arg)
+        elif isinstance(node, ast.FunctionDef | ast.ClassDef):
+            bound.add(node.name)
+    return bound
+
+
+class ProgramChecker:
+    """Walks one module; ``check_module`` raises :class:`SandboxError` at the first violation."""
+
+    def __init__(self) -> None:
+        self.bound: set[str] = set()
+        self.self_attributes: set[str] = set()
+        self.functions: list[str] = []  # enclosing function names, innermost last
+        self.method: str | None = None  # the enclosing method of the loss class
+
+    # ---- statements -------------------------------------------------------------------------------
+    def check_module(self, tree: ast.Module) -> None:
+        self.bound = _bound_names(tree)
+        for name in sorted(self.bound):
+            self._check_binding(name, tree)
+        for stmt in tree.body:
+            if isinstance(stmt, ast.Import | ast.ImportFrom):
+                self._check_import(stmt)
+            elif isinstance(stmt, ast.ClassDef):
+                self._check_class(stmt)
+            elif isinstance(stmt, ast.FunctionDef):
+                self._check_function(stmt)
+            elif isinstance(stmt, ast.Expr) and isinstance(stmt.value, ast.Constant):
+                self._check_expr(stmt.value)
+            elif isinstance(stmt, ast.Assign | ast.AnnAssign) and self._is_constant_definition(stmt):
+                self._check_expr(stmt.value)  # type: ignore[arg-type]
+            else:
+                raise _refuse(stmt, f"module-level {type(stmt).__name__} statement is not allowed: only "
+                                    "imports, constants, functions and the loss class")
+        classes = [n for n in tree.body if isinstance(n, ast.ClassDef)]
+        if len(classes) != 1:
+            raise SandboxError(f"the program must define exactly one class deriving from GuidanceLoss "
+                               f"(it defines {len(classes)})", classes[1].lineno if len(classes) > 1 else 1)
+
+    def _check_binding(self, name: str, tree: ast.Module) -> None:
+        node = next(n for n in ast.walk(tree) if name in (getattr(n, "id", None), getattr(n, "arg", None),
+                                                           getattr(n, "name", None)))
+        if name.startswith("_") and name != "_" and not (name == "__init__" and isinstance(node, ast.FunctionDef)):
+            raise _refuse(node, f"names starting with '_' are not allowed ({name})")
+        if name in PREBOUND or name in SAFE_BUILTIN_NAMES or name in FORBIDDEN_CALLS:
+            raise _refuse(node, f"rebinding the name {name} is not allowed")
+
+    def _is_constant_definition(self, stmt: ast.Assign | ast.AnnAssign) -> bool:
+        targets = stmt.targets if isinstance(stmt, ast.Assign) else [stmt.target]
+        return (stmt.value is not None and _is_literal(stmt.value) and len(targets) == 1
+                and isinstance(targets[0], ast.Name))
+
+    def _check_import(self, stmt: ast.Import | ast.ImportFrom) -> None:
+        if isinstance(stmt, ast.Import):
+            for alias in stmt.names:
+                if alias.name not in PLAIN_IMPORTS or alias.asname != PLAIN_IMPORTS[alias.name]:
+                    shown = alias.name + (f" as {alias.asname}" if alias.asname else "")
+                    raise _refuse(stmt, f"import {shown} is not allowed (only `import torch`, `import math`,"
+                                        " `import torch.nn.functional as F`)")
+            return
+        allowed = HELPER_MODULES.get(stmt.module or "")
+        if allowed is None or stmt.level:
+            raise _refuse(stmt, f"import from {stmt.module} is not allowed")
+        for alias in stmt.names:
+            if alias.name not in allowed or alias.asname is not None:
+                raise _refuse(stmt, f"from {stmt.module} import {alias.name} is not allowed")
+
+    def _check_class(self, cls: ast.ClassDef) -> None:
+        if cls.decorator_list:
+            raise _refuse(cls, "decorators are not allowed")
+        if cls.keywords:
+            raise _refuse(cls, "class keywords (metaclass=...) are not allowed")
+        if len(cls.bases) != 1 or not (isinstance(cls.bases[0], ast.Name) and cls.bases[0].id == "GuidanceLoss"):
+            raise _refuse(cls, f"class {cls.name} must derive from GuidanceLoss only")
+        methods = [s for s in cls.body if isinstance(s, ast.FunctionDef)]
+        if "forward" not in {m.name for m in methods}:
+            raise _refuse(cls, f"class {cls.name} has no forward(self, x, data_batch, agt_mask=None) method")
+        self.self_attributes = {m.name for m in methods}
+        for node in ast.walk(cls):
+            if isinstance(node, ast.Attribute) and isinstance(node.ctx, ast.Store) and _is_self(node.value):
+                self.self_attributes.add(node.attr)
+        for stmt in cls.body:
+            if isinstance(stmt, ast.FunctionDef):
+                self.method = stmt.name
+                self._check_function(stmt)
+                self.method = None
+            elif isinstance(stmt, ast.Expr) and isinstance(stmt.value, ast.Constant):
+                self._check_expr(stmt.value)
+            elif isinstance(stmt, ast.Assign | ast.AnnAssign) and self._is_constant_definition(stmt):
+                target = stmt.targets[0] if isinstance(stmt, ast.Assign) else stmt.target
+                self.self_attributes.add(target.id)  # type: ignore[attr-defined]
+                self._check_expr(stmt.value)  # type: ignore[arg-type]
+            else:
+                raise _refuse(stmt, f"{type(stmt).__name__} statement in the class body is not allowed: "
+                                    "only a docstring, constants and methods")
+
+    def _check_function(self, fn: ast.FunctionDef) -> None:
+        if fn.decorator_list:
+            raise _refuse(fn, "decorators are not allowed")
+        self._check_arguments(fn.args)
+        self.functions.append(fn.name)
+        for stmt in fn.body:
+            self._check_statement(stmt)
+        self.functions.pop()
+
+    def _check_arguments(self, args: ast.arguments) -> None:
+        for default in [*args.defaults, *(d for d in args.kw_defaults if d is not None)]:
+            if not _is_literal(default):
+                raise _refuse(default, "default values must be literal constants")
+            self._check_expr(default)
+
+    def _check_statement(self, stmt: ast.stmt) -> None:
+        kind = type(stmt).__name__
+        if kind in REFUSED_STATEMENTS:
+            raise _refuse(stmt, REFUSED_STATEMENTS[kind])
+        if not isinstance(stmt, FUNCTION_STATEMENTS):
+            raise _refuse(stmt, f"{kind} statements are not allowed")
+        if isinstance(stmt, ast.FunctionDef):
+            outer, self.method = self.method, None
+            self._check_function(stmt)
+            self.method = outer
+            return
+        if isinstance(stmt, ast.For):
+            self._check_loop_iterable(stmt.iter)
+        for field, value in ast.iter_fields(stmt):
+            if field == "annotation":
+                continue  # annotations are removed before execution
+            for child in value if isinstance(value, list) else [value]:
+                if isinstance(child, ast.stmt):
+                    self._check_statement(child)
+                elif isinstance(child, ast.AST):
+                    self._check_expr(child)
+
+    def _check_loop_iterable(self, node: ast.expr) -> None:
+        ok = (
+            isinstance(node, ast.List | ast.Tuple | ast.Name)
+            or (isinstance(node, ast.Attribute) and _is_self(node.value))
+            or (isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id in LOOP_CALLS)
+        )
+        if not ok:
+            raise _refuse(node, "for loops may only run over range(), enumerate(), zip(), reversed(), "
+                                "a list or tuple, or a variable")
+
+    # ---- expressions ------------------------------------------------------------------------------
+    def _check_expr(self, node: ast.AST) -> None:
+        if not isinstance(node, EXPRESSIONS):
+            raise _refuse(node, f"{type(node).__name__} expressions are not allowed")
+        if isinstance(node, ast.Name):
+            self._check_name(node)
+            return
+        if isinstance(node, ast.Attribute):
+            self._check_attribute(node)
+            return
+        if isinstance(node, ast.Constant):
+            self._check_constant(node)
+        elif isinstance(node, ast.BinOp):
+            value = _fold_int(node)
+            if value is not None and abs(value) > MAX_INT_CONSTANT:
+                raise _refuse(node, f"integer constant too large ({value}; at most {MAX_INT_CONSTANT})")
+        elif isinstance(node, ast.Call) and self._check_call(node):
+            return
+        elif isinstance(node, ast.keyword) and node.arg is not None and node.arg.startswith("_"):
+            raise _refuse(node, f"names starting with '_' are not allowed ({node.arg})")
+        elif isinstance(node, ast.arguments):
+            self._check_arguments(node)
+        for child in ast.iter_child_nodes(node):
+            self._check_expr(child)
+
+    def _check_constant(self, node: ast.Constant) -> None:
+        value = node.value
+        if isinstance(value, str | bytes) and ("__" in str(value)):
+            raise _refuse(node, "string constants may not contain '__'")
+        if type(value) is int and abs(value) > MAX_INT_CONSTANT:
+            raise _refuse(node, f"integer constant too large ({value}; at most {MAX_INT_CONSTANT})")
+
+    def _check_name(self, node: ast.Name) -> None:
+        name = node.id
+        if name.startswith("_") and name != "_":
+            raise _refuse(node, f"names starting with '_' are not allowed ({name})")
+        if name in FORBIDDEN_CALLS:
+            raise _refuse(node, f"{name} is not allowed")
+        if name in MODULE_NAMES:
+            raise _refuse(node, f"the module {name} may only be used as {name}.<function>, not as a value")
+        if name not in self.bound and name not in PREBOUND and name not in SAFE_BUILTIN_NAMES:
+            raise _refuse(node, f"unknown name {name} (not a builtin, helper or variable of the program)")
+
+    def _check_attribute(self, node: ast.Attribute) -> None:
+        attr = node.attr
+        if attr.startswith("_"):
+            raise _refuse(node, f"attributes starting with '_' are not allowed (.{attr})")
+        module = _module_path(node.value)
+        if module is not None:
+            allowed = MODULE_ATTRIBUTES[module]
+            if attr not in allowed:
+                raise _refuse(node, f"{module}.{attr} is not on the allow list")
+            if module == "torch" and attr == "linalg":
+                raise _refuse(node, "torch.linalg may only be used as torch.linalg.<function>")
+            if not isinstance(node.ctx, ast.Load):
+                raise _refuse(node, f"assigning to {module}.{attr} is not allowed")
+            return
+        if _is_self(node.value):
+            if attr not in self.self_attributes:
+                raise _refuse(node, f"self.{attr} is never assigned in the class")
+            return
+        if not isinstance(node.ctx, ast.Load):
+            raise _refuse(node, f"assigning to the attribute .{attr} is only allowed on self")
+        if attr not in TENSOR_ATTRIBUTES and attr not in BATCH_ATTRIBUTES:
+            raise _refuse(node, f"the attribute .{attr} is not on the allow list")
+        self._check_expr(node.value)
+
+    def _check_call(self, node: ast.Call) -> bool:
+        """Call-specific rules; True when the call is fully checked (``super().__init__()``)."""
+        func = node.func
+        if isinstance(func, ast.Name) and self.functions and func.id == self.functions[-1]:
+            raise _refuse(node, f"recursion is not allowed ({func.id} calls itself)")
+        if isinstance(func, ast.Attribute) and _is_self(func.value) and func.attr == self.method:
+            raise _refuse(node, f"recursion is not allowed ({func.attr} calls itself)")
+        if isinstance(func, ast.Attribute) and func.attr == "__init__" and _is_super_call(func.value):
+            if self.method != "__init__" or node.args or node.keywords:
+                raise _refuse(node, "super().__init__() is only allowed, without arguments, inside __init__")
+            return True  # nothing else in `super().__init__()` to check
+        return False
+
+
+def _is_self(node: ast.AST) -> bool:
+    return isinstance(node, ast.Name) and node.id == "self"
+
+
+def _is_super_call(node: ast.AST) -> bool:
+    return (isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id == "super"
+            and not node.args and not node.keywords)
+
+
+def _module_path(node: ast.AST) -> str | None:
+    """"torch", "math", "F" or "torch.linalg" when ``node`` names that module, else None."""
+    if isinstance(node, ast.Name) and node.id in MODULE_NAMES:
+        return node.id
+    if isinstance(node, ast.Attribute) and node.attr == "linalg" and _module_path(node.value) == "torch":
+        return "torch.linalg"
+    return None

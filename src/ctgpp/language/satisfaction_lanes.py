@@ -1,0 +1,160 @@
+"""Lane-graph checks of a rollout for the query report: which lane a simulated track is on, lane
+changes, the rightmost lane, turns, lane following and cut-ins.
+
+They read the simulated track (``rollout.sim``) and the scene's lane graph only — never a guidance
+loss. A track's lane is followed from lane end to lane end (:func:`chain_offsets`, which never switches
+sideways while a lane goes on) or with the hysteresis of :func:`ctgpp.scene.lanes.follow_lane`
+(which does switch to a neighbour, :func:`end_lane`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ctgpp.geometry import wrap_angle
+from ctgpp.scene.lanes import (
+    LaneProjection,
+    follow_lane,
+    lane_length,
+    left_lane,
+    nearest_lane,
+    project_to_lane,
+    right_lane,
+)
+from ctgpp.scene.types import LaneGraph
+
+FOLLOW_LANE_MAX_OFFSET_M = 1.5  # follow lane: largest lateral offset from the lane chain
+LANE_CHANGE_FALLBACK_M = 2.5  # lane change without a mapped neighbour: lateral displacement needed
+TURN_MIN_DEG = 45.0  # a turn changes the heading by more than this
+STRAIGHT_MAX_DEG = 30.0  # going straight changes it by less
+IN_LANE_M = 1.75  # cut in: lateral offset from the other's lane that counts as inside it
+SUCCESSOR_DEPTH = 8
+
+
+def reachable(lanes: LaneGraph, start: int, depth: int = SUCCESSOR_DEPTH) -> set[int]:
+    """``start`` and every lane reachable from it through at most ``depth`` successor links."""
+    seen, frontier = {start}, [start]
+    for _ in range(depth):
+        frontier = [j for i in frontier for j in lanes.successors_of(i) if j not in seen]
+        seen.update(frontier)
+    return seen
+
+
+def branches(lanes: LaneGraph, lane: int) -> set[int]:
+    """Lanes that fork from the same place as ``lane`` (successors of its predecessors, lanes starting
+    within 1 m of its start: overlapping intersection connectors) and its successors."""
+    starts = lanes.points[lanes.offsets[:-1]]  # (L, 2) first point of each lane
+    near = np.flatnonzero(np.linalg.norm(starts - starts[lane], axis=1) < 1.0)
+    out = {int(j) for j in near} | set(lanes.successors_of(lane))
+    for pred in lanes.predecessors_of(lane):
+        out |= set(lanes.successors_of(pred))
+    return out
+
+
+def chain_offsets(lanes: LaneGraph, xy: np.ndarray, yaw: np.ndarray) -> tuple[np.ndarray, list[int]]:
+    """Signed lateral offsets (T,) m (left +) of a track xy (T, 2), yaw (T,) from the lane it is on:
+    its nearest lane at step 0, kept until the track passes that lane's end or a lane forking from
+    the same place fits it better (overlapping connectors), where the nearest lane
+    (:func:`ctgpp.scene.lanes.nearest_lane`) takes over; and the lane at each step. Drifting sideways
+    into a neighbour therefore shows as a growing offset. NaN offsets when the start is on no lane."""
+    proj = nearest_lane(lanes, xy[0], float(yaw[0]))
+    if proj is None:
+        return np.full(len(xy), np.nan), [-1] * len(xy)
+    current, out, seq = proj.lane, [], []
+    for p, h in zip(xy, yaw, strict=True):
+        q = project_to_lane(lanes, current, p)
+        near = nearest_lane(lanes, p, float(h))
+        past_end = not 0.0 < q.s_m < lane_length(lanes, current)
+        if near is not None and near.lane != current:
+            forked = abs(near.d_m) + 0.5 < abs(q.d_m) and near.lane in branches(lanes, current)
+            if past_end or forked:
+                q = near
+        current = q.lane
+        out.append(q.d_m)
+        seq.append(current)
+    return np.array(out), seq
+
+
+def end_lane(lanes: LaneGraph, xy: np.ndarray, yaw: np.ndarray) -> LaneProjection | None:
+    """The lane a track xy (T, 2), yaw (T,) is on at its last step, followed with hysteresis."""
+    proj = None
+    for p, h in zip(xy, yaw, strict=True):
+        proj = follow_lane(lanes, proj, p, float(h))
+    return proj
+
+
+def lane_change(lanes: LaneGraph, xy: np.ndarray, yaw: np.ndarray, side: str) -> tuple[bool, str]:
+    """Whether the track ends on the neighbour (or a successor of it) of its starting lane on
+    ``side``; where the map has no neighbour there, whether it ends at least 2.5 m to that side of
+    its starting lane chain."""
+    start = nearest_lane(lanes, xy[0], float(yaw[0]))
+    if start is None:
+        return False, "the vehicle starts on no lane"
+    other = (left_lane if side == "left" else right_lane)(lanes, start)
+    end = end_lane(lanes, xy, yaw)
+    if other is not None:
+        ok = end is not None and end.lane in reachable(lanes, other.lane) and end.lane != start.lane
+        where = "no lane" if end is None else f"lane {end.lane}"
+        return ok, f"ends on {where}; {side} neighbour of its start lane: lane {other.lane}"
+    offsets, _ = chain_offsets(lanes, xy, yaw)
+    moved = float(offsets[-1] - offsets[0]) * (1.0 if side == "left" else -1.0)
+    ok = moved >= LANE_CHANGE_FALLBACK_M
+    return ok, f"no mapped {side} lane; moved {moved:.1f} m to the {side} of its start lane (needs 2.5)"
+
+
+def rightmost(lanes: LaneGraph, xy: np.ndarray, yaw: np.ndarray) -> tuple[bool, str]:
+    """Whether the track's lane at the end has no same-direction lane to its right (a mapped
+    neighbour 2-6 m away and parallel within 20° counts)."""
+    end = end_lane(lanes, xy, yaw)
+    if end is None:
+        return False, "ends on no lane"
+    other = right_lane(lanes, end)
+    if other is not None:
+        gap = float(np.linalg.norm(other.xy - end.xy))
+        turn = abs(math.degrees(float(wrap_angle(np.float64(other.heading - end.heading)))))
+        if 2.0 <= gap <= 6.0 and turn <= 20.0 and not lanes.intersection[end.lane]:
+            return False, f"ends on lane {end.lane}, which has a lane {gap:.1f} m to its right"
+    return True, f"ends on lane {end.lane}, with no lane to its right"
+
+
+def turn(yaw: np.ndarray, direction: str) -> tuple[bool, str]:
+    """Whether the heading changes over the track yaw (T,) in ``direction``: left > +45°,
+    right < -45°, straight within ±30°."""
+    change = math.degrees(float(np.unwrap(yaw)[-1] - np.unwrap(yaw)[0]))
+    ok = {"left": change > TURN_MIN_DEG, "right": change < -TURN_MIN_DEG}.get(
+        direction, abs(change) < STRAIGHT_MAX_DEG
+    )
+    return ok, f"heading change {change:+.0f}° (left +)"
+
+
+def follows_lane(lanes: LaneGraph, xy: np.ndarray, yaw: np.ndarray) -> tuple[bool, str]:
+    """Whether the lateral offset from the starting lane chain stays under 1.5 m."""
+    offsets, _ = chain_offsets(lanes, xy, yaw)
+    if np.isnan(offsets).all():
+        return False, "starts on no lane"
+    worst = float(np.abs(offsets).max())
+    return worst < FOLLOW_LANE_MAX_OFFSET_M, f"largest lateral offset from its lane {worst:.2f} m (limit 1.5)"
+
+
+def cut_in(
+    lanes: LaneGraph, xy: np.ndarray, yaw: np.ndarray, extent: np.ndarray, other_xy: np.ndarray,
+    other_yaw: np.ndarray, other_extent: np.ndarray, gap_m: float,
+) -> tuple[bool, str]:
+    """Whether at the last step the vehicle is ahead of the other within a bumper gap of
+    (0, gap_m + 1] m in the other's frame, and inside the other's lane (within 1.75 m of the
+    centerline of the lane the other is on then)."""
+    c, s = math.cos(other_yaw[-1]), math.sin(other_yaw[-1])
+    rel = xy[-1] - other_xy[-1]
+    lon = rel[0] * c + rel[1] * s
+    gap = float(lon - extent[0] / 2 - other_extent[0] / 2)
+    lane = end_lane(lanes, other_xy, other_yaw)
+    if lane is None:
+        lat = abs(-rel[0] * s + rel[1] * c)
+        where = "the other is on no lane"
+    else:
+        lat = abs(project_to_lane(lanes, lane.lane, xy[-1]).d_m)
+        where = f"lane {lane.lane}"
+    ok = 0.0 < gap <= gap_m + 1.0 and lat < IN_LANE_M
+    return ok, f"bumper gap ahead {gap:.1f} m (0-{gap_m + 1:g}), {lat:.1f} m from the other's lane ({where})"

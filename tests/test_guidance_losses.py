@@ -1,0 +1,140 @@
+"""Every rule of the library on a real scene batch, and hand-computed cases."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from ctgpp.guidance import CompositeLoss, GuidanceBatch, build_guidance_batch, describe_rules, make_loss
+from ctgpp.guidance.base import registered_losses
+from ctgpp.guidance.rules import TargetSpeed
+from tests.test_guidance_helpers import logged_x, real_observation
+
+
+@pytest.fixture(scope="module")
+def batch() -> GuidanceBatch:
+    return build_guidance_batch(real_observation())
+
+
+@pytest.fixture(scope="module")
+def x() -> torch.Tensor:
+    return logged_x(real_observation())[0]
+
+
+def _active_params(batch: GuidanceBatch) -> dict[str, dict]:
+    """Parameters that make each rule active (non-zero cost) on scene-0103 at step 30."""
+    far = batch.to_world(batch.pose[0, :2].numpy() + np.array([200.0, 50.0]))
+    ahead = batch.to_world(batch.pose[1, :2].numpy())  # vehicle 1 starts inside, still moving
+    return {
+        "speed_limit": {"limit_mps": 1.0},
+        "target_speed": {"speed_mps": 0.0},
+        "acceleration_limit": {"max_mps2": 0.05},
+        "no_offroad": {"margin_m": 20.0},
+        "goal_waypoint": {"vehicle": 0, "x": far[0], "y": far[1], "target_speed_mps": 3.0},
+        "stop_region": {"vehicle": 1, "x": ahead[0], "y": ahead[1], "radius_m": 2.0},
+        "no_collision": {"buffer_m": 20.0},
+        "keep_distance": {"follower": 0, "leader": 1, "min_m": 100.0, "max_m": 200.0},
+        "collision": {"vehicle_a": 0, "vehicle_b": 1},
+    }
+
+
+def test_every_rule_is_covered(batch: GuidanceBatch) -> None:
+    assert set(_active_params(batch)) == set(registered_losses())
+    assert {info.name for info in describe_rules()} == set(registered_losses())
+
+
+@pytest.mark.parametrize("name", sorted(registered_losses()))
+def test_contract_shape_and_gradients(name: str, batch: GuidanceBatch, x: torch.Tensor) -> None:
+    loss = make_loss(name, **_active_params(batch)[name])
+    xg = x.clone().requires_grad_(True)
+    cost = loss(xg, batch)
+    expected = (x.shape[1],) if loss.couples_agents else tuple(x.shape[:2])
+    assert tuple(cost.shape) == expected
+    assert torch.isfinite(cost).all() and float(cost.detach().sum()) > 0
+    cost.sum().backward()
+    assert torch.isfinite(xg.grad).all() and xg.grad.abs().sum() > 0
+    if not loss.couples_agents:  # agt_mask removes vehicles
+        mask = torch.zeros(x.shape[0], dtype=torch.bool)
+        assert float(loss(x, batch, mask).abs().sum()) == 0.0
+
+
+def _still(b: int, n: int, t: int, speed: float) -> torch.Tensor:
+    """x (b, n, t, 6): every vehicle drives straight ahead at ``speed`` m/s from its position."""
+    x = torch.zeros(b, n, t, 6)
+    x[..., 0] = speed * 0.1 * torch.arange(1, t + 1)
+    x[..., 2] = speed
+    return x
+
+
+def test_speed_limit_by_hand(batch: GuidanceBatch) -> None:
+    x = _still(2, 1, 4, 5.0)
+    x[0, 0, :, 2] = torch.tensor([3.0, 6.0, 7.0, 4.0])  # excess 0, 1, 2, 0 -> mean 0.75
+    cost = make_loss("speed_limit", limit="5")(x, batch)
+    assert torch.allclose(cost, torch.tensor([[0.75], [0.0]]))
+
+
+def test_target_speed_from_log(batch: GuidanceBatch, x: torch.Tensor) -> None:
+    rule = TargetSpeed.from_log(batch, 0.5)
+    target = rule.targets(x, batch)
+    log = batch.scene.agents
+    logged = torch.from_numpy(0.5 * log.speed[batch.agent_index[0], 31:34]).float()
+    assert torch.allclose(target[0, :3], logged)
+
+
+def test_keep_distance_by_hand(batch: GuidanceBatch) -> None:
+    # two vehicles at the same pose: the leader 5, 20, 40 m ahead of the follower -> 5, 0, 10 m outside
+    one = replace(batch, pose=torch.zeros(2, 3), memo={})
+    x = torch.zeros(2, 1, 3, 6)
+    x[1, 0, :, 0] = torch.tensor([5.0, 20.0, 40.0])
+    cost = make_loss("keep_distance", follower=0, leader=1)(x, one)
+    assert cost.shape == (1,) and abs(float(cost) - 5.0) < 1e-3
+
+
+def test_collision_pair_by_hand(batch: GuidanceBatch) -> None:
+    one = replace(batch, pose=torch.zeros(2, 3), memo={})
+    x = torch.zeros(2, 1, 3, 6)
+    x[1, 0, :, 0] = torch.tensor([9.0, 4.0, 6.0])  # closest 4 m, contact at 1 m -> 3
+    assert abs(float(make_loss("collision", vehicle_a=0, vehicle_b=1)(x, one)) - 3.0) < 1e-3
+
+
+def test_no_offroad_on_a_tiny_sdf(batch: GuidanceBatch) -> None:
+    # a 1 m raster whose SDF is the column index - 2: x = 0.5 + c -> sdf = x - 2.5 m
+    sdf = torch.arange(6.0)[None].repeat(4, 1) - 2.0
+    tiny = replace(
+        batch, pose=torch.zeros(1, 3), extent=torch.tensor([[0.3, 0.3]]), sdf=sdf,
+        sdf_origin=torch.zeros(2), sdf_resolution_m=1.0, memo={},
+    )
+    x = torch.zeros(1, 1, 2, 6)
+    x[0, 0, :, 0] = torch.tensor([1.5, 4.0])
+    x[0, 0, :, 1] = 1.7
+    cost = make_loss("no_offroad", margin_m=0.0)(x, tiny)
+    # sdf at the centre: -1.0 (inside) and 1.5 (off-road) -> hinge 0 and 1.5, mean 0.75 (discs 0.1 m apart)
+    assert abs(float(cost) - 0.75) < 1e-4
+
+
+def test_composite_broadcasts(batch: GuidanceBatch, x: torch.Tensor) -> None:
+    speed = make_loss("speed_limit", limit_mps=1.0)
+    offroad = make_loss("no_offroad", margin_m=20.0)
+    per_vehicle = CompositeLoss([(speed, 1.0), (offroad, 2.0)])
+    assert not per_vehicle.couples_agents
+    assert torch.allclose(per_vehicle(x, batch), speed(x, batch) + 2 * offroad(x, batch))
+    coupled = CompositeLoss([(speed, 1.0), (make_loss("no_collision", buffer_m=20.0), 0.5)])
+    assert coupled.couples_agents
+    want = speed(x, batch).sum(0) + 0.5 * make_loss("no_collision", buffer_m=20.0)(x, batch)
+    assert torch.allclose(coupled(x, batch), want)
+
+
+def test_make_loss_errors() -> None:
+    with pytest.raises(ValueError, match="speed_limit"):
+        make_loss("speed_limt")
+    with pytest.raises(ValueError, match="limit_mps"):
+        make_loss("speed_limit", speed=3)
+    with pytest.raises(ValueError, match="follower, leader"):
+        make_loss("keep_distance")
+    with pytest.raises(ValueError, match="expects float"):
+        make_loss("speed_limit", limit="fast")
+    with pytest.raises(IndexError, match="vehicle 99"):
+        make_loss("collision", vehicle_a=0, vehicle_b=99)(torch.zeros(2, 1, 3, 6), None)

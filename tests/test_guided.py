@@ -1,0 +1,217 @@
+"""Guided sampling (Algorithm 2): clipping, filtration, DDPM and DDIM, and guided samples that lower
+the rules' losses compared with the unguided sample from the same seed, on real scene-0103."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pytest
+import torch
+from torch import Tensor
+
+from ctgpp.diffusion import CosineSchedule, DDIMSampler, DDPMSampler, sample
+from ctgpp.diffusion.guided import (
+    GuidanceConfig,
+    action_trajectories,
+    clip_radii,
+    filtration,
+    guide_mean,
+    guided_sample,
+)
+from ctgpp.eval.rule_setup import select_pair
+from ctgpp.guidance import GuidanceLoss, build_guidance_batch, make_loss
+from ctgpp.model.config import ModelConfig
+from ctgpp.model.denoiser import Denoiser
+from ctgpp.scene.types import Scene
+from ctgpp.scene.vehicles import controlled_vehicles
+from ctgpp.sim.diffusion_policy import DiffusionPolicy, SamplingConfig
+from ctgpp.sim.policy import Observation
+
+TINY = ModelConfig(d_model=32, heads=2, blocks=1, edge_dim=16, lane_hidden=32)
+STEP = 30  # 3 s into scene-0103: 12 vehicles
+SCHEDULE = CosineSchedule()
+
+
+class PriorDenoiser(Denoiser):
+    """The exact denoiser of a standard normal prior over normalized actions: E[x_0 | x_k] = sqrt(ᾱ_k)·x_k.
+
+    Unlike an untrained network, it keeps what guidance adds to x_k, as a trained model does, so the
+    effect of guidance on the final samples is measurable without training.
+    """
+
+    def forward(self, noisy: Tensor, k: Tensor | int, batch: Any, context: Any = None) -> Tensor:
+        abar = self.normalizer.action_mean.new_tensor(SCHEDULE.alphas_cumprod.numpy())
+        k_t = torch.as_tensor(k).long().reshape(-1)  # (S,)
+        return abar[k_t].sqrt().reshape(-1, 1, 1, 1) * noisy
+
+
+class TargetSpeedOnX(GuidanceLoss):
+    """A test loss: mean squared deviation of x[..., 2] from a speed, (B, N)."""
+
+    def __init__(self, speed_mps: float) -> None:
+        super().__init__()
+        self.speed_mps = speed_mps
+
+    def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
+        return ((x[..., 2] - self.speed_mps) ** 2).mean(-1)
+
+
+def observation(scene: Scene, seed: int = 0) -> Observation:
+    return Observation(scene, scene.agents, STEP, controlled_vehicles(scene, STEP), 52, np.random.default_rng(seed))
+
+
+def make_model(cls: type[Denoiser] = Denoiser) -> Denoiser:
+    torch.manual_seed(0)
+    return cls(TINY).eval()
+
+
+def losses(policy: DiffusionPolicy, loss: GuidanceLoss, scene: Scene) -> Tensor:
+    """The loss of every sample of one re-plan (the same seed whatever the policy)."""
+    obs = observation(scene)
+    samples = policy.sample_plans(obs)
+    return loss(samples.trajectories, build_guidance_batch(obs, 52))
+
+
+def test_without_guidance_the_sampler_is_the_plain_one() -> None:
+    for sampler in (DDPMSampler(SCHEDULE), DDIMSampler(SCHEDULE, 7)):
+
+        def denoise(x: Tensor, k: int) -> Tensor:
+            return 0.5 * x + 0.01 * k
+
+        a = sample(denoise, (2, 3, 5, 2), sampler, torch.Generator().manual_seed(3))
+        b = guided_sample(denoise, (2, 3, 5, 2), sampler, None, generator=torch.Generator().manual_seed(3))
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+
+
+def test_clip_radii_are_the_posterior_std_and_never_zero() -> None:
+    ddpm = clip_radii(DDPMSampler(SCHEDULE))
+    std = SCHEDULE.posterior_variance.sqrt()
+    for k in (99, 50, 1):
+        assert ddpm[k] == pytest.approx(float(std[k]), rel=1e-9)
+    assert ddpm[0] == ddpm[1] > 0  # last step: the previous step's radius
+    ddim = clip_radii(DDIMSampler(SCHEDULE, 10))  # deterministic DDIM (σ = 0) still guides
+    assert all(r > 0 for r in ddim.values())
+
+
+def test_clipping_bounds_the_change_of_the_mean_even_with_a_huge_lr() -> None:
+    mean = torch.randn(3, 4, 6, 2, generator=torch.Generator().manual_seed(0))
+
+    def objective(x: Tensor) -> Tensor:
+        return ((x - 100.0) ** 2).sum()  # pulls every entry far upwards
+
+    out = guide_mean(mean, objective, 0.05, GuidanceConfig(inner_steps=5, lr=1e4))
+    torch.testing.assert_close(out - mean, torch.full_like(mean, 0.05))
+    out = guide_mean(mean, objective, 0.05, GuidanceConfig(inner_steps=1, lr=1e-3))
+    assert ((out - mean).abs() <= 0.05).all() and (out > mean).all()
+
+
+def test_each_step_moves_the_mean_by_at_most_its_radius() -> None:
+    sampler = DDIMSampler(SCHEDULE, 6)
+    radii = clip_radii(sampler)
+    seen: list[tuple[int, Tensor, Tensor]] = []
+    original = sampler.prev_mean_std
+
+    def spy(x0_pred: Tensor, x_k: Tensor, k: int) -> tuple[Tensor, Tensor]:
+        mean, std = original(x0_pred, x_k, k)
+        seen.append((k, mean, x_k))
+        return mean, std
+
+    sampler.prev_mean_std = spy  # type: ignore[method-assign]
+    x0 = guided_sample(
+        lambda x, k: 0.9 * x, (2, 3, 8, 2), sampler, lambda x: (x + 50.0).abs(),
+        GuidanceConfig(lr=1e3), torch.Generator().manual_seed(1),
+    )
+    # DDIM η = 0: x_{k−1} is the guided mean; the next step's x_k minus the unguided mean is the change.
+    inputs = [x_k for _, _, x_k in seen[1:]] + [x0]
+    for (k, mean, _), guided in zip(seen, inputs, strict=True):
+        change = (guided - mean).abs()
+        assert change.max() <= radii[k] + 1e-6
+        assert change.max() >= radii[k] - 1e-6  # the huge lr saturates the clip
+
+
+def test_filtration_picks_the_argmin() -> None:
+    per_vehicle = torch.tensor([[3.0, 1.0, 2.0], [0.5, 4.0, 0.1]])  # (B=2, N=3)
+    assert filtration(per_vehicle, False, 2).tolist() == [1, 2]
+    assert filtration(per_vehicle, True, 2).tolist() == [2, 2]  # totals 3.5, 5.0, 2.1
+    assert filtration(torch.tensor([2.0, float("nan"), 1.0]), False, 4).tolist() == [2] * 4
+    with pytest.raises(ValueError, match="vehicle rows"):
+        filtration(per_vehicle, False, 3)
+
+
+def test_action_trajectories_follow_the_contract() -> None:
+    actions = torch.zeros(2, 3, 10, 2)
+    actions[..., 0] = 1.0  # 1 m/s² for 1 s
+    current = torch.tensor([[0.0, 0.0, 5.0, 0.0]] * 3)
+    x = action_trajectories(actions, current, 0.1)
+    assert x.shape == (3, 2, 10, 6)
+    torch.testing.assert_close(x[..., -1, 2], torch.full((3, 2), 6.0))
+    torch.testing.assert_close(x[..., 4], torch.ones(3, 2, 10))
+
+
+@pytest.mark.parametrize("sampling", [SamplingConfig("ddim", 5, 3), SamplingConfig("ddpm", 5, 2)])
+def test_ddpm_and_ddim_guided_plans_on_the_untrained_model(scene_0103: Scene, sampling: SamplingConfig) -> None:
+    model = make_model()
+    loss = TargetSpeedOnX(2.0)
+    policy = DiffusionPolicy(model, sampling, loss)
+    obs = observation(scene_0103)
+    samples = policy.sample_plans(obs)
+    v = len(obs.controlled)
+    assert samples.actions.shape == (sampling.num_samples, v, 52, 2)
+    assert samples.loss is not None and samples.loss.shape == (v, sampling.num_samples)
+    assert samples.chosen.tolist() == samples.loss.argmin(dim=1).tolist()
+    plan = policy.plan(observation(scene_0103))
+    assert plan.states.shape == (v, 52, 4) and np.isfinite(plan.states).all()
+    unguided = DiffusionPolicy(model, sampling).sample_plans(observation(scene_0103))
+    assert unguided.loss is None and (unguided.chosen == 0).all()
+    assert float(loss(samples.trajectories, None).mean()) < float(loss(unguided.trajectories, None).mean())
+
+
+def test_coupled_loss_keeps_one_sample_for_the_scene(scene_0103: Scene) -> None:
+    ctrl = controlled_vehicles(scene_0103, STEP)
+    follower, leader = select_pair(scene_0103, STEP, ctrl, 36.0)
+    loss = make_loss("keep_distance", follower=follower, leader=leader, min_m=40.0, max_m=50.0)
+    samples = DiffusionPolicy(make_model(PriorDenoiser), SamplingConfig("ddim", 4, 3), loss).sample_plans(
+        observation(scene_0103)
+    )
+    assert samples.loss is not None and samples.loss.shape == (3,)
+    assert samples.chosen.tolist() == [int(samples.loss.argmin())] * len(ctrl)
+
+
+def rule_params(scene: Scene, name: str) -> dict[str, Any]:
+    """Parameters under which the logged scene violates the rule (so guidance has work to do)."""
+    ctrl = controlled_vehicles(scene, STEP)
+    a = scene.agents
+    if name in ("keep_distance", "collision"):
+        follower, leader = select_pair(scene, STEP, ctrl, 108.0)
+        if name == "collision":
+            return {"vehicle_a": follower, "vehicle_b": leader}
+        return {"follower": follower, "leader": leader, "min_m": 40.0, "max_m": 50.0}
+    if name == "goal_waypoint":  # 12 m to the left of vehicle 1
+        yaw = a.yaw[ctrl[1], STEP]
+        goal = a.xy[ctrl[1], STEP] + 12.0 * np.array([-np.sin(yaw), np.cos(yaw)])
+        return {"vehicle": 1, "x": float(goal[0]), "y": float(goal[1])}
+    return {"speed_limit": {"limit_mps": 2.0}, "target_speed": {"speed_mps": 3.0}, "no_offroad": {"margin_m": 2.0}}[
+        name
+    ]
+
+
+@pytest.mark.parametrize(
+    ("name", "sampling"),
+    [
+        ("speed_limit", SamplingConfig("ddim", 10, 2)),
+        ("speed_limit", SamplingConfig("ddpm", 10, 2)),
+        ("target_speed", SamplingConfig("ddim", 10, 2)),
+        ("no_offroad", SamplingConfig("ddim", 10, 2)),
+        ("goal_waypoint", SamplingConfig("ddim", 10, 2)),
+        ("keep_distance", SamplingConfig("ddpm", 10, 2)),
+        ("collision", SamplingConfig("ddpm", 10, 2)),
+    ],
+)
+def test_a_guided_sample_lowers_the_rule_loss(scene_0103: Scene, name: str, sampling: SamplingConfig) -> None:
+    model = make_model(PriorDenoiser)
+    loss = make_loss(name, **rule_params(scene_0103, name))
+    unguided = losses(DiffusionPolicy(model, sampling), loss, scene_0103)
+    guided = losses(DiffusionPolicy(model, sampling, loss), loss, scene_0103)
+    assert float(unguided.sum()) > 0
+    assert float(guided.sum()) < 0.9 * float(unguided.sum())
