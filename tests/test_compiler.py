@@ -29,22 +29,42 @@ CASES: list[tuple[str, list[tuple[str, dict, tuple[int, ...] | None]]]] = [
     ("make 2 and 5 collide", [("collision", {"vehicle_a": 2, "vehicle_b": 5}, None)]),
     ("vehicles 1 and 2 should hit each other", [("collision", {"vehicle_a": 1, "vehicle_b": 2}, None)]),
     ("v4 rear-ends v6", [("collide_from_behind", {"vehicle": 4, "target": 6}, None)]),
-    ("vehicle 2 collides with vehicle 4 from behind", [("collide_from_behind", {"vehicle": 2, "target": 4}, None)]),
+    (
+        "vehicle 2 collides with vehicle 4 from behind",
+        [("collide_from_behind", {"vehicle": 2, "target": 4}, None)],
+    ),
     ("no collisions", [("no_collision", {}, None)]),
     ("Avoid crashes!", [("no_collision", {}, None)]),
     ("vehicles 1 and 2 should not collide", [("no_collision", {}, (1, 2))]),
-    ("the ego should stay within 20 m of #4", [("keep_distance", {"follower": 0, "leader": 4, "max_m": 20.0}, None)]),
+    (
+        "the ego should stay within 20 m of #4",
+        [("keep_distance", {"follower": 0, "leader": 4, "max_m": 20.0}, None)],
+    ),
     ("vehicle 3 should stay close to vehicle 1", [("keep_distance", {"follower": 3, "max_m": 10.0}, None)]),
     ("keep vehicle 3 no more than 50 feet from vehicle 1", [("keep_distance", {"max_m": 15.24}, None)]),
-    ("vehicle 1 should stay at least 15 m away from vehicle 2", [("stay_away", {"vehicle": 1, "min_m": 15.0}, None)]),
-    ("vehicle 1 must not get closer than 8 meters to vehicle 2", [("stay_away", {"other": 2, "min_m": 8.0}, None)]),
-    ("vehicle 2 keeps a distance between 10 and 30 meters from vehicle 1",
-     [("keep_distance", {"follower": 2, "leader": 1, "min_m": 10.0, "max_m": 30.0}, None)]),
+    (
+        "vehicle 1 should stay at least 15 m away from vehicle 2",
+        [("stay_away", {"vehicle": 1, "min_m": 15.0}, None)],
+    ),
+    (
+        "vehicle 1 must not get closer than 8 meters to vehicle 2",
+        [("stay_away", {"other": 2, "min_m": 8.0}, None)],
+    ),
+    (
+        "vehicle 2 keeps a distance between 10 and 30 meters from vehicle 1",
+        [("keep_distance", {"follower": 2, "leader": 1, "min_m": 10.0, "max_m": 30.0}, None)],
+    ),
     ("vehicle 2 should follow vehicle 1", [("keep_distance", {"min_m": 10.0, "max_m": 30.0}, None)]),
-    ("vehicle 4 drives in the same direction as vehicle 2", [("same_direction", {"vehicle": 4, "other": 2}, None)]),
+    (
+        "vehicle 4 drives in the same direction as vehicle 2",
+        [("same_direction", {"vehicle": 4, "other": 2}, None)],
+    ),
     ("vehicle 5 should follow its lane", [("follow_lane", {"vehicle": 5}, None)]),
     ("everyone stays in their lane", [("follow_lane", {"vehicle": None}, None)]),
-    ("vehicle 6 should stay on the left of vehicle 2", [("stay_side_of", {"vehicle": 6, "side": "left"}, None)]),
+    (
+        "vehicle 6 should stay on the left of vehicle 2",
+        [("stay_side_of", {"vehicle": 6, "side": "left"}, None)],
+    ),
     ("car 6 keeps to the right-hand side of car 2", [("stay_side_of", {"other": 2, "side": "right"}, None)]),
     ("speed limit 40 m/s", [("speed_limit", {"limit_mps": 40.0}, None)]),
     ("everyone obeys a 10 m/s speed limit", [("speed_limit", {"limit_mps": 10.0}, None)]),
@@ -52,29 +72,59 @@ CASES: list[tuple[str, list[tuple[str, dict, tuple[int, ...] | None]]]] = [
     ("all vehicles drive slower than 20 mph", [("speed_limit", {"limit_mps": 8.9408}, None)]),
     ("vehicle 2 should drive at 5 m/s", [("target_speed", {"speed_mps": 5.0}, (2,))]),
     ("target speed 8 m/s", [("target_speed", {"speed_mps": 8.0}, None)]),
-    ("vehicle 1 should stop at (620.5, 1640.2)",
-     [("stop_region", {"vehicle": 1, "x": 620.5, "y": 1640.2, "radius_m": 3.0}, None)]),
-    ("vehicle 1 comes to a stop within 5 m of x=600, y=1600", [("stop_region", {"x": 600.0, "radius_m": 5.0}, None)]),
+    (
+        "vehicle 1 should stop at (620.5, 1640.2)",
+        [("stop_region", {"vehicle": 1, "x": 620.5, "y": 1640.2, "radius_m": 3.0}, None)],
+    ),
+    (
+        "vehicle 1 comes to a stop within 5 m of x=600, y=1600",
+        [("stop_region", {"x": 600.0, "radius_m": 5.0}, None)],
+    ),
     ("vehicle 4 should come to a stop ahead", [("target_speed", {"speed_mps": 0.0}, (4,))]),
-    ("vehicle 4 should reach (612, 1655.3)", [("goal_waypoint", {"vehicle": 4, "x": 612.0, "y": 1655.3}, None)]),
-    ("vehicle 3 should cut in ahead of vehicle 7", [("cut_in", {"vehicle": 3, "ahead_of": 7, "gap_m": 10.0}, None)]),
+    (
+        "vehicle 4 should reach (612, 1655.3)",
+        [("goal_waypoint", {"vehicle": 4, "x": 612.0, "y": 1655.3}, None)],
+    ),
+    (
+        "vehicle 3 should cut in ahead of vehicle 7",
+        [("cut_in", {"vehicle": 3, "ahead_of": 7, "gap_m": 10.0}, None)],
+    ),
     ("vehicle 3 cuts in front of vehicle 7 with a gap of 5 m", [("cut_in", {"gap_m": 5.0}, None)]),
     ("vehicle 2 should change to the left lane", [("lane_change", {"vehicle": 2, "side": "left"}, None)]),
     ("vehicle 2 switches into the right lane", [("lane_change", {"vehicle": 2, "side": "right"}, None)]),
     ("vehicle 5 moves to the rightmost lane", [("move_to_rightmost_lane", {"vehicle": 5}, None)]),
-    ("vehicle 5 should turn left at the next intersection",
-     [("turn_at_next_intersection", {"vehicle": 5, "direction": "left"}, None)]),
-    ("vehicle 5 takes a right at the next junction", [("turn_at_next_intersection", {"direction": "right"}, None)]),
+    (
+        "vehicle 5 should turn left at the next intersection",
+        [("turn_at_next_intersection", {"vehicle": 5, "direction": "left"}, None)],
+    ),
+    (
+        "vehicle 5 takes a right at the next junction",
+        [("turn_at_next_intersection", {"direction": "right"}, None)],
+    ),
     ("all vehicles stay on the road", [("no_offroad", {}, None)]),
-    ("vehicle 2 should move to the rightmost lane and turn right at the next intersection",
-     [("move_to_rightmost_lane", {"vehicle": 2}, None),
-      ("turn_at_next_intersection", {"vehicle": 2, "direction": "right"}, None)]),
-    ("vehicle 3 changes to the left lane, then it drives at 5 m/s",
-     [("lane_change", {"vehicle": 3}, None), ("target_speed", {"speed_mps": 5.0}, (3,))]),
-    ("vehicle 1 should collide with vehicle 2 while everyone else obeys a 10 m/s speed limit",
-     [("collision", {"vehicle_a": 1}, None), ("speed_limit", {"limit_mps": 10.0}, None)]),
-    ("vehicle 1 and vehicle 2 collide; no collisions for vehicle 5 and stay on the road",
-     [("collision", {"vehicle_a": 1, "vehicle_b": 2}, None), ("no_collision", {}, (5,)), ("no_offroad", {}, None)]),
+    (
+        "vehicle 2 should move to the rightmost lane and turn right at the next intersection",
+        [
+            ("move_to_rightmost_lane", {"vehicle": 2}, None),
+            ("turn_at_next_intersection", {"vehicle": 2, "direction": "right"}, None),
+        ],
+    ),
+    (
+        "vehicle 3 changes to the left lane, then it drives at 5 m/s",
+        [("lane_change", {"vehicle": 3}, None), ("target_speed", {"speed_mps": 5.0}, (3,))],
+    ),
+    (
+        "vehicle 1 should collide with vehicle 2 while everyone else obeys a 10 m/s speed limit",
+        [("collision", {"vehicle_a": 1}, None), ("speed_limit", {"limit_mps": 10.0}, None)],
+    ),
+    (
+        "vehicle 1 and vehicle 2 collide; no collisions for vehicle 5 and stay on the road",
+        [
+            ("collision", {"vehicle_a": 1, "vehicle_b": 2}, None),
+            ("no_collision", {}, (5,)),
+            ("no_offroad", {}, None),
+        ],
+    ),
 ]
 
 
@@ -100,7 +150,9 @@ def test_code_is_python_that_names_every_part() -> None:
     assert 'make_loss("keep_distance", follower=3, leader=1, min_m=0.0, max_m=10.0)' in compiled.code
 
 
-@pytest.mark.parametrize("query", ["vehicle 1 should fly to the moon", "make traffic nicer", "vehicle 3 dances"])
+@pytest.mark.parametrize(
+    "query", ["vehicle 1 should fly to the moon", "make traffic nicer", "vehicle 3 dances"]
+)
 def test_unsupported_queries_get_suggestions(query: str) -> None:
     with pytest.raises(UnsupportedQuery, match="Closest supported phrasings") as info:
         compile_query(query, N_VEHICLES)
@@ -112,8 +164,10 @@ def test_unsupported_clause_inside_a_query_is_named() -> None:
         compile_query("speed limit 10 m/s and vehicle 2 should juggle", N_VEHICLES)
 
 
-@pytest.mark.parametrize("query", ["vehicle 99 should stop", "vehicle 1 should collide with vehicle 12",
-                                   "car 1 stays within 5 m of v40"])
+@pytest.mark.parametrize(
+    "query",
+    ["vehicle 99 should stop", "vehicle 1 should collide with vehicle 12", "car 1 stays within 5 m of v40"],
+)
 def test_vehicles_outside_the_scene(query: str) -> None:
     with pytest.raises(VehicleOutOfRange, match="this scene has vehicles 0-11"):
         compile_query(query, N_VEHICLES)
@@ -141,16 +195,27 @@ def _contract_queries(batch: GuidanceBatch) -> list[str]:
     p1 = batch.to_world(batch.pose[1, :2].numpy())
     far = batch.to_world(batch.pose[0, :2].numpy() + np.array([200.0, 50.0]))
     return [
-        "vehicle 0 should collide with vehicle 1", "vehicle 1 rear-ends vehicle 0", "no collisions",
+        "vehicle 0 should collide with vehicle 1",
+        "vehicle 1 rear-ends vehicle 0",
+        "no collisions",
         "vehicle 2 stays within 1 m of vehicle 0",
-        "vehicle 1 stays at least 100 m away from vehicle 2", "vehicle 2 follows vehicle 0",
-        "vehicle 3 drives in the same direction as vehicle 1", "everyone follows their lane",
-        "vehicle 0 should follow its lane", "vehicle 2 stays on the right of vehicle 0",
-        "speed limit 1 m/s", "vehicle 0 drives at 1 m/s", "vehicle 0 should come to a stop",
-        f"vehicle 1 should stop at ({p1[0]:.2f}, {p1[1]:.2f})", f"vehicle 0 should reach ({far[0]:.1f}, {far[1]:.1f})",
-        "vehicle 2 should cut in ahead of vehicle 0", "vehicle 0 changes to the left lane",
-        "vehicle 1 changes to the right lane", "vehicle 0 moves to the rightmost lane",
-        "vehicle 0 turns right at the next intersection", "vehicle 3 turns left at the next intersection",
+        "vehicle 1 stays at least 100 m away from vehicle 2",
+        "vehicle 2 follows vehicle 0",
+        "vehicle 3 drives in the same direction as vehicle 1",
+        "everyone follows their lane",
+        "vehicle 0 should follow its lane",
+        "vehicle 2 stays on the right of vehicle 0",
+        "speed limit 1 m/s",
+        "vehicle 0 drives at 1 m/s",
+        "vehicle 0 should come to a stop",
+        f"vehicle 1 should stop at ({p1[0]:.2f}, {p1[1]:.2f})",
+        f"vehicle 0 should reach ({far[0]:.1f}, {far[1]:.1f})",
+        "vehicle 2 should cut in ahead of vehicle 0",
+        "vehicle 0 changes to the left lane",
+        "vehicle 1 changes to the right lane",
+        "vehicle 0 moves to the rightmost lane",
+        "vehicle 0 turns right at the next intersection",
+        "vehicle 3 turns left at the next intersection",
         "everyone stays on the road",
     ]
 

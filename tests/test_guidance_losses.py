@@ -38,6 +38,15 @@ def _active_params(batch: GuidanceBatch) -> dict[str, dict]:
         "no_collision": {"buffer_m": 20.0},
         "keep_distance": {"follower": 0, "leader": 1, "min_m": 100.0, "max_m": 200.0},
         "collision": {"vehicle_a": 0, "vehicle_b": 1},
+        "lane_change": {"vehicle": 0, "side": "left"},
+        "move_to_rightmost_lane": {"vehicle": 0},
+        "turn_at_next_intersection": {"vehicle": 0, "direction": "right"},
+        "follow_lane": {"vehicle": None},
+        "cut_in": {"vehicle": 2, "ahead_of": 0},
+        "stay_side_of": {"vehicle": 2, "other": 0, "side": "right"},
+        "same_direction": {"vehicle": 3, "other": 1},
+        "stay_away": {"vehicle": 1, "other": 2, "min_m": 100.0},
+        "collide_from_behind": {"vehicle": 1, "target": 0},
     }
 
 

@@ -25,9 +25,10 @@ import numpy as np
 import torch
 
 from ctgpp.geometry import wrap_angle
-from ctgpp.guidance import CompositeLoss, GuidanceLoss, make_loss
+from ctgpp.guidance import CompositeLoss, GuidanceLoss, build_guidance_batch, make_loss
 from ctgpp.metrics.rules import RuleMeasure, fail_excluding, rule_violation
 from ctgpp.scene.types import Scene
+from ctgpp.sim.policy import Observation
 from ctgpp.sim.rollout import Rollout
 
 EVALUATION_RULES = (
@@ -240,3 +241,24 @@ def measure_of(name: str, loss: GuidanceLoss) -> RuleMeasure | None:
             params["radius_m"] = float(loss.radius_m)
         return RuleMeasure(name, params)
     return None
+
+
+def custom_rule(
+    name: str, params: dict[str, str], scene: Scene, start_step: int, controlled: np.ndarray, text: str = ""
+) -> RuleSpec:
+    """A rule given by name and text parameters (``ctgpp simulate --rule``), checked on the episode:
+    unknown rules or parameters, bad values and vehicle numbers the episode does not have raise
+    ValueError naming ``text`` (the rule as the user wrote it)."""
+    label = text or name
+    loss = make_loss(name, **params)
+    obs = Observation(scene, scene.agents, start_step, controlled, 52, np.random.default_rng(0))
+    x = torch.zeros(len(controlled), 1, 52, 6)
+    x[..., 0] = torch.arange(1, 53, dtype=torch.float32) * 0.5  # 5 m/s straight ahead
+    x[..., 2] = 5.0
+    try:
+        cost = loss(x, build_guidance_batch(obs, 52))
+    except (IndexError, ValueError) as err:
+        raise ValueError(f"--rule {label}: {err}") from None
+    if not torch.isfinite(cost).all():
+        raise ValueError(f"--rule {label}: the rule's loss is not finite on this scene")
+    return spec_for(name, loss, label)

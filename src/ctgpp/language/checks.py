@@ -91,7 +91,8 @@ class LossChecker:
         job_r, job_w = os.pipe()
         ans_r, ans_w = os.pipe()
         env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in sys.path if p))
-        cmd = [sys.executable, "-m", "ctgpp.language.worker", str(job_r), str(ans_w), str(self.memory_limit_mb)]
+        cmd = [sys.executable, "-m", "ctgpp.language.worker", str(job_r), str(ans_w),
+               str(self.memory_limit_mb)]
         self._process = subprocess.Popen(cmd, pass_fds=(job_r, ans_w), env=env, stdin=subprocess.DEVNULL,
                                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         os.close(job_r)
@@ -100,7 +101,8 @@ class LossChecker:
         self._recv = Connection(ans_r, writable=False)
         if not self._recv.poll(self.startup_timeout_s):
             self.close()
-            raise RuntimeError(f"the loss-checking process did not start within {self.startup_timeout_s:.0f} s")
+            raise RuntimeError(
+                f"the loss-checking process did not start within {self.startup_timeout_s:.0f} s")
         try:
             json.loads(self._recv.recv_bytes(MAX_REPLY_BYTES))  # {"ready": true}
         except (EOFError, OSError):
@@ -133,7 +135,8 @@ class LossChecker:
         except (EOFError, OSError):
             code = self._process.wait() if self._process is not None else None
             self.close()
-            raise LossCheckError(f"the loss-checking process died (exit code {code}), e.g. out of memory") from None
+            raise LossCheckError(
+                f"the loss-checking process died (exit code {code}), e.g. out of memory") from None
         if not reply.get("ok"):
             raise LossCheckError(str(reply.get("error", "unknown error")))
         return CheckReport(tuple(int(d) for d in reply["shape"]), float(reply["seconds"]),

@@ -29,7 +29,8 @@ def extract_code(reply: str) -> str:
     blocks = [(m["lang"].lower(), m["code"]) for m in _FENCE.finditer(reply)]
     python = [code for lang, code in blocks if lang in ("python", "py", "python3")]
     plain = [code for lang, code in blocks if lang == ""]
-    for candidates in ([c for c in python if _defines_class(c)], python, [c for c in plain if _defines_class(c)]):
+    preferred = [c for c in python if _defines_class(c)]
+    for candidates in (preferred, python, [c for c in plain if _defines_class(c)]):
         if candidates:
             return candidates[0].strip("\n") + "\n"
     text = reply.strip()

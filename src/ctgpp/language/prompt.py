@@ -105,7 +105,8 @@ _EXAMPLE = re.compile(r"^### Query: (?P<query>.+?)\n+```python\n(?P<code>.*?)^``
 
 def examples() -> tuple[Example, ...]:
     """The paired examples of the prompt, in order."""
-    return tuple(Example(m["query"].strip(), m["code"]) for m in _EXAMPLE.finditer(load_template("examples.md")))
+    text = load_template("examples.md")
+    return tuple(Example(m["query"].strip(), m["code"]) for m in _EXAMPLE.finditer(text))
 
 
 def _scene_line(num_vehicles: int | None) -> str:

@@ -19,7 +19,8 @@ values (``t = torch``); attributes on other values outside the tensor/batch allo
 ``global``, ``nonlocal``, ``del``, ``yield``, ``async``, decorators, class keywords; ``for`` loops
 over anything but ``range``/``enumerate``/``zip``/``reversed``, literals and variables; direct
 recursion; integer constants above 10**8 (allocation bombs); string constants containing ``__``.
-Annotations are never evaluated (they are removed before execution), so they are not checked.
+Annotations are never evaluated (they are removed before execution); they may only hold plain type
+expressions (names, attributes, subscripts, ``|``), without calls or ``_`` names.
 
 :func:`load_loss_class` executes the checked tree in a fresh namespace whose ``__builtins__`` is a
 small table (``range``, ``len``, ``min``, ``max``, ``zip``, ``super`` ...) with ``torch``, ``math``,

@@ -79,7 +79,8 @@ def _fold_int(node: ast.AST) -> int | None:
         left, right = _fold_int(node.left), _fold_int(node.right)
         if left is None or right is None:
             return None
-        if abs(left) > 2**64 or abs(right) > 2**64 or (isinstance(node.op, ast.Pow | ast.LShift) and right > 64):
+        shifts = isinstance(node.op, ast.Pow | ast.LShift)
+        if abs(left) > 2**64 or abs(right) > 2**64 or (shifts and right > 64):
             raise _refuse(node, "integer constant too large (allocation or computation bomb)")
         if isinstance(node.op, ast.Pow):
             return left**right
@@ -108,6 +109,7 @@ class ProgramChecker:
         self.self_attributes: set[str] = set()
         self.functions: list[str] = []  # enclosing function names, innermost last
         self.method: str | None = None  # the enclosing method of the loss class
+        self.class_seen = False
 
     # ---- statements -------------------------------------------------------------------------------
     def check_module(self, tree: ast.Module) -> None:
@@ -118,7 +120,11 @@ class ProgramChecker:
             if isinstance(stmt, ast.Import | ast.ImportFrom):
                 self._check_import(stmt)
             elif isinstance(stmt, ast.ClassDef):
+                if self.class_seen:
+                    raise _refuse(stmt, "the program must define exactly one class deriving from "
+                                        f"GuidanceLoss (a second one: {stmt.name})")
                 self._check_class(stmt)
+                self.class_seen = True
             elif isinstance(stmt, ast.FunctionDef):
                 self._check_function(stmt)
             elif isinstance(stmt, ast.Expr) and isinstance(stmt.value, ast.Constant):
@@ -136,12 +142,15 @@ class ProgramChecker:
     def _check_binding(self, name: str, tree: ast.Module) -> None:
         node = next(n for n in ast.walk(tree) if name in (getattr(n, "id", None), getattr(n, "arg", None),
                                                            getattr(n, "name", None)))
-        if name.startswith("_") and name != "_" and not (name == "__init__" and isinstance(node, ast.FunctionDef)):
+        is_init = name == "__init__" and isinstance(node, ast.FunctionDef)
+        if name.startswith("_") and name != "_" and not is_init:
             raise _refuse(node, f"names starting with '_' are not allowed ({name})")
         if name in PREBOUND or name in SAFE_BUILTIN_NAMES or name in FORBIDDEN_CALLS:
             raise _refuse(node, f"rebinding the name {name} is not allowed")
 
     def _is_constant_definition(self, stmt: ast.Assign | ast.AnnAssign) -> bool:
+        if isinstance(stmt, ast.AnnAssign):
+            self._check_annotation(stmt.annotation)
         targets = stmt.targets if isinstance(stmt, ast.Assign) else [stmt.target]
         return (stmt.value is not None and _is_literal(stmt.value) and len(targets) == 1
                 and isinstance(targets[0], ast.Name))
@@ -166,12 +175,17 @@ class ProgramChecker:
             raise _refuse(cls, "decorators are not allowed")
         if cls.keywords:
             raise _refuse(cls, "class keywords (metaclass=...) are not allowed")
-        if len(cls.bases) != 1 or not (isinstance(cls.bases[0], ast.Name) and cls.bases[0].id == "GuidanceLoss"):
+        base = cls.bases[0] if len(cls.bases) == 1 else None
+        if not (isinstance(base, ast.Name) and base.id == "GuidanceLoss"):
             raise _refuse(cls, f"class {cls.name} must derive from GuidanceLoss only")
         methods = [s for s in cls.body if isinstance(s, ast.FunctionDef)]
         if "forward" not in {m.name for m in methods}:
             raise _refuse(cls, f"class {cls.name} has no forward(self, x, data_batch, agt_mask=None) method")
         self.self_attributes = {m.name for m in methods}
+        for stmt in cls.body:  # class constants, wherever they stand
+            if isinstance(stmt, ast.Assign | ast.AnnAssign) and self._is_constant_definition(stmt):
+                target = stmt.targets[0] if isinstance(stmt, ast.Assign) else stmt.target
+                self.self_attributes.add(target.id)  # type: ignore[attr-defined]
         for node in ast.walk(cls):
             if isinstance(node, ast.Attribute) and isinstance(node.ctx, ast.Store) and _is_self(node.value):
                 self.self_attributes.add(node.attr)
@@ -183,8 +197,6 @@ class ProgramChecker:
             elif isinstance(stmt, ast.Expr) and isinstance(stmt.value, ast.Constant):
                 self._check_expr(stmt.value)
             elif isinstance(stmt, ast.Assign | ast.AnnAssign) and self._is_constant_definition(stmt):
-                target = stmt.targets[0] if isinstance(stmt, ast.Assign) else stmt.target
-                self.self_attributes.add(target.id)  # type: ignore[attr-defined]
                 self._check_expr(stmt.value)  # type: ignore[arg-type]
             else:
                 raise _refuse(stmt, f"{type(stmt).__name__} statement in the class body is not allowed: "
@@ -194,12 +206,28 @@ class ProgramChecker:
         if fn.decorator_list:
             raise _refuse(fn, "decorators are not allowed")
         self._check_arguments(fn.args)
+        self._check_annotation(fn.returns)
         self.functions.append(fn.name)
         for stmt in fn.body:
             self._check_statement(stmt)
         self.functions.pop()
 
+    def _check_annotation(self, node: ast.AST | None) -> None:
+        """Annotations are removed before execution; still, only plain type expressions are allowed."""
+        if node is None:
+            return
+        for part in ast.walk(node):
+            if not isinstance(part, ast.Name | ast.Attribute | ast.Subscript | ast.Constant | ast.Tuple
+                              | ast.List | ast.BinOp | ast.BitOr | ast.expr_context):
+                raise _refuse(part, f"{type(part).__name__} is not allowed in an annotation")
+            name = getattr(part, "id", None) or getattr(part, "attr", None) or ""
+            if name.startswith("_") or (isinstance(part, ast.Constant) and "__" in str(part.value)):
+                raise _refuse(part, "names starting with '_' are not allowed in annotations")
+
     def _check_arguments(self, args: ast.arguments) -> None:
+        for arg in [*args.posonlyargs, *args.args, *args.kwonlyargs, args.vararg, args.kwarg]:
+            if arg is not None:
+                self._check_annotation(arg.annotation)
         for default in [*args.defaults, *(d for d in args.kw_defaults if d is not None)]:
             if not _is_literal(default):
                 raise _refuse(default, "default values must be literal constants")
@@ -220,7 +248,8 @@ class ProgramChecker:
             self._check_loop_iterable(stmt.iter)
         for field, value in ast.iter_fields(stmt):
             if field == "annotation":
-                continue  # annotations are removed before execution
+                self._check_annotation(value)
+                continue
             for child in value if isinstance(value, list) else [value]:
                 if isinstance(child, ast.stmt):
                     self._check_statement(child)
@@ -300,9 +329,9 @@ class ProgramChecker:
             return
         if not isinstance(node.ctx, ast.Load):
             raise _refuse(node, f"assigning to the attribute .{attr} is only allowed on self")
+        self._check_expr(node.value)  # the innermost problem is the most telling one
         if attr not in TENSOR_ATTRIBUTES and attr not in BATCH_ATTRIBUTES:
             raise _refuse(node, f"the attribute .{attr} is not on the allow list")
-        self._check_expr(node.value)
 
     def _check_call(self, node: ast.Call) -> bool:
         """Call-specific rules; True when the call is fully checked (``super().__init__()``)."""

@@ -85,19 +85,32 @@ def end_lane(lanes: LaneGraph, xy: np.ndarray, yaw: np.ndarray) -> LaneProjectio
     return proj
 
 
+def chain_distance(lanes: LaneGraph, chain: set[int], xy: np.ndarray) -> float:
+    """Smallest lateral distance (m) of a point (2,) from the lanes ``chain`` it projects inside of
+    (inf when it lies beside none of them)."""
+    best = math.inf
+    for lane in chain:
+        p = project_to_lane(lanes, lane, xy)
+        if 0.0 < p.s_m < lane_length(lanes, lane):
+            best = min(best, abs(p.d_m))
+    return best
+
+
 def lane_change(lanes: LaneGraph, xy: np.ndarray, yaw: np.ndarray, side: str) -> tuple[bool, str]:
-    """Whether the track ends on the neighbour (or a successor of it) of its starting lane on
-    ``side``; where the map has no neighbour there, whether it ends at least 2.5 m to that side of
-    its starting lane chain."""
+    """Whether the track ends on the ``side`` neighbour of its starting lane or a lane that neighbour
+    leads to: its last point lies within 1.75 m of that chain and nearer to it than to the chain of
+    lanes its own lane leads to. Where the map has no neighbour there: whether it ends at least
+    2.5 m to that side of its starting lane chain."""
     start = nearest_lane(lanes, xy[0], float(yaw[0]))
     if start is None:
         return False, "the vehicle starts on no lane"
     other = (left_lane if side == "left" else right_lane)(lanes, start)
-    end = end_lane(lanes, xy, yaw)
     if other is not None:
-        ok = end is not None and end.lane in reachable(lanes, other.lane) and end.lane != start.lane
-        where = "no lane" if end is None else f"lane {end.lane}"
-        return ok, f"ends on {where}; {side} neighbour of its start lane: lane {other.lane}"
+        own, target = reachable(lanes, start.lane), reachable(lanes, other.lane)
+        d_target = chain_distance(lanes, target - own, xy[-1])
+        d_own = chain_distance(lanes, own, xy[-1])
+        ok = d_target < IN_LANE_M and d_target < d_own
+        return ok, f"ends {d_target:.1f} m from the {side} lane's centerline, {d_own:.1f} m from its own"
     offsets, _ = chain_offsets(lanes, xy, yaw)
     moved = float(offsets[-1] - offsets[0]) * (1.0 if side == "left" else -1.0)
     ok = moved >= LANE_CHANGE_FALLBACK_M
@@ -143,18 +156,15 @@ def cut_in(
     other_yaw: np.ndarray, other_extent: np.ndarray, gap_m: float,
 ) -> tuple[bool, str]:
     """Whether at the last step the vehicle is ahead of the other within a bumper gap of
-    (0, gap_m + 1] m in the other's frame, and inside the other's lane (within 1.75 m of the
-    centerline of the lane the other is on then)."""
+    (0, gap_m + 1] m in the other's frame, and inside the other's lane: within 1.75 m sideways of
+    the centerline of the lane the other is on then, or of the other's heading line."""
     c, s = math.cos(other_yaw[-1]), math.sin(other_yaw[-1])
     rel = xy[-1] - other_xy[-1]
     lon = rel[0] * c + rel[1] * s
     gap = float(lon - extent[0] / 2 - other_extent[0] / 2)
+    lat = abs(-rel[0] * s + rel[1] * c)  # across the other's heading
     lane = end_lane(lanes, other_xy, other_yaw)
-    if lane is None:
-        lat = abs(-rel[0] * s + rel[1] * c)
-        where = "the other is on no lane"
-    else:
-        lat = abs(project_to_lane(lanes, lane.lane, xy[-1]).d_m)
-        where = f"lane {lane.lane}"
+    if lane is not None:  # on curves the lane is the better reference; forks may mislabel it
+        lat = min(lat, abs(project_to_lane(lanes, lane.lane, xy[-1]).d_m))
     ok = 0.0 < gap <= gap_m + 1.0 and lat < IN_LANE_M
-    return ok, f"bumper gap ahead {gap:.1f} m (0-{gap_m + 1:g}), {lat:.1f} m from the other's lane ({where})"
+    return ok, f"bumper gap ahead {gap:.1f} m (0-{gap_m + 1:g}), {lat:.1f} m sideways from the other's lane"

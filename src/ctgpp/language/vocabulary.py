@@ -43,7 +43,8 @@ MATH_NAMES = frozenset(
 """``math.<name>`` (no ``factorial``/``comb``/``prod``: they can run for minutes on big integers)."""
 
 MODULE_ATTRIBUTES: MappingProxyType[str, frozenset[str]] = MappingProxyType(
-    {"torch": TORCH_FUNCTIONS, "math": MATH_NAMES, "F": FUNCTIONAL_FUNCTIONS, "torch.linalg": LINALG_FUNCTIONS}
+    {"torch": TORCH_FUNCTIONS, "math": MATH_NAMES, "F": FUNCTIONAL_FUNCTIONS,
+     "torch.linalg": LINALG_FUNCTIONS}
 )
 """Module name as written in the code -> the attributes it may be used with."""
 
@@ -115,7 +116,9 @@ def prebound_names() -> dict[str, Any]:
 LIBRARY_IMPORT_ROOTS = frozenset({"torch", "numpy", "math"})
 
 
-def _library_import(name: str, globals: Any = None, locals: Any = None, fromlist: Any = (), level: int = 0) -> Any:
+def _library_import(
+    name: str, globals: Any = None, locals: Any = None, fromlist: Any = (), level: int = 0
+) -> Any:
     """``__import__`` for C code of torch that imports its own modules while a generated function is
     the current frame (``torch.tensor`` does); anything outside torch/numpy/math is refused."""
     import builtins

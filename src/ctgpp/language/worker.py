@@ -95,7 +95,7 @@ def worker_main(jobs: Connection, answers: Connection, memory_limit_mb: int) -> 
         try:
             answer = run_job(job, batch, x, time_limit_s)
         except BaseException:  # e.g. the alarm firing just after the job returned
-            answer = {"ok": False, "error": f"the loss did not finish within the time limit of {time_limit_s:g} s"}
+            answer = {"ok": False, "error": f"the loss did not finish within {time_limit_s:g} s"}
         answers.send_bytes(json.dumps(answer).encode())
 
 

@@ -105,8 +105,8 @@ class DiffusionPolicy:
         seen = replace(obs.scene, agents=obs.tracks)  # the simulated past, never the logged future
         window = build_window(seen, obs.step, windows, agent_index=obs.controlled)
         n, v = self.sampling.num_samples, window.num_agents
-        batch = collate([window] * n)  # (N, V, ...): the samples share one scene
-        context = self.model.encode_context(batch)
+        batch = collate([window])  # (1, V, ...): the N samples share one scene
+        context = self.model.encode_context(batch).expand(n)  # encoded once, (N, V, ...) views
         gen = torch.Generator().manual_seed(int(obs.rng.integers(2**31)))
         current = batch.hist[0, :, -1]  # (V, 4)
         normalizer = self.model.normalizer

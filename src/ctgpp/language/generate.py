@@ -1,0 +1,128 @@
+"""A query becomes a checked guidance loss through a language model (DESIGN.md, Language interface).
+
+prompt -> reply -> extract the code -> sandbox -> checks on the real scene batch; on failure the
+error goes back to the model as a user message, for at most ``max_repairs`` more rounds. Accepted
+programs are cached by (query, model, prompt version); a cached program is checked again before use.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Protocol
+
+from torch import Tensor
+
+from ctgpp.guidance.base import GuidanceLoss
+from ctgpp.guidance.context import GuidanceBatch
+from ctgpp.language.cache import LossCache
+from ctgpp.language.checks import CheckReport, LossChecker, LossCheckError
+from ctgpp.language.extract import ExtractionError, extract_code
+from ctgpp.language.prompt import Message, build_messages, repair_message
+from ctgpp.language.sandbox import SandboxError, load_loss_class
+
+__all__ = ["ChatModel", "GeneratedLoss", "GenerationFailed", "generate_loss"]
+
+log = logging.getLogger(__name__)
+
+
+class ChatModel(Protocol):
+    """What :func:`generate_loss` needs of a model: :class:`ctgpp.language.client.LLMClient` is one."""
+
+    def complete(self, messages: Sequence[Message]) -> str: ...
+
+
+@dataclass(frozen=True)
+class GeneratedLoss:
+    """An accepted program: its code, the loaded class (build it with ``cls()``), how many model
+    replies it took (0 when it came from the cache), the check report and the earlier refusals."""
+
+    code: str
+    cls: type[GuidanceLoss]
+    rounds: int
+    report: CheckReport
+    model: str
+    cached: bool = False
+    errors: tuple[str, ...] = ()
+    path: str = "llm"
+
+
+class GenerationFailed(RuntimeError):
+    """Every round's program was refused; ``errors`` holds the reason of each round."""
+
+    def __init__(self, query: str, errors: Sequence[str]) -> None:
+        self.query = query
+        self.errors = tuple(errors)
+        listing = "\n".join(f"  {e}" for e in self.errors)
+        super().__init__(f"the model's code for {query!r} failed the checks in all {len(self.errors)} "
+                         f"rounds:\n{listing}")
+
+
+def _model_name(llm: ChatModel) -> str:
+    return str(getattr(getattr(llm, "config", None), "model", type(llm).__name__))
+
+
+def _accept(code: str, batch: GuidanceBatch, x: Tensor, checker: LossChecker,
+            time_limit_s: float) -> tuple[type[GuidanceLoss], CheckReport]:
+    """Sandbox and check ``code``; raises SandboxError or LossCheckError."""
+    cls = load_loss_class(code)
+    return cls, checker.check(cls, batch, x, time_limit_s)
+
+
+def generate_loss(
+    query: str,
+    llm: ChatModel,
+    batch: GuidanceBatch,
+    x: Tensor,
+    max_repairs: int = 2,
+    *,
+    cache: LossCache | bool = True,
+    checker: LossChecker | None = None,
+    time_limit_s: float = 5.0,
+) -> GeneratedLoss:
+    """Ask ``llm`` for a loss implementing ``query`` and check it on ``batch`` with x (B, N, T, 6).
+
+    cache: a :class:`LossCache`, True for the default cache directory, False for none. checker: a
+    running :class:`LossChecker` to reuse (else one is started and stopped here). Raises
+    :class:`GenerationFailed` after ``1 + max_repairs`` refused replies, and
+    :class:`ctgpp.language.client.LLMError` when the model cannot be reached.
+    """
+    store = LossCache() if cache is True else cache if isinstance(cache, LossCache) else None
+    model = _model_name(llm)
+    own = checker is None
+    checker = LossChecker() if checker is None else checker
+    try:
+        if store is not None and (cached := store.get(query, model)) is not None:
+            try:
+                cls, report = _accept(cached, batch, x, checker, time_limit_s)
+                return GeneratedLoss(cached, cls, 0, report, model, cached=True)
+            except (SandboxError, LossCheckError) as err:
+                log.warning("the cached loss for %r fails the checks (%s); asking the model", query, err)
+                store.discard(query, model)
+        return _rounds(query, llm, batch, x, max_repairs, store, checker, time_limit_s, model)
+    finally:
+        if own:
+            checker.close()
+
+
+def _rounds(query: str, llm: ChatModel, batch: GuidanceBatch, x: Tensor, max_repairs: int,
+            store: LossCache | None, checker: LossChecker, time_limit_s: float, model: str) -> GeneratedLoss:
+    """The repair loop: one reply per round, the refusal sent back after each failed one."""
+    messages = build_messages(query, batch.num_vehicles)
+    errors: list[str] = []
+    for round_no in range(1, max_repairs + 2):
+        reply = llm.complete(messages)
+        messages.append({"role": "assistant", "content": reply})
+        try:
+            code = extract_code(reply)
+            cls, report = _accept(code, batch, x, checker, time_limit_s)
+        except (ExtractionError, SandboxError, LossCheckError) as err:
+            log.info("round %d for %r refused: %s", round_no, query, err)
+            errors.append(f"round {round_no}: {err}")
+            messages.append(repair_message(str(err)))
+            continue
+        if store is not None:
+            store.put(query, model, code, round_no)
+        return GeneratedLoss(code, cls, round_no, report, model, errors=tuple(errors))
+    raise GenerationFailed(query, errors)
