@@ -58,7 +58,8 @@ class TargetSpeedOnX(GuidanceLoss):
 
 
 def observation(scene: Scene, seed: int = 0) -> Observation:
-    return Observation(scene, scene.agents, STEP, controlled_vehicles(scene, STEP), 52, np.random.default_rng(seed))
+    ctrl = controlled_vehicles(scene, STEP)
+    return Observation(scene, scene.agents, STEP, ctrl, 52, np.random.default_rng(seed))
 
 
 def make_model(cls: type[Denoiser] = Denoiser) -> Denoiser:
@@ -190,9 +191,9 @@ def rule_params(scene: Scene, name: str) -> dict[str, Any]:
         yaw = a.yaw[ctrl[1], STEP]
         goal = a.xy[ctrl[1], STEP] + 12.0 * np.array([-np.sin(yaw), np.cos(yaw)])
         return {"vehicle": 1, "x": float(goal[0]), "y": float(goal[1])}
-    return {"speed_limit": {"limit_mps": 2.0}, "target_speed": {"speed_mps": 3.0}, "no_offroad": {"margin_m": 2.0}}[
-        name
-    ]
+    simple = {"speed_limit": {"limit_mps": 2.0}, "target_speed": {"speed_mps": 3.0}}
+    simple["no_offroad"] = {"margin_m": 2.0}
+    return simple[name]
 
 
 @pytest.mark.parametrize(

@@ -110,6 +110,10 @@ HOSTILE_SOURCE: dict[str, tuple[str, str]] = {
     "loop over map": (loss_program("for k in map(abs, [1]):\n    pass" + RETURN), "for loops may only run"),
     "math.factorial": (loss_program("k = math.factorial(100000)" + RETURN), "math.factorial is not on"),
     "syntax error": (loss_program("return x.sum(("), "syntax error"),
+    "call in an annotation": (loss_program(RETURN).replace("data_batch,", "data_batch: os.system('ls'),"),
+                              "Call is not allowed in an annotation"),
+    "dict of dunder keywords": (loss_program("k = max(**{'__class__': 1})" + RETURN),
+                                "string constants may not contain '__'"),
 }
 
 
