@@ -105,8 +105,9 @@ def test_keep_distance_by_hand(batch: GuidanceBatch) -> None:
 def test_collision_pair_by_hand(batch: GuidanceBatch) -> None:
     one = replace(batch, pose=torch.zeros(2, 3), memo={})
     x = torch.zeros(2, 1, 3, 6)
-    x[1, 0, :, 0] = torch.tensor([9.0, 4.0, 6.0])  # closest 4 m, contact at 1 m -> 3
-    assert abs(float(make_loss("collision", vehicle_a=0, vehicle_b=1)(x, one)) - 3.0) < 1e-3
+    x[1, 0, :, 0] = torch.tensor([9.0, 4.0, 0.5])  # distances 9, 4, 0.5 m; contact at 1 m
+    # hinged 8, 3, 0 -> mean 11 / 3
+    assert abs(float(make_loss("collision", vehicle_a=0, vehicle_b=1)(x, one)) - 11.0 / 3.0) < 1e-3
 
 
 def test_no_offroad_on_a_tiny_sdf(batch: GuidanceBatch) -> None:

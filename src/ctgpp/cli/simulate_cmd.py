@@ -20,7 +20,6 @@ from ctgpp.metrics.rules import fail_excluding
 from ctgpp.scene.types import Scene
 from ctgpp.scene.vehicles import controlled_vehicles
 from ctgpp.sim.closed_loop import episode_bounds, simulate, start_step
-from ctgpp.sim.diffusion_policy import DiffusionPolicy
 from ctgpp.sim.export import write_rollout
 from ctgpp.sim.factory import POLICY_NAMES, make_policy
 
@@ -79,13 +78,13 @@ def run_simulate(args: argparse.Namespace) -> int:
     start = episode_bounds(scene)[0] if args.start is None else args.start
     step0 = start_step(scene, start)  # a bad --start is reported before any work starts
     specs = _rules(args, scene, step0)
-    policy = make_policy(args.policy, args.checkpoint, sampling_config(args))
-    if specs and isinstance(policy, DiffusionPolicy):
+    loss = None
+    if specs:
         loss = specs[0].loss if len(specs) == 1 else CompositeLoss([(s.loss, 1.0) for s in specs])
-        guide = GuidanceConfig(inner_steps=args.guide_steps, lr=args.guide_lr)
-        policy = DiffusionPolicy(policy.model, policy.sampling, loss, guide)
-    elif specs:
-        print(f"policy {policy.name} is not guided: the rules are only measured")
+    guide = GuidanceConfig(inner_steps=args.guide_steps, lr=args.guide_lr)
+    policy = make_policy(args.policy, args.checkpoint, sampling_config(args), loss, guide)
+    if specs and args.policy != "ctgpp":
+        print(f"policy {args.policy} is not guided: the rules are only measured")
     with tqdm(total=20, desc=f"simulating {scene.id}", unit="plan") as bar:
 
         def on_replan(done: int, total: int) -> None:

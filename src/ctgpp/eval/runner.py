@@ -1,4 +1,4 @@
-"""Run closed-loop episodes of several policies over the scenes of a split, resumably.
+"""Run closed-loop episodes of policies × rules over the scenes of a split, resumably.
 
 Every finished episode is appended as one CSV line (written and flushed in one call), so a killed
 run loses at most the episode in flight; a re-run skips the episodes already in the file.
@@ -15,39 +15,64 @@ from pathlib import Path
 from tqdm import tqdm
 
 from ctgpp.data.catalog import Catalog
+from ctgpp.eval.rule_setup import RuleSpec, setup_rule
+from ctgpp.guidance.base import GuidanceLoss
 from ctgpp.metrics import compute_metrics
-from ctgpp.sim.closed_loop import episode_starts, simulate
+from ctgpp.scene.types import Scene
+from ctgpp.scene.vehicles import controlled_vehicles
+from ctgpp.sim.closed_loop import episode_starts, simulate, start_step
 from ctgpp.sim.policy import Policy
 
-KEY = ("method", "scene", "start_s", "seed")
-METRICS = ("fail", "collision_rate", "offroad_rate", "real", "rel_real")
+NO_RULE = "none"
+KEY = ("method", "rule", "scene", "start_s", "seed")
+METRICS = ("fail", "collision_rate", "offroad_rate", "real", "rel_real", "rule_violation")
+PolicyMaker = Callable[[str, GuidanceLoss | None], Policy]
 
 
 @dataclass(frozen=True)
 class Episode:
     method: str
+    rule: str
     scene: str
     start_s: float
     seed: int
 
     @property
-    def key(self) -> tuple[str, str, str, str]:
-        return (self.method, self.scene, f"{self.start_s:.1f}", str(self.seed))
+    def key(self) -> tuple[str, ...]:
+        return (self.method, self.rule, self.scene, f"{self.start_s:.1f}", str(self.seed))
+
+
+def episode_rule(scene: Scene, start_s: float, rule: str) -> RuleSpec | None:
+    """The rule of an episode from its log (None for no rule, or when the episode does not qualify)."""
+    if rule == NO_RULE:
+        return None
+    step = start_step(scene, start_s)
+    return setup_rule(rule, scene, step, controlled_vehicles(scene, step))
 
 
 def plan_episodes(
-    catalog: Catalog, split: str | None, methods: Iterable[str], seeds: Iterable[int], spacing_s: float
+    catalog: Catalog,
+    split: str | None,
+    methods: Iterable[str],
+    seeds: Iterable[int],
+    spacing_s: float,
+    rules: Iterable[str] = (NO_RULE,),
 ) -> list[Episode]:
-    """Every method × scene of ``split`` × start time (``spacing_s`` apart) × seed."""
-    episodes = []
+    """Every method × rule × scene of ``split`` × start time (``spacing_s`` apart) × seed, leaving
+    out the episodes a rule skips (no qualifying pair, no moving vehicle)."""
     scene_ids = catalog.ids(split)
     if not scene_ids:
         raise ValueError(f"no scenes in split {split!r}; splits: {', '.join(catalog.splits())}")
+    episodes = []
     for scene_id in scene_ids:
-        starts = episode_starts(catalog.load(scene_id), spacing_s)
-        for method in methods:
-            for seed in seeds:
-                episodes += [Episode(method, scene_id, t, seed) for t in starts]
+        scene = catalog.load(scene_id)
+        for rule in rules:
+            starts = [
+                t
+                for t in episode_starts(scene, spacing_s)
+                if rule == NO_RULE or episode_rule(scene, t, rule) is not None
+            ]
+            episodes += [Episode(m, rule, scene_id, t, s) for m in methods for s in seeds for t in starts]
     return episodes
 
 
@@ -57,24 +82,27 @@ def read_records(path: Path) -> list[dict[str, str]]:
         return []
     with path.open(newline="", encoding="utf-8") as f:
         rows = list(csv.DictReader(f))
-    return [r for r in rows if None not in r and all(r.get(k) for k in (*KEY, *METRICS[:1]))]
+    return [r for r in rows if None not in r.values() and all(r.get(k) for k in (*KEY, "fail"))]
 
 
 def run_episodes(
     catalog: Catalog,
     episodes: list[Episode],
-    make_policy: Callable[[str], Policy],
+    make_policy: PolicyMaker,
     results: Path,
     progress: bool = True,
 ) -> list[dict[str, str]]:
-    """Simulate every episode not yet in ``results`` and append its metrics; return all records."""
+    """Simulate every episode not yet in ``results`` and append its metrics; return all records.
+
+    ``make_policy(method, guidance)`` builds the episode's policy; the guidance is the episode's
+    rule loss. The fail rate leaves out the pair a collision rule asks to crash.
+    """
     done = {tuple(r[k] for k in KEY) for r in read_records(results)}
     todo = [e for e in episodes if e.key not in done]
     results.parent.mkdir(parents=True, exist_ok=True)
     fields = [*KEY, "vehicles", *METRICS]
     new_file = not results.exists() or results.stat().st_size == 0
-    scenes = {}
-    policies: dict[str, Policy] = {}
+    scenes: dict[str, Scene] = {}
     with results.open("a", newline="", encoding="utf-8") as f:
         writer = csv.DictWriter(f, fieldnames=fields, lineterminator="\n")
         if new_file:
@@ -82,10 +110,14 @@ def run_episodes(
         for ep in tqdm(todo, desc="episodes", unit="ep", disable=not progress):
             if ep.scene not in scenes:
                 scenes[ep.scene] = catalog.load(ep.scene)
-            if ep.method not in policies:
-                policies[ep.method] = make_policy(ep.method)
-            rollout = simulate(scenes[ep.scene], policies[ep.method], ep.start_s, seed=ep.seed)
-            metrics = compute_metrics(rollout, METRICS)
+            scene = scenes[ep.scene]
+            spec = episode_rule(scene, ep.start_s, ep.rule)
+            policy = make_policy(ep.method, None if spec is None else spec.loss)
+            rollout = simulate(scene, policy, ep.start_s, seed=ep.seed)
+            metrics = compute_metrics(rollout, METRICS[:-1])
+            if spec is not None:
+                metrics["fail"] = spec.fail(rollout)
+                metrics["rule_violation"] = spec.violation(rollout)
             row = dict(zip(KEY, ep.key, strict=True))
             row["vehicles"] = str(int(rollout.controlled.sum()))
             row.update({k: "" if math.isnan(v) else f"{v:.6f}" for k, v in metrics.items()})
@@ -94,28 +126,30 @@ def run_episodes(
     return read_records(results)
 
 
-def summarize(records: list[dict[str, str]], methods: list[str]) -> list[dict[str, float]]:
-    """Per method: metric means over scenes (each scene's episodes averaged first) and episode count."""
-    table = []
-    for method in methods:
-        rows = [r for r in records if r["method"] == method]
-        summary: dict[str, float] = {"episodes": float(len(rows))}
+def summarize(records: list[dict[str, str]]) -> list[dict[str, object]]:
+    """Per method and rule: metric means over scenes (each scene's episodes averaged first)."""
+    groups: dict[tuple[str, str], list[dict[str, str]]] = {}
+    for r in records:
+        groups.setdefault((r["method"], r["rule"]), []).append(r)
+    table: list[dict[str, object]] = []
+    for (method, rule), rows in groups.items():
+        summary: dict[str, object] = {"method": method, "rule": rule, "episodes": len(rows)}
         for metric in METRICS:
             per_scene: dict[str, list[float]] = {}
             for r in rows:
-                if r[metric]:
+                if r.get(metric):
                     per_scene.setdefault(r["scene"], []).append(float(r[metric]))
             means = [sum(v) / len(v) for v in per_scene.values()]
             summary[metric] = sum(means) / len(means) if means else math.nan
-        table.append({"method": method, **summary})
+        table.append(summary)
     return table
 
 
-def markdown_table(summary: list[dict[str, float]]) -> str:
-    """The summary as a markdown table."""
-    head = "| method | episodes | fail | collision | off-road | real | rel real |"
-    lines = [head, "|---|---:|---:|---:|---:|---:|---:|"]
-    for s in summary:
-        vals = " | ".join(f"{s[m]:.3f}" for m in METRICS)
-        lines.append(f"| {s['method']} | {int(s['episodes'])} | {vals} |")
+def markdown_table(summary: list[dict[str, object]]) -> str:
+    """The summary as a markdown table, rows by rule then method."""
+    head = "| rule | method | episodes | fail | collision | off-road | real | rel real | rule violation |"
+    lines = [head, "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for s in sorted(summary, key=lambda s: (str(s["rule"]), str(s["method"]))):
+        vals = " | ".join("-" if math.isnan(float(s[m])) else f"{float(s[m]):.3f}" for m in METRICS)
+        lines.append(f"| {s['rule']} | {s['method']} | {s['episodes']} | {vals} |")
     return "\n".join(lines) + "\n"

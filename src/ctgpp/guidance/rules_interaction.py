@@ -147,8 +147,10 @@ class KeepDistance(Rule):
 
 @register_loss("collision")
 class Collision(Rule):
-    """Two vehicles collide: the smallest centre distance (m) between them over the horizon, hinged
-    at ``contact_m`` (centres closer than that count as a collision)."""
+    """Two vehicles collide: their centre distance (m) hinged at ``contact_m`` (centres closer than
+    that count as a collision), averaged over the horizon. The mean, not the minimum: when the pair
+    is closest at the first step (a follower no faster than its leader), the minimum's gradient would
+    reach only the first action, while the mean pulls every step of both trajectories together."""
 
     couples_agents: ClassVar[bool] = True
     param_doc = {
@@ -168,4 +170,4 @@ class Collision(Rule):
         a = check_vehicle(self.vehicle_a, data_batch, x.shape[0])
         b = check_vehicle(self.vehicle_b, data_batch, x.shape[0])
         d = _pair_distance(x, data_batch, a, b)  # (N, T)
-        return torch.relu(d.min(-1).values - self.contact_m)
+        return torch.relu(d - self.contact_m).mean(-1)
