@@ -16,16 +16,27 @@ from ctgpp.diffusion.guided import GuidanceConfig
 from ctgpp.eval.rule_setup import RuleSpec, custom_rule
 from ctgpp.guidance import CompositeLoss
 from ctgpp.io.atomic import write_text_atomic
+from ctgpp.language.client import LLMConfig
+from ctgpp.language.query import QueryLoss, resolve_query
+from ctgpp.language.satisfaction import check_satisfied
 from ctgpp.metrics.rules import fail_excluding
 from ctgpp.scene.types import Scene
 from ctgpp.scene.vehicles import controlled_vehicles
-from ctgpp.sim.closed_loop import episode_bounds, simulate, start_step
+from ctgpp.sim.closed_loop import episode_bounds, initial_observation, simulate, start_step
 from ctgpp.sim.export import write_rollout
 from ctgpp.sim.factory import POLICY_NAMES, make_policy
+from ctgpp.sim.rollout import Rollout
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("simulate", help="simulate a scene in closed loop (10 s, re-plan at 2 Hz)")
+    p.add_argument(
+        "query",
+        nargs="?",
+        default=None,
+        help='what the traffic should do, e.g. "vehicle 1 should collide with vehicle 2" (vehicles are '
+        "the numbers of `ctgpp show`); offline query compiler unless a language model is configured",
+    )
     p.add_argument("--scene", default="scene-0103", help="scene id (default: scene-0103, mini_val)")
     p.add_argument(
         "--policy",
@@ -65,6 +76,8 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         default="gif",
         help="animation format (mp4 needs ffmpeg; falls back to gif)",
     )
+    p.add_argument("--llm-model", default=None, help="language model name (env CTGPP_LLM_MODEL)")
+    p.add_argument("--llm-base-url", default=None, help="OpenAI-compatible endpoint (env OPENAI_BASE_URL)")
     add_data_arg(p)
     p.set_defaults(run=run_simulate)
 
@@ -78,13 +91,23 @@ def run_simulate(args: argparse.Namespace) -> int:
     start = episode_bounds(scene)[0] if args.start is None else args.start
     step0 = start_step(scene, start)  # a bad --start is reported before any work starts
     specs = _rules(args, scene, step0)
+    losses = [s.loss for s in specs]
+    query = None
+    if args.query:
+        llm = LLMConfig.resolve(base_url=args.llm_base_url, model=args.llm_model)
+        query = resolve_query(args.query, initial_observation(scene, start), llm)
+        print(f"query: {args.query!r} -> loss from the {query.path}:")
+        print("\n".join("    " + line for line in query.code.strip().splitlines()))
+        for note in query.notes:
+            print(f"  note: {note}")
+        losses.append(query.loss)
     loss = None
-    if specs:
-        loss = specs[0].loss if len(specs) == 1 else CompositeLoss([(s.loss, 1.0) for s in specs])
+    if losses:
+        loss = losses[0] if len(losses) == 1 else CompositeLoss([(item, 1.0) for item in losses])
     guide = GuidanceConfig(inner_steps=args.guide_steps, lr=args.guide_lr)
     policy = make_policy(args.policy, args.checkpoint, sampling_config(args), loss, guide)
-    if specs and args.policy != "ctgpp":
-        print(f"policy {args.policy} is not guided: the rules are only measured")
+    if losses and args.policy != "ctgpp":
+        print(f"policy {args.policy} is not guided: the rules and the query are only measured")
     with tqdm(total=20, desc=f"simulating {scene.id}", unit="plan") as bar:
 
         def on_replan(done: int, total: int) -> None:
@@ -112,6 +135,8 @@ def run_simulate(args: argparse.Namespace) -> int:
         exempt = sorted({v for spec in specs for v in spec.exempt})
         if exempt:
             record["fail_excluding_rule_pairs"] = _json_float(fail_excluding(rollout, exempt))
+    if query is not None:
+        record["query"] = _query_report(args.query, query, rollout)
     files.append(write_text_atomic(out / "metrics.json", json.dumps(record, indent=2) + "\n"))
     events = rollout_events(rollout)
     step = rollout.first_step + rollout.current
@@ -123,6 +148,11 @@ def run_simulate(args: argparse.Namespace) -> int:
     print("  " + "  ".join(f"{k} {v:.3f}" for k, v in metrics.items()))
     for text, value in record.get("rules", {}).items():
         print(f"  rule {text}: violation {value['violation']}")
+    if query is not None:
+        report = record["query"]
+        print(f"  query satisfied: {report['satisfied']}")
+        for part in report["parts"]:
+            print(f"    [{'yes' if part['satisfied'] else 'no '}] {part['text']}: {part['measured']}")
     for f in files:
         print(f"wrote {f}")
     return 0
@@ -138,6 +168,17 @@ def _rules(args: argparse.Namespace, scene: Scene, step: int) -> list[RuleSpec]:
         name, params = parse_rule_arg(text)
         specs.append(custom_rule(name, params, scene, step, controlled, text))
     return specs
+
+
+def _query_report(text: str, query: QueryLoss, rollout: Rollout) -> dict[str, object]:
+    """Whether the rollout satisfies the query, by the independent checks of the compiled query's
+    parts (not by the loss); "unknown" when only the language model understood the query."""
+    report: dict[str, object] = {"text": text, "path": query.path, "code": query.code, "notes": query.notes}
+    if query.compiled is None:
+        return {**report, "satisfied": "unknown (no independent check for this query)", "parts": []}
+    parts = check_satisfied(rollout, query.compiled)
+    rows = [{"text": p.text, "satisfied": p.satisfied, "measured": p.measured} for p in parts]
+    return {**report, "satisfied": all(p.satisfied for p in parts), "parts": rows}
 
 
 def _json_float(value: float) -> float | None:

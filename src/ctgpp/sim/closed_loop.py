@@ -74,12 +74,10 @@ def simulate(
     with ``policy.hold_stationary`` those slower than 0.5 m/s at the start stay where they are.
     ``on_replan(done, total)`` reports progress.
     """
-    step0 = start_step(scene, start_s, config)
+    obs = initial_observation(scene, start_s, config)
+    step0, tracks, controlled = obs.step, obs.tracks, obs.controlled
     first = step0 - (config.history_steps - 1)
     window = config.history_steps + config.duration_steps
-    tracks = _padded(scene.agents, first + window + config.horizon_steps)
-    controlled = controlled_vehicles(scene, step0)
-    tracks.valid[controlled, step0 + 1 :] = False
     slow = tracks.speed[controlled, step0] < STATIONARY_SPEED_MPS
     still = controlled[slow] if policy.hold_stationary else controlled[:0]
     rng = np.random.default_rng(seed)
@@ -106,6 +104,18 @@ def simulate(
     number[controlled] = np.arange(len(controlled))
     is_controlled = number >= 0
     return Rollout(scene, first, config.history_steps - 1, sim, is_controlled, number, policy.name)
+
+
+def initial_observation(scene: Scene, start_s: float, config: SimConfig = SimConfig()) -> Observation:
+    """What a policy sees at the start of an episode: the log up to the start for the controlled
+    vehicles (in displayed order), the whole log for the others, padded past the scene's end."""
+    step0 = start_step(scene, start_s, config)
+    first = step0 - (config.history_steps - 1)
+    window = config.history_steps + config.duration_steps
+    tracks = _padded(scene.agents, first + window + config.horizon_steps)
+    controlled = controlled_vehicles(scene, step0)
+    tracks.valid[controlled, step0 + 1 :] = False
+    return Observation(scene, tracks, step0, controlled, config.horizon_steps, np.random.default_rng(0))
 
 
 def _padded(a: AgentTracks, n_steps: int) -> AgentTracks:

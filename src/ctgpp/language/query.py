@@ -1,0 +1,73 @@
+"""A user's sentence becomes the loss that steers a simulation (issue 5, the main command).
+
+Offline by default: the project's query compiler. With a language model configured: the model's
+program, sandboxed and checked on the episode's real scene batch; when every round of it is refused
+(or the model cannot be reached) the compiler takes over, and the user is told.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from ctgpp.data.windows import WindowConfig, build_window
+from ctgpp.guidance.base import GuidanceLoss
+from ctgpp.guidance.context import build_guidance_batch
+from ctgpp.language.client import LLMClient, LLMConfig, LLMError
+from ctgpp.language.compiler import CompiledQuery, QueryError, compile_query
+from ctgpp.language.generate import GenerationFailed, generate_loss
+from ctgpp.sim.policy import Observation
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, eq=False)
+class QueryLoss:
+    """The loss for a query, where it came from (``path``), its code, and the compiled query when
+    the compiler understands the query (the independent satisfaction check needs it)."""
+
+    loss: GuidanceLoss
+    code: str
+    path: str
+    compiled: CompiledQuery | None
+    notes: list[str] = field(default_factory=list)
+
+
+def probe_x(obs: Observation) -> torch.Tensor:
+    """x (B, 1, T, 6) of the logged future of the controlled vehicles: what checks run a loss on."""
+    window = build_window(obs.scene, obs.step, WindowConfig(max_agents=len(obs.controlled)), obs.controlled)
+    logged = np.concatenate([window.fut, window.fut_actions], axis=-1)  # (B, T, 6)
+    return torch.from_numpy(logged)[:, None]
+
+
+def resolve_query(query: str, obs: Observation, llm: LLMConfig | None, max_repairs: int = 2) -> QueryLoss:
+    """The loss for ``query`` in the episode whose start is ``obs``.
+
+    Raises :class:`QueryError` (a ``ValueError``) when neither path can produce a loss.
+    """
+    try:
+        compiled: CompiledQuery | None = compile_query(query, len(obs.controlled))
+        compile_error: QueryError | None = None
+    except QueryError as err:
+        compiled, compile_error = None, err
+    if llm is None:
+        if compiled is None:
+            assert compile_error is not None
+            raise compile_error
+        return QueryLoss(compiled.loss, compiled.code, "offline query compiler", compiled)
+    try:
+        generated = generate_loss(query, LLMClient(llm), build_guidance_batch(obs), probe_x(obs), max_repairs)
+    except (GenerationFailed, LLMError) as err:
+        if compiled is None:
+            raise QueryError(
+                f"the language model could not produce a loss that passes the checks ({err}), and the "
+                f"offline compiler does not support the query either: {compile_error}"
+            ) from err
+        note = f"the language model's code was not used: {err}"
+        log.warning("%s; falling back to the offline compiler", note)
+        return QueryLoss(compiled.loss, compiled.code, "offline query compiler (fallback)", compiled, [note])
+    source = "cache" if generated.cached else f"{generated.rounds} round(s)"
+    return QueryLoss(generated.cls(), generated.code, f"language model {llm.model} ({source})", compiled)
