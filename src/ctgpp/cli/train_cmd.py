@@ -1,10 +1,12 @@
-"""``ctgpp train``: train the scene-level denoiser on converted data (resumable; torchrun for DDP)."""
+"""``ctgpp train``: train the scene-level denoiser, or a baseline (``--model ctg|bits``), on converted
+data (resumable; torchrun for DDP)."""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
+from ctgpp.baselines.config import BaselineConfig, BITSConfig, CTGConfig
 from ctgpp.data.catalog import Catalog
 from ctgpp.model.config import ModelConfig
 from ctgpp.scene.types import Scene
@@ -12,7 +14,9 @@ from ctgpp.train.loop import TrainConfig, train
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("train", help="train the CTG++ denoiser (resumes when OUT holds a training state)")
+    p = sub.add_parser(
+        "train", help="train the CTG++ denoiser or a baseline (resumes when OUT holds a training state)"
+    )
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="checkpoint directory")
     p.add_argument(
         "--train",
@@ -28,7 +32,22 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--batch", type=int, default=TrainConfig.batch_scenes, help="scene windows per batch")
     p.add_argument("--lr", type=float, default=TrainConfig.lr, help="Adam learning rate")
     p.add_argument("--seed", type=int, default=0, help="random seed")
-    p.add_argument("--d-model", type=int, default=ModelConfig.d_model, help="transformer width")
+    p.add_argument(
+        "--model",
+        choices=["ctgpp", "ctg", "bits"],
+        default="ctgpp",
+        help="ctgpp: the scene-level denoiser; ctg, bits: the paper's baselines",
+    )
+    p.add_argument(
+        "--d-model",
+        type=int,
+        default=None,
+        help=f"width: ctgpp transformer (default {ModelConfig.d_model}), ctg conditioning "
+        f"(default {CTGConfig.cond_dim}), bits hidden layers (default {BITSConfig.hidden})",
+    )
+    p.add_argument(
+        "--unet-width", type=int, default=CTGConfig.unet_width, help="ctg: U-Net channels at full length"
+    )
     p.add_argument("--blocks", type=int, default=ModelConfig.blocks, help="transformer blocks")
     p.add_argument("--heads", type=int, default=ModelConfig.heads, help="attention heads")
     p.add_argument(
@@ -54,19 +73,31 @@ def load_split(spec: str) -> list[Scene]:
     return [catalog.load(i) for i in ids]
 
 
-def run_train(args: argparse.Namespace) -> int:
-    if args.steps < 1 or args.batch < 1:
-        raise ValueError("--steps and --batch must be positive")
-    specs = args.train or ["mini_train"]
-    train_scenes = [s for spec in specs for s in load_split(spec)]
-    val_scenes = load_split(args.val)
-    model_config = ModelConfig(
-        d_model=args.d_model,
+def model_config_of(args: argparse.Namespace) -> ModelConfig | BaselineConfig:
+    """The model config that ``--model`` and the size flags describe."""
+    if args.model != "ctgpp" and args.variant != "full":
+        raise ValueError(f"--variant {args.variant} is an ablation of ctgpp, not of {args.model}")
+    if args.model == "ctg":
+        width = CTGConfig.cond_dim if args.d_model is None else args.d_model
+        return CTGConfig(cond_dim=width, unet_width=args.unet_width)
+    if args.model == "bits":
+        return BITSConfig(hidden=BITSConfig.hidden if args.d_model is None else args.d_model)
+    return ModelConfig(
+        d_model=ModelConfig.d_model if args.d_model is None else args.d_model,
         blocks=args.blocks,
         heads=args.heads,
         use_edges=args.variant != "no_edge",
         scene_centric=args.variant == "scene_centric",
     )
+
+
+def run_train(args: argparse.Namespace) -> int:
+    if args.steps < 1 or args.batch < 1:
+        raise ValueError("--steps and --batch must be positive")
+    model_config = model_config_of(args)
+    specs = args.train or ["mini_train"]
+    train_scenes = [s for spec in specs for s in load_split(spec)]
+    val_scenes = load_split(args.val)
     config = TrainConfig(
         steps=args.steps,
         batch_scenes=args.batch,
@@ -75,7 +106,8 @@ def run_train(args: argparse.Namespace) -> int:
         val_every=args.val_every,
         val_windows=args.val_windows,
     )
-    note = f"train {' + '.join(specs)} ({len(train_scenes)} scenes), val {args.val}, variant {args.variant}"
+    note = f"train {' + '.join(specs)} ({len(train_scenes)} scenes), val {args.val}, "
+    note += f"variant {args.variant}" if args.model == "ctgpp" else f"model {args.model}"
     record = train(train_scenes, val_scenes, model_config, config, args.out, data_note=note)
     if record["rank"] != 0:
         return 0

@@ -21,12 +21,13 @@ import torch.distributed as dist
 from torch import nn
 from tqdm import tqdm
 
-from ctgpp.data.batch import SceneBatch, WindowDataset, collate
+from ctgpp.baselines.config import BaselineConfig
+from ctgpp.baselines.kinds import LossFn, kind_of
+from ctgpp.data.batch import SceneBatch
 from ctgpp.data.windows import WindowConfig
 from ctgpp.diffusion import CosineSchedule
 from ctgpp.model.checkpoint import save_checkpoint
 from ctgpp.model.config import ModelConfig
-from ctgpp.model.denoiser import Denoiser
 from ctgpp.model.loss import training_loss
 from ctgpp.scene.types import Scene
 from ctgpp.train.plot import plot_curve
@@ -67,11 +68,17 @@ def _device(rank: int) -> torch.device:
 
 
 @torch.no_grad()
-def validation_loss(model: Denoiser, schedule: CosineSchedule, batches: list[SceneBatch], seed: int) -> float:
+def validation_loss(
+    model: nn.Module,
+    schedule: CosineSchedule | None,
+    batches: list[SceneBatch],
+    seed: int,
+    loss_fn: LossFn = training_loss,
+) -> float:
     """Mean loss over fixed batches with fixed noise: comparable from one evaluation to the next."""
     gen = torch.Generator().manual_seed(seed)
     device = next(model.parameters()).device
-    losses = [training_loss(model, schedule, b.to(device), gen)[1]["loss"] for b in batches]
+    losses = [loss_fn(model, schedule, b.to(device), gen)[1]["loss"] for b in batches]
     return sum(losses) / max(len(losses), 1)
 
 
@@ -84,7 +91,7 @@ def _ema_update(ema: nn.Module, model: nn.Module, decay: float) -> None:
 def train(
     train_scenes: list[Scene],
     val_scenes: list[Scene],
-    model_config: ModelConfig,
+    model_config: ModelConfig | BaselineConfig,
     config: TrainConfig,
     out: Path,
     data_note: str = "",
@@ -92,24 +99,27 @@ def train(
 ) -> dict[str, Any]:
     """Train (or resume training in ``out``) and write the checkpoint, curve and record there.
 
-    Returns the training record; under torchrun only process 0's (``rank`` 0) holds the history.
+    The model kind follows ``model_config``'s type (:mod:`ctgpp.baselines.kinds`: the CTG++ denoiser,
+    or the CTG / BITS baselines); the checkpoint records it. Returns the training record; under
+    torchrun only process 0's (``rank`` 0) holds the history.
     """
     rank, world = _world()
     device = _device(rank)
     torch.manual_seed(config.seed)
     windows = WindowConfig(max_agents=config.max_agents)
-    train_set = WindowDataset(train_scenes, windows, stride=config.stride)
-    val_set = WindowDataset(val_scenes, windows, stride=config.stride)
+    kind = kind_of(model_config)
+    train_set = kind.dataset(train_scenes, windows, config.stride, model_config)
+    val_set = kind.dataset(val_scenes, windows, config.stride, model_config)
     if len(train_set) == 0:
         raise ValueError("no training windows: the training scenes are too short or hold no vehicles")
     n_val = min(config.val_windows, len(val_set))
     val_idx = [round(i * (len(val_set) - 1) / max(n_val - 1, 1)) for i in range(n_val)]
-    val_batches = [collate([val_set[i] for i in val_idx[j : j + 4]]) for j in range(0, n_val, 4)]
+    val_batches = [kind.collate([val_set[i] for i in val_idx[j : j + 4]]) for j in range(0, n_val, 4)]
 
-    model = Denoiser(model_config).to(device)
+    model = kind.build(model_config).to(device)
     ema = copy.deepcopy(model).eval()
     optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
-    schedule = CosineSchedule(model_config.diffusion_steps, model_config.cosine_s)
+    schedule = kind.schedule(model_config)
     out = Path(out)
     state: dict[str, Any] = {"step": 0, "history": [], "wall_s": 0.0}
     if has_train_state(out):
@@ -124,8 +134,8 @@ def train(
     recent: list[float] = []
     while state["step"] < config.steps:
         idx = torch.randint(len(train_set), (config.batch_scenes,), generator=gen).tolist()
-        batch = collate([train_set[i] for i in idx]).to(device)
-        loss, stats = training_loss(ddp, schedule, batch, gen)  # type: ignore[arg-type]
+        batch = kind.collate([train_set[i] for i in idx]).to(device)
+        loss, stats = kind.loss(ddp, schedule, batch, gen)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         nn.utils.clip_grad_norm_(model.parameters(), 1.0)
@@ -138,7 +148,11 @@ def train(
             entry = {"step": state["step"], "train_loss": sum(recent) / len(recent)}
             recent = []
             if rank == 0:
-                val = validation_loss(ema, schedule, val_batches, config.seed) if val_batches else math.nan
+                val = (
+                    validation_loss(ema, schedule, val_batches, config.seed, kind.loss)
+                    if val_batches
+                    else math.nan
+                )
                 entry["val_loss"] = val
                 state["history"].append(entry)
                 state["wall_s"] = time.monotonic() - start_wall

@@ -1,0 +1,77 @@
+"""The CTG policy: the CTG++ sampling loop (DDPM/DDIM, Algorithm 2 guidance, filtration) run on the
+agent-level CTG denoiser, each re-plan's rasters bound to the model."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from torch import Tensor, nn
+
+from ctgpp.baselines.ctg import CTGContext, CTGDenoiser
+from ctgpp.baselines.kinds import load_model
+from ctgpp.baselines.raster import observation_raster, with_raster
+from ctgpp.data.batch import SceneBatch
+from ctgpp.diffusion.guided import GuidanceConfig
+from ctgpp.guidance.base import GuidanceLoss
+from ctgpp.model.checkpoint import CheckpointError
+from ctgpp.sim.diffusion_policy import DiffusionPolicy, PlanSamples, SamplingConfig
+from ctgpp.sim.policy import Observation
+
+
+class RasterBound(nn.Module):
+    """A CTG denoiser with one observation's rasters (1, V, C, G, G) bound: it takes the plain
+    SceneBatch that :class:`DiffusionPolicy` builds and attaches the rasters before every call."""
+
+    def __init__(self, model: CTGDenoiser, raster: Tensor) -> None:
+        super().__init__()
+        self.model = model
+        self.config = model.config
+        self.normalizer = model.normalizer
+        self.raster = raster
+
+    def encode_context(self, batch: SceneBatch) -> CTGContext:
+        return self.model.encode_context(with_raster(batch, self.raster.to(batch.hist.device)))
+
+    def forward(
+        self, noisy_actions: Tensor, k: Tensor | int, batch: SceneBatch, context: CTGContext | None = None
+    ) -> Tensor:
+        if context is None:
+            context = self.encode_context(batch)
+        return self.model(noisy_actions, k, batch, context)
+
+
+class CTGPolicy(DiffusionPolicy):
+    """CTG in closed loop: N samples per re-plan, every vehicle denoised independently, guided by the
+    episode's rule exactly as CTG++ (Algorithm 2 + filtration)."""
+
+    name = "ctg"
+    hold_stationary = True
+
+    def __init__(
+        self,
+        model: CTGDenoiser,
+        sampling: SamplingConfig = SamplingConfig(),
+        guidance: GuidanceLoss | None = None,
+        guidance_config: GuidanceConfig = GuidanceConfig(),
+    ) -> None:
+        super().__init__(model, sampling, guidance, guidance_config)  # type: ignore[arg-type]
+
+    @classmethod
+    def from_checkpoint(
+        cls,
+        path: Path,
+        sampling: SamplingConfig = SamplingConfig(),
+        guidance: GuidanceLoss | None = None,
+        guidance_config: GuidanceConfig = GuidanceConfig(),
+    ) -> CTGPolicy:
+        model, _, _, kind = load_model(path)
+        if kind != "ctg":
+            raise CheckpointError(f"{path} holds a {kind!r} model, not CTG")
+        return cls(model, sampling, guidance, guidance_config)  # type: ignore[arg-type]
+
+    def sample_plans(self, obs: Observation) -> PlanSamples:
+        """N samples of every controlled vehicle's actions (see :meth:`DiffusionPolicy.sample_plans`)."""
+        raster = observation_raster(obs, self.model.config.raster())
+        bound = RasterBound(self.model, raster)  # type: ignore[arg-type]
+        inner = DiffusionPolicy(bound, self.sampling, self.guidance, self.guidance_config)  # type: ignore[arg-type]
+        return inner.sample_plans(obs)
