@@ -6,7 +6,6 @@ run loses at most the episode in flight; a re-run skips the episodes already in 
 
 from __future__ import annotations
 
-import csv
 import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
@@ -15,6 +14,8 @@ from pathlib import Path
 from tqdm import tqdm
 
 from ctgpp.data.catalog import Catalog
+from ctgpp.eval.records import append_records, record_key
+from ctgpp.eval.records import read_records as read_csv_records
 from ctgpp.eval.rule_setup import RuleSpec, setup_rule
 from ctgpp.guidance.base import GuidanceLoss
 from ctgpp.metrics import compute_metrics
@@ -78,11 +79,7 @@ def plan_episodes(
 
 def read_records(path: Path) -> list[dict[str, str]]:
     """Finished episodes of a results CSV (a torn last line from a killed run is ignored)."""
-    if not path.exists():
-        return []
-    with path.open(newline="", encoding="utf-8") as f:
-        rows = list(csv.DictReader(f))
-    return [r for r in rows if None not in r.values() and all(r.get(k) for k in (*KEY, "fail"))]
+    return read_csv_records(path, (*KEY, "fail"))
 
 
 def run_episodes(
@@ -97,16 +94,11 @@ def run_episodes(
     ``make_policy(method, guidance)`` builds the episode's policy; the guidance is the episode's
     rule loss. The fail rate leaves out the pair a collision rule asks to crash.
     """
-    done = {tuple(r[k] for k in KEY) for r in read_records(results)}
+    done = {record_key(r, KEY) for r in read_records(results)}
     todo = [e for e in episodes if e.key not in done]
-    results.parent.mkdir(parents=True, exist_ok=True)
     fields = [*KEY, "vehicles", *METRICS]
-    new_file = not results.exists() or results.stat().st_size == 0
     scenes: dict[str, Scene] = {}
-    with results.open("a", newline="", encoding="utf-8") as f:
-        writer = csv.DictWriter(f, fieldnames=fields, lineterminator="\n")
-        if new_file:
-            writer.writeheader()
+    with append_records(results, fields) as write:
         for ep in tqdm(todo, desc="episodes", unit="ep", disable=not progress):
             if ep.scene not in scenes:
                 scenes[ep.scene] = catalog.load(ep.scene)
@@ -121,8 +113,7 @@ def run_episodes(
             row = dict(zip(KEY, ep.key, strict=True))
             row["vehicles"] = str(int(rollout.controlled.sum()))
             row.update({k: "" if math.isnan(v) else f"{v:.6f}" for k, v in metrics.items()})
-            writer.writerow(row)
-            f.flush()
+            write(row)
     return read_records(results)
 
 

@@ -1,0 +1,200 @@
+"""The query benchmark (issue 5, "What it must show"): each case is a sentence on a scene, simulated
+guided by its compiled query and unguided from the same seed, and judged by the independent check.
+
+A case is (family, query, scene, start_s). For every case and seed the benchmark records whether the
+query was satisfied (:func:`ctgpp.language.satisfaction.check_satisfied`, every part must hold) for
+the guided and the unguided rollout, their fail rates, for collision queries also the fail rate
+without the vehicles asked to collide (:func:`ctgpp.metrics.rules.fail_excluding`), and ``real``.
+Rows are appended to a CSV one finished case at a time; a re-run skips the cases already there.
+The unguided rollout does not depend on the query: it is simulated once per scene, start and seed.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+
+from tqdm import tqdm
+
+from ctgpp.data.catalog import Catalog
+from ctgpp.eval.records import append_records, read_records, record_key
+from ctgpp.guidance.base import GuidanceLoss
+from ctgpp.language.compiler import CompiledQuery
+from ctgpp.language.query import resolve_query
+from ctgpp.language.satisfaction import check_satisfied
+from ctgpp.metrics import compute_metrics
+from ctgpp.metrics.rules import fail_excluding
+from ctgpp.scene.types import Scene
+from ctgpp.sim.closed_loop import initial_observation, simulate
+from ctgpp.sim.policy import Policy
+from ctgpp.sim.rollout import Rollout
+
+KEY = ("family", "query", "scene", "start_s", "seed")
+SIDES = ("guided", "unguided")
+MEASURED = ("satisfied", "fail", "fail_excl", "real", "measured")
+FIELDS = (*KEY, "vehicles", *(f"{m}_{s}" for m in MEASURED for s in SIDES), "wall_s")
+# parameters naming the vehicles that a collision part asks to crash (left out of fail_excl)
+COLLIDING = {"collision": ("vehicle_a", "vehicle_b"), "collide_from_behind": ("vehicle", "target")}
+PolicyMaker = Callable[[str, GuidanceLoss | None], Policy]
+
+
+@dataclass(frozen=True)
+class QueryCase:
+    """One benchmark case: the query ``family`` it exercises, the ``query`` sentence (vehicles are
+    displayed numbers at the start), the ``scene`` id and the episode start ``start_s`` (s)."""
+
+    family: str
+    query: str
+    scene: str
+    start_s: float
+
+    def key(self, seed: int) -> tuple[str, ...]:
+        return (self.family, self.query, self.scene, f"{self.start_s:.1f}", str(seed))
+
+
+def default_cases() -> Path:
+    """The curated cases on the mini_val scenes shipped with the package."""
+    return Path(str(resources.files("ctgpp") / "assets" / "queries" / "mini_val.json"))
+
+
+def load_cases(path: Path) -> list[QueryCase]:
+    """Cases of a JSON file: a list of objects with ``family``, ``query``, ``scene``, ``start_s``."""
+    items = json.loads(Path(path).read_text(encoding="utf-8"))
+    if not isinstance(items, list):
+        raise ValueError(f"{path}: expected a JSON list of cases")
+    cases = []
+    for i, item in enumerate(items):
+        missing = [k for k in ("family", "query", "scene", "start_s") if k not in item]
+        if missing:
+            raise ValueError(f"{path}: case {i} lacks {', '.join(missing)}")
+        cases.append(QueryCase(str(item["family"]), str(item["query"]), str(item["scene"]),
+                               float(item["start_s"])))
+    return cases
+
+
+def colliding_vehicles(compiled: CompiledQuery) -> list[int]:
+    """Displayed numbers of the vehicles that a query asks to collide (empty for other queries)."""
+    out: list[int] = []
+    for part in compiled.parts:
+        for name in COLLIDING.get(part.family, ()):
+            if int(part.params[name]) not in out:
+                out.append(int(part.params[name]))
+    return out
+
+
+def _compile(scene: Scene, case: QueryCase) -> CompiledQuery:
+    """The offline compilation of a case's query on its episode (a fresh loss: committed lane rules
+    keep per-episode state). Raises a ValueError naming the case when the query does not compile."""
+    try:
+        compiled = resolve_query(case.query, initial_observation(scene, case.start_s), None).compiled
+    except ValueError as err:
+        raise ValueError(f"case {case.query!r} on {case.scene} at {case.start_s:g} s: {err}") from err
+    assert compiled is not None  # the offline path always compiles
+    return compiled
+
+
+def _fmt(value: float) -> str:
+    return "" if math.isnan(value) else f"{value:.6f}"
+
+
+def _measure(rollout: Rollout, compiled: CompiledQuery, side: str) -> dict[str, str]:
+    parts = check_satisfied(rollout, compiled)
+    metrics = compute_metrics(rollout, ("fail", "real"))
+    exempt = colliding_vehicles(compiled)
+    return {
+        f"satisfied_{side}": str(int(all(p.satisfied for p in parts))),
+        f"fail_{side}": _fmt(metrics["fail"]),
+        f"fail_excl_{side}": _fmt(fail_excluding(rollout, exempt)) if exempt else "",
+        f"real_{side}": _fmt(metrics["real"]),
+        f"measured_{side}": "; ".join(f"[{'ok' if p.satisfied else 'no'}] {p.measured}" for p in parts),
+    }
+
+
+def run_query_cases(
+    catalog: Catalog,
+    cases: Sequence[QueryCase],
+    make_policy: PolicyMaker,
+    results: Path,
+    seeds: Sequence[int] = (0,),
+    methods: tuple[str, str] = ("ctgpp", "ctgpp-unguided"),
+    progress: bool = True,
+) -> list[dict[str, str]]:
+    """Simulate every case × seed not yet in ``results`` guided and unguided; append one row each.
+
+    ``make_policy(method, guidance)`` builds a policy; ``methods`` are the guided and the unguided
+    method names. Every query is compiled before any simulation, so a bad case fails at once.
+    Returns every finished row of ``results`` (:data:`FIELDS`).
+    """
+    scenes = {sid: catalog.load(sid) for sid in dict.fromkeys(c.scene for c in cases)}
+    for case in cases:
+        _compile(scenes[case.scene], case)
+    done = {record_key(r, KEY) for r in read_records(results, KEY)}
+    todo = [(c, s) for c in cases for s in seeds if c.key(s) not in done]
+    unguided: dict[tuple[str, float, int], Rollout] = {}
+    with append_records(results, FIELDS) as write:
+        for case, seed in tqdm(todo, desc="query cases", unit="case", disable=not progress):
+            began = time.perf_counter()
+            scene = scenes[case.scene]
+            compiled = _compile(scene, case)
+            guided = simulate(scene, make_policy(methods[0], compiled.loss), case.start_s, seed=seed)
+            base_key = (case.scene, case.start_s, seed)
+            if base_key not in unguided:
+                unguided[base_key] = simulate(scene, make_policy(methods[1], None), case.start_s, seed=seed)
+            row = dict(zip(KEY, case.key(seed), strict=True))
+            row["vehicles"] = str(int(guided.controlled.sum()))
+            row.update(_measure(guided, compiled, "guided"))
+            row.update(_measure(unguided[base_key], compiled, "unguided"))
+            row["wall_s"] = f"{time.perf_counter() - began:.1f}"
+            write(row)
+    return read_records(results, KEY)
+
+
+def _mean(rows: list[dict[str, str]], column: str) -> float:
+    values = [float(r[column]) for r in rows if r.get(column)]
+    return sum(values) / len(values) if values else math.nan
+
+
+def _rate(rows: list[dict[str, str]], column: str) -> str:
+    hits = sum(r[column] == "1" for r in rows)
+    if len(rows) == 1:
+        return "**yes**" if hits else "no"
+    return f"{hits}/{len(rows)}"
+
+
+def _num(value: float) -> str:
+    return "-" if math.isnan(value) else f"{value:.3f}"
+
+
+def markdown_table(records: list[dict[str, str]], cases: Sequence[QueryCase] | None = None) -> str:
+    """One row per case (seeds pooled: satisfied as a count, metrics as means) in the order of
+    ``cases`` (default: first appearance), then how many families some guided rollout satisfied."""
+    groups: dict[tuple[str, ...], list[dict[str, str]]] = {}
+    for r in records:
+        groups.setdefault(record_key(r, KEY[:-1]), []).append(r)
+    order = list(groups) if cases is None else [c.key(0)[:-1] for c in cases if c.key(0)[:-1] in groups]
+    head = (
+        "| family | query | scene | start (s) | satisfied guided | satisfied unguided | fail guided "
+        "| fail unguided | fail w/o pair guided | fail w/o pair unguided | real guided | real unguided |"
+    )
+    lines = [head, "|---|---|---|---:|:---:|:---:|---:|---:|---:|---:|---:|---:|"]
+    for key in order:
+        rows = groups[key]
+        family, query, scene, start = key
+        cells = [_rate(rows, "satisfied_guided"), _rate(rows, "satisfied_unguided")]
+        cells += [_num(_mean(rows, f"{m}_{s}")) for m in ("fail", "fail_excl", "real") for s in SIDES]
+        lines.append(f"| {family} | {query} | {scene} | {start} | " + " | ".join(cells) + " |")
+    families = {k[0] for k in order}
+    won = {k[0] for k in order if any(r["satisfied_guided"] == "1" for r in groups[k])}
+    base = {k[0] for k in order if any(r["satisfied_unguided"] == "1" for r in groups[k])}
+    lines.append("")
+    lines.append(f"Families satisfied by a guided rollout: {len(won)} of {len(families)} "
+                 f"(unguided: {len(base)} of {len(families)}).")
+    missing = sorted(families - won)
+    if missing:
+        lines.append(f"Not satisfied guided: {', '.join(missing)}.")
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,98 @@
+"""The query benchmark: curated cases compile on their scenes; runs are resumable; the table reports
+guided and unguided side by side (with simple policies, so the file runs fast)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from ctgpp.data.catalog import Catalog
+from ctgpp.eval.queries import (
+    FIELDS,
+    QueryCase,
+    default_cases,
+    load_cases,
+    markdown_table,
+    run_query_cases,
+)
+from ctgpp.guidance.base import GuidanceLoss
+from ctgpp.sim.factory import PolicyFactory
+from ctgpp.sim.policy import Policy
+
+ISSUE_FAMILIES = {
+    "collision", "collide from behind", "keep distance (range)", "keep within", "stay away", "same direction",
+    "follow its lane", "stay on the left/right of", "speed limit", "target speed", "stop in", "reach",
+    "and (combination)", "cut in ahead of", "change to the left lane", "change to the right lane",
+    "move to the rightmost lane", "turn left at the next intersection", "turn right at the next intersection",
+}
+
+
+class CountingFactory:
+    """Builds the simple policies and records which ones it was asked for."""
+
+    def __init__(self) -> None:
+        self.factory = PolicyFactory()
+        self.calls: list[tuple[str, bool]] = []
+
+    def __call__(self, name: str, guidance: GuidanceLoss | None) -> Policy:
+        self.calls.append((name, guidance is not None))
+        return self.factory(name, guidance)
+
+
+@pytest.fixture(scope="module")
+def catalog() -> Catalog:
+    return Catalog.open()
+
+
+def test_the_curated_cases_cover_every_family_on_mini_val(catalog: Catalog) -> None:
+    cases = load_cases(default_cases())
+    assert ISSUE_FAMILIES <= {c.family for c in cases}
+    assert {c.scene for c in cases} <= set(catalog.ids("mini_val"))
+
+
+def test_a_bad_case_is_refused_before_any_simulation(catalog: Catalog, tmp_path: Path) -> None:
+    factory = CountingFactory()
+    bad = [QueryCase("collision", "vehicle 1 should collide with vehicle 99", "scene-0103", 3.0)]
+    with pytest.raises(ValueError, match="vehicle 99"):
+        run_query_cases(catalog, bad, factory, tmp_path / "q.csv", methods=("constvel", "constvel"))
+    assert factory.calls == []
+    (tmp_path / "c.json").write_text(json.dumps([{"query": "stop", "scene": "scene-0103"}]))
+    with pytest.raises(ValueError, match="lacks family, start_s"):
+        load_cases(tmp_path / "c.json")
+
+
+def test_a_killed_run_resumes_and_the_table_reports_both_sides(catalog: Catalog, tmp_path: Path) -> None:
+    cases = [
+        QueryCase("collision", "vehicle 3 should collide with vehicle 0", "scene-0103", 3.0),
+        QueryCase("follow its lane", "vehicle 0 should follow its lane", "scene-0103", 3.0),
+    ]
+    results = tmp_path / "queries.csv"
+    first = CountingFactory()
+    complete = run_query_cases(catalog, cases, first, results, methods=("constvel", "replay"), progress=False)
+    # one guided rollout per case; the unguided one is shared by the cases of one scene and start
+    assert first.calls == [("constvel", True), ("replay", False), ("constvel", True)]
+    assert [r["query"] for r in complete] == [c.query for c in cases]
+    collide, lane = complete
+    assert set(collide) == set(FIELDS)
+    assert collide["satisfied_guided"] in ("0", "1")
+    assert lane["satisfied_unguided"] == "1"  # the log keeps its lane
+    assert collide["fail_excl_guided"] != "" and lane["fail_excl_guided"] == ""  # collision pairs only
+    assert float(collide["fail_excl_guided"]) <= float(collide["fail_guided"]) + 1e-9
+
+    # A kill in the middle of writing the second row: the torn line is dropped and redone.
+    lines = results.read_text().splitlines(keepends=True)
+    results.write_text("".join(lines[:2]) + lines[2][:25])
+    again = CountingFactory()
+    resumed = run_query_cases(catalog, cases, again, results, methods=("constvel", "replay"), progress=False)
+    assert again.calls == [("constvel", True), ("replay", False)]
+    assert resumed[0] == complete[0] and len(resumed) == 2
+    for key in ("satisfied_guided", "satisfied_unguided", "fail_guided", "fail_unguided"):
+        assert resumed[1][key] == complete[1][key]  # simple policies are deterministic
+
+    table = markdown_table(resumed, cases)
+    rows = [line for line in table.splitlines() if line.startswith(("| collision", "| follow"))]
+    assert len(rows) == 2 and rows[0].count("|") == 13
+    assert "| follow its lane | vehicle 0 should follow its lane | scene-0103 | 3.0 |" in table
+    assert "Families satisfied by a guided rollout:" in table
