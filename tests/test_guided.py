@@ -191,8 +191,14 @@ def rule_params(scene: Scene, name: str) -> dict[str, Any]:
         yaw = a.yaw[ctrl[1], STEP]
         goal = a.xy[ctrl[1], STEP] + 12.0 * np.array([-np.sin(yaw), np.cos(yaw)])
         return {"vehicle": 1, "x": float(goal[0]), "y": float(goal[1])}
+    if name == "stop_region":  # stop 10 m ahead of vehicle 1
+        yaw = a.yaw[ctrl[1], STEP]
+        stop = a.xy[ctrl[1], STEP] + 10.0 * np.array([np.cos(yaw), np.sin(yaw)])
+        return {"vehicle": 1, "x": float(stop[0]), "y": float(stop[1]), "radius_m": 3.0}
     simple = {"speed_limit": {"limit_mps": 2.0}, "target_speed": {"speed_mps": 3.0}}
     simple["no_offroad"] = {"margin_m": 2.0}
+    simple["no_collision"] = {"buffer_m": 3.0}
+    simple["acceleration_limit"] = {"max_mps2": 0.5}
     return simple[name]
 
 
@@ -206,6 +212,9 @@ def rule_params(scene: Scene, name: str) -> dict[str, Any]:
         ("goal_waypoint", SamplingConfig("ddpm", 10, 2)),
         ("keep_distance", SamplingConfig("ddpm", 10, 2)),
         ("collision", SamplingConfig("ddpm", 10, 2)),
+        ("no_collision", SamplingConfig("ddpm", 10, 2)),
+        ("stop_region", SamplingConfig("ddpm", 10, 2)),
+        ("acceleration_limit", SamplingConfig("ddim", 10, 2)),
     ],
 )
 def test_a_guided_sample_lowers_the_rule_loss(scene_0103: Scene, name: str, sampling: SamplingConfig) -> None:
