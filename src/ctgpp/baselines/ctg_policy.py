@@ -47,15 +47,6 @@ class CTGPolicy(DiffusionPolicy):
     name = "ctg"
     hold_stationary = True
 
-    def __init__(
-        self,
-        model: CTGDenoiser,
-        sampling: SamplingConfig = SamplingConfig(),
-        guidance: GuidanceLoss | None = None,
-        guidance_config: GuidanceConfig = GuidanceConfig(),
-    ) -> None:
-        super().__init__(model, sampling, guidance, guidance_config)  # type: ignore[arg-type]
-
     @classmethod
     def from_checkpoint(
         cls,

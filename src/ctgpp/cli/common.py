@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from ctgpp.data.catalog import Catalog
+from ctgpp.diffusion.guided import GuidanceConfig
 from ctgpp.sim.diffusion_policy import SamplingConfig
 
 
@@ -37,6 +38,19 @@ def add_model_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--steps", type=int, default=SamplingConfig.steps, help="DDIM steps")
     parser.add_argument(
         "--samples", type=int, default=SamplingConfig.num_samples, help="samples per plan (N)"
+    )
+
+
+def add_guidance_args(parser: argparse.ArgumentParser) -> None:
+    """Guidance strength of Algorithm 2: the inner Adam steps and their learning rate."""
+    parser.add_argument(
+        "--guide-lr", type=float, default=GuidanceConfig.lr, help="guidance Adam learning rate"
+    )
+    parser.add_argument(
+        "--guide-steps",
+        type=int,
+        default=GuidanceConfig.inner_steps,
+        help="guidance steps per denoising step",
     )
 
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ctgpp.cli.common import add_data_arg, add_model_args, open_catalog, sampling_config
+from ctgpp.cli.common import add_data_arg, add_guidance_args, add_model_args, open_catalog, sampling_config
 from ctgpp.diffusion.guided import GuidanceConfig
 from ctgpp.eval.queries import default_cases, load_cases, markdown_table, run_query_cases
 from ctgpp.io.atomic import write_text_atomic
@@ -27,13 +27,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     )
     add_model_args(p)
     p.add_argument("--seeds", type=int, default=1, help="number of seeds (0, 1, ...)")
-    p.add_argument("--guide-lr", type=float, default=GuidanceConfig.lr, help="guidance Adam learning rate")
-    p.add_argument(
-        "--guide-steps",
-        type=int,
-        default=GuidanceConfig.inner_steps,
-        help="guidance steps per denoising step",
-    )
+    add_guidance_args(p)
     p.add_argument(
         "--out",
         type=Path,

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from ctgpp.cli.common import add_data_arg, add_model_args, open_catalog, sampling_config
+from ctgpp.cli.common import add_data_arg, add_guidance_args, add_model_args, open_catalog, sampling_config
 from ctgpp.cli.rules_cmd import RULE_SYNTAX, parse_rule_arg
 from ctgpp.diffusion.guided import GuidanceConfig
 from ctgpp.eval.rule_setup import RuleSpec, custom_rule
@@ -60,13 +60,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         help="guide the traffic by a rule (repeatable: all must hold), e.g. speed_limit:limit_mps=3; "
         "vehicles are the displayed numbers; see `ctgpp rules`",
     )
-    p.add_argument("--guide-lr", type=float, default=GuidanceConfig.lr, help="guidance Adam learning rate")
-    p.add_argument(
-        "--guide-steps",
-        type=int,
-        default=GuidanceConfig.inner_steps,
-        help="guidance steps per denoising step",
-    )
+    add_guidance_args(p)
     p.add_argument("--seed", type=int, default=0, help="random seed")
     p.add_argument("--out", type=Path, default=Path("ctgpp-out"), metavar="DIR", help="output directory")
     p.add_argument("--format", choices=["parquet", "csv"], default="parquet", help="rollout table format")
