@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from torch import Tensor
 
 from ctgpp.data.batch import SceneBatch, collate
 from ctgpp.data.windows import build_window
@@ -21,6 +22,7 @@ from ctgpp.model import (
     save_checkpoint,
     training_loss,
 )
+from ctgpp.model.attention import GatedSpatialAttention
 from ctgpp.scene.types import Scene
 
 TINY = ModelConfig(d_model=32, heads=2, blocks=1, edge_dim=8, lane_hidden=16)
@@ -222,3 +224,35 @@ def test_context_encoded_once_and_expanded_matches_a_repeated_batch(scene_0103: 
         repeated = model(x, k, collate([window] * 3))
         expanded = model(x, k, collate([window]), model.encode_context(collate([window])).expand(3))
     torch.testing.assert_close(expanded, repeated)
+
+
+def reference_spatial_attention(
+    layer: GatedSpatialAttention, x: Tensor, edges: Tensor, mask: Tensor
+) -> Tensor:
+    """The paper's edge-aware attention written out pair by pair with einsum (edges (S, T, A, A, E))."""
+    s, t, a, d = x.shape
+    h = layer.norm(x)
+    q = layer.q(h).view(s, t, a, layer.heads, layer.head_dim)
+    k, v = layer.kv(h).view(s, t, a, 2, layer.heads, layer.head_dim).unbind(dim=3)
+    key = k[:, :, None] + torch.einsum("hde,stije->stijhd", layer.key_edge, edges)  # (S, T, A_i, A_j, h, dh)
+    value = v[:, :, None] + torch.einsum("hed,stije->stijhd", layer.value_edge, edges)
+    logits = torch.einsum("stihd,stijhd->stijh", q, key) / math.sqrt(layer.head_dim)
+    weights = torch.softmax(logits.masked_fill(~mask[..., None], float("-inf")), dim=3)
+    msg = layer.out(torch.einsum("stijh,stijhd->stihd", weights, value).reshape(s, t, a, d))
+    g = torch.sigmoid(layer.gate(torch.cat([h, msg], dim=-1)))
+    return g * msg + (1 - g) * x
+
+
+@pytest.mark.parametrize("shared", [False, True])
+def test_spatial_attention_matches_the_pairwise_formula(shared: bool) -> None:
+    torch.manual_seed(0)
+    layer = GatedSpatialAttention(16, 4, 8)
+    s, t, a = 3, 5, 6
+    x = torch.randn(s, t, a, 16)
+    edges = torch.randn(1 if shared else s, t, a, a, 8)
+    mask = (torch.rand(edges.shape[:-1]) < 0.5) | torch.eye(a, dtype=torch.bool)
+    with torch.no_grad():
+        fast = layer(x, edges, mask)
+        edges_s, mask_s = edges.expand(s, -1, -1, -1, -1), mask.expand(s, -1, -1, -1)
+        slow = reference_spatial_attention(layer, x, edges_s, mask_s)
+    torch.testing.assert_close(fast, slow, rtol=1e-5, atol=1e-5)

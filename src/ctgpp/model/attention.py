@@ -61,20 +61,30 @@ class GatedSpatialAttention(nn.Module):
         self.dropout = nn.Dropout(dropout)
 
     def forward(self, x: Tensor, edges: Tensor, mask: Tensor) -> Tensor:
-        """x (S, T, A, d) residual stream; edges (S, T, A, A, E) embedded e_ij for query i, key j;
-        mask (S, T, A, A) bool, True where i may attend to j. Returns the updated (S, T, A, d).
+        """x (S, T, A, d) residual stream; edges (Se, T, A, A, E) embedded e_ij for query i, key j;
+        mask (Se, T, A, A) bool, True where i may attend to j, the diagonal always True. Se is S, or
+        1 when the S rows are samples of one scene sharing its edges (never copied S times).
+        Returns the updated (S, T, A, d).
         """
         s, t, a, d = x.shape
+        heads, se = self.heads, edges.shape[0]
+        r = s // se  # samples per edge row
         h = self.norm(x)
-        q = self.q(h).view(s, t, a, self.heads, self.head_dim)  # (S, T, A, h, dh)
-        k, v = self.kv(h).view(s, t, a, 2, self.heads, self.head_dim).unbind(dim=3)
+        q = self.q(h).view(s, t, a, heads, self.head_dim)  # (S, T, A, h, dh)
+        k, v = self.kv(h).view(s, t, a, 2, heads, self.head_dim).unbind(dim=3)
+        logits = q.permute(0, 1, 3, 2, 4) @ k.permute(0, 1, 3, 4, 2)  # (S, T, h, A_i, A_j)
         q_edge = torch.einsum("stihd,hde->stihe", q, self.key_edge)  # (S, T, A, h, E)
-        logits = torch.einsum("stihd,stjhd->stijh", q, k) + torch.einsum("stihe,stije->stijh", q_edge, edges)
-        logits = logits / math.sqrt(self.head_dim)  # (S, T, A_i, A_j, h)
-        weights = masked_softmax(logits, mask[..., None], dim=3)
-        weights = self.dropout(weights)
-        msg = torch.einsum("stijh,stjhd->stihd", weights, v)
-        edge_msg = torch.einsum("stijh,stije->stihe", weights, edges)  # (S, T, A, h, E)
+        q_edge = q_edge.view(se, r, t, a, heads, -1).permute(0, 2, 3, 5, 1, 4)  # (Se, T, A, E, r, h)
+        edge_logits = edges @ q_edge.reshape(se, t, a, -1, r * heads)  # (Se, T, A_i, A_j, r*h)
+        edge_logits = edge_logits.view(se, t, a, a, r, heads).permute(0, 4, 1, 5, 2, 3)  # (Se, r, T, h, A, A)
+        edge_logits = edge_logits.reshape(s, t, heads, a, a)
+        bias = torch.zeros(mask.shape, dtype=x.dtype, device=x.device).masked_fill(~mask, float("-inf"))
+        logits = (logits + edge_logits) / math.sqrt(self.head_dim) + bias[:, :, None]
+        weights = self.dropout(torch.softmax(logits, dim=-1))  # (S, T, h, A_i, A_j)
+        msg = (weights @ v.permute(0, 1, 3, 2, 4)).permute(0, 1, 3, 2, 4)  # (S, T, A, h, dh)
+        w = weights.view(se, r, t, heads, a, a).permute(0, 2, 4, 1, 3, 5).reshape(se, t, a, r * heads, a)
+        edge_msg = (w @ edges).view(se, t, a, r, heads, -1).permute(0, 3, 1, 2, 4, 5)  # (Se, r, T, A, h, E)
+        edge_msg = edge_msg.reshape(s, t, a, heads, -1)
         msg = msg + torch.einsum("stihe,hed->stihd", edge_msg, self.value_edge)
         msg = self.out(msg.reshape(s, t, a, d))
         g = torch.sigmoid(self.gate(torch.cat([h, msg], dim=-1)))

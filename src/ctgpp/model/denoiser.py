@@ -28,7 +28,7 @@ class DenoiserContext:
     """What stays fixed across the denoising steps of one batch (computed once per sample call).
 
     agent_mask (S, A); current (S, A, 4) current states in the input frame; hist_tokens (S, A, H, d);
-    token_valid (S, A, H+F); edges (S, H+F, A, A, E) embedded e_ij; spatial_mask (S, H+F, A, A);
+    token_valid (S, A, H+F); edges (S or 1, H+F, A, A, E) embedded e_ij; spatial_mask (S or 1, H+F, A, A);
     lane_tokens (S, A, L, d); lane_valid (S, A, L).
     """
 
@@ -45,11 +45,15 @@ class DenoiserContext:
         """The context of a one-scene batch repeated for ``n`` samples: (1, ...) -> (n, ...) views.
 
         Encoding once and expanding saves n − 1 encodings of the same scene (history, edges, lanes).
+        ``edges`` and ``spatial_mask``, the largest, keep their leading 1: the spatial attention
+        shares them across the samples.
         """
+        shared = ("edges", "spatial_mask")
         return DenoiserContext(
             **{
-                f.name: getattr(self, f.name).expand(n, *getattr(self, f.name).shape[1:])
+                f.name: (value if f.name in shared else value.expand(n, *value.shape[1:]))
                 for f in fields(self)
+                for value in [getattr(self, f.name)]
             }
         )
 
