@@ -148,3 +148,23 @@ def test_make_loss_errors() -> None:
         make_loss("speed_limit", limit="fast")
     with pytest.raises(IndexError, match="vehicle 99"):
         make_loss("collision", vehicle_a=0, vehicle_b=99)(torch.zeros(2, 1, 3, 6), None)
+
+
+@pytest.mark.parametrize("buffer_m", [0.2, 5.0, 20.0])
+def test_no_collision_over_near_pairs_equals_every_pair(
+    buffer_m: float, batch: GuidanceBatch, x: torch.Tensor
+) -> None:
+    """Skipping the far vehicle pairs is exact: the sum over all ordered pairs, halved, is the same."""
+    from ctgpp.guidance.rules_common import disc_centres, disc_layout, time_weights, world_states
+    from ctgpp.guidance.rules_interaction import _penetration
+
+    loss = make_loss("no_collision", buffer_m=buffer_m)
+    pos, yaw = world_states(x, batch)
+    offsets, radius = disc_layout(batch.extent.to(x))
+    discs = disc_centres(pos, yaw, offsets[:, None, None])  # (B, N, T, D, 2)
+    ra, rb = radius[:, None, None, None], radius[None, :, None, None]
+    pen = _penetration(discs[:, None], ra, discs[None], rb, buffer_m)  # (B, B, N, T)
+    pen = pen * (1 - torch.eye(x.shape[0]))[..., None, None]  # without self pairs
+    w = time_weights(x.shape[2], loss.decay, x)
+    want = 0.5 * (pen * w).sum((0, 1, 3)) + loss._obstacles(discs, radius, w, batch, x, None)
+    torch.testing.assert_close(loss(x, batch), want)

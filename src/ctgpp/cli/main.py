@@ -9,7 +9,16 @@ import sys
 from collections.abc import Sequence
 
 from ctgpp import __version__
-from ctgpp.cli import data_cmd, evaluate_cmd, queries_cmd, rules_cmd, scenes_cmd, simulate_cmd, train_cmd
+from ctgpp.cli import (
+    bench_cmd,
+    data_cmd,
+    evaluate_cmd,
+    queries_cmd,
+    rules_cmd,
+    scenes_cmd,
+    simulate_cmd,
+    train_cmd,
+)
 
 # Mistakes a user can make (bad paths, ids, times, files): reported in one line, exit code 2.
 USER_ERRORS = (FileNotFoundError, NotADirectoryError, PermissionError, ValueError, KeyError)
@@ -23,7 +32,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"ctgpp {__version__}")
     parser.add_argument("-v", "--verbose", action="store_true", help="log progress details")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for module in (scenes_cmd, simulate_cmd, rules_cmd, evaluate_cmd, queries_cmd, train_cmd, data_cmd):
+    commands = (scenes_cmd, simulate_cmd, rules_cmd, evaluate_cmd, queries_cmd, train_cmd, data_cmd)
+    for module in (*commands, bench_cmd):
         module.add_parsers(sub)
     return parser
 

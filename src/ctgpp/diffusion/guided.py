@@ -72,6 +72,8 @@ def guide_mean(mean: Tensor, objective: Objective, radius: float, config: Guidan
         for _ in range(config.inner_steps):
             optimizer.zero_grad(set_to_none=True)
             loss = objective(base + delta).sum()
+            if not loss.requires_grad:  # nothing near to avoid, say: the loss does not depend on x here
+                break
             loss.backward()
             if delta.grad is not None:
                 delta.grad = torch.nan_to_num(delta.grad, nan=0.0, posinf=0.0, neginf=0.0)

@@ -81,6 +81,7 @@ class DiffusionPolicy:
         cfg = model.config
         self.schedule = CosineSchedule(cfg.diffusion_steps, cfg.cosine_s)
         self.sampler = sampling.make(self.schedule)
+        self.denoiser_calls = 0  # forward passes over all N samples, counted for benchmarks
 
     @classmethod
     def from_checkpoint(
@@ -112,6 +113,7 @@ class DiffusionPolicy:
         normalizer = self.model.normalizer
 
         def denoise(x: Tensor, k: int) -> Tensor:
+            self.denoiser_calls += 1
             return self.model(x, torch.full((n,), k, dtype=torch.long), batch, context)
 
         objective = None

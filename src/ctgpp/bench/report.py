@@ -1,0 +1,79 @@
+"""The bench results as markdown tables, a JSON record and a picture of the agent-count curve."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from pathlib import Path
+
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from ctgpp.bench.scaling import CallTiming
+from ctgpp.bench.scenarios import PresetResult
+from ctgpp.io.atomic import atomic_path
+
+REFERENCE_PRESET = "paper"
+
+
+def _f(value: float, digits: int = 3) -> str:
+    return "-" if math.isnan(value) else f"{value:.{digits}f}"
+
+
+def scenario_table(results: Sequence[PresetResult]) -> str:
+    """Seconds per 10-s scenario, speed-up over the paper's preset (same episodes), memory, quality."""
+    reference = next((r for r in results if r.preset == REFERENCE_PRESET), None)
+    head = (
+        "| preset | sampler | episodes | median s / scenario | mean s | × faster than paper | "
+        "denoiser calls / s | peak MiB | fail | rule violation | real | rel real |"
+    )
+    lines = [head, "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in results:
+        mean_s = r.mean("seconds")
+        speedup = reference.mean("seconds") / mean_s if reference is not None else math.nan
+        lines.append(
+            f"| {r.preset} | {r.description} | {len(r.episodes)} | {r.median_seconds:.2f} | {mean_s:.2f} | "
+            f"{_f(speedup, 1)} | {r.calls_per_second:.1f} | {r.peak_rss_mib:.0f} | {_f(r.mean('fail'))} | "
+            f"{_f(r.mean('rule_violation'))} | {_f(r.mean('real'))} | {_f(r.mean('rel_real'))} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def agent_table(curve: Sequence[CallTiming]) -> str:
+    lines = ["| agents | samples | ms / call | ms / agent |", "|---:|---:|---:|---:|"]
+    lines += [f"| {c.agents} | {c.samples} | {c.ms:.1f} | {c.ms / c.agents:.2f} |" for c in curve]
+    return "\n".join(lines) + "\n"
+
+
+def batching_table(rows: Sequence[tuple[CallTiming, float]]) -> str:
+    lines = [
+        "| scenes | samples each | ms batched | ms one by one | ms / scene batched | × faster |",
+        "|---:|---:|---:|---:|---:|---:|",
+    ]
+    for timing, separate in rows:
+        lines.append(
+            f"| {timing.scenes} | {timing.samples} | {timing.ms:.1f} | {separate:.1f} | "
+            f"{timing.ms / timing.scenes:.1f} | {separate / timing.ms:.2f} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def plot_agent_curve(curve: Sequence[CallTiming], path: Path) -> Path:
+    """ms per call against agents, with the line through the smallest count's ms/agent for reference."""
+    fig = Figure(figsize=(5, 3.5))
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    agents = [c.agents for c in curve]
+    ax.plot(agents, [c.ms for c in curve], "o-", label="measured")
+    if curve:
+        slope = curve[0].ms / curve[0].agents
+        ax.plot(agents, [slope * a for a in agents], "--", color="grey", label="linear from the first point")
+    ax.set_xlabel("agents in the scene")
+    ax.set_ylabel("ms per denoiser call")
+    ax.set_title(f"one denoiser call, N = {curve[0].samples if curve else 0} samples")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=120)
+    return path

@@ -1,0 +1,100 @@
+"""The cost of one denoiser call against the number of agents, and of batching several scenes.
+
+Bigger scenes are made from a real window by tiling copies of it 300 m apart (beyond the 30 m social
+radius): the density of neighbours stays that of real traffic, as in a larger map, while the agent
+count grows. Timings are the median of ``repeats`` calls after one warm-up call.
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, fields, replace
+
+import torch
+
+from ctgpp.data.batch import SceneBatch, collate
+from ctgpp.data.windows import SceneWindow
+from ctgpp.model.denoiser import Denoiser
+
+TILE_SPACING_M = 300.0
+
+
+@dataclass(frozen=True)
+class CallTiming:
+    """Median milliseconds of one denoiser call over ``rows`` = scenes × samples, ``agents`` each."""
+
+    agents: int
+    scenes: int
+    samples: int
+    ms: float
+
+
+def median_ms(fn: Callable[[], object], repeats: int) -> float:
+    """Median wall milliseconds of ``fn()`` over ``repeats`` calls after one warm-up call."""
+    fn()
+    times = []
+    for _ in range(repeats):
+        began = time.perf_counter()
+        fn()
+        times.append((time.perf_counter() - began) * 1000)
+    return statistics.median(times)
+
+
+def tiled_batch(window: SceneWindow, agents: int) -> SceneBatch:
+    """A one-scene batch of exactly ``agents`` agents: copies of ``window`` 300 m apart, cut to size."""
+    one = collate([window])
+    copies = -(-agents // window.num_agents)
+    per_agent = [f.name for f in fields(one) if f.name != "origin"]
+    parts = []
+    for c in range(copies):
+        shift = torch.tensor([c * TILE_SPACING_M, 0.0, 0.0])
+        pose = torch.where(one.agent_mask[..., None], one.pose + shift, one.pose)
+        parts.append(replace(one, pose=pose))
+    tiled = {name: torch.cat([getattr(p, name) for p in parts], dim=1)[:, :agents] for name in per_agent}
+    return replace(one, **tiled)
+
+
+@torch.no_grad()
+def call_ms(model: Denoiser, batch: SceneBatch, samples: int, repeats: int) -> float:
+    """One denoiser call over ``samples`` samples of each scene of ``batch`` (context encoded once)."""
+    cfg = model.config
+    s = batch.num_scenes
+    if s == 1:
+        context = model.encode_context(batch).expand(samples)
+        call_batch = batch
+    else:  # S scenes × N samples as S·N rows
+        rows = torch.arange(s).repeat_interleave(samples)
+        call_batch = replace(batch, **{f.name: getattr(batch, f.name)[rows] for f in fields(batch)})
+        context = model.encode_context(call_batch)
+    gen = torch.Generator().manual_seed(0)
+    x = torch.randn(s * samples, batch.num_agents, cfg.future_steps, 2, generator=gen)
+    k = torch.full((s * samples,), cfg.diffusion_steps // 2)
+    return median_ms(lambda: model(x, k, call_batch, context), repeats)
+
+
+def agent_curve(
+    model: Denoiser, window: SceneWindow, counts: Sequence[int], samples: int, repeats: int
+) -> list[CallTiming]:
+    """Milliseconds of one call (N = ``samples``) for each agent count of ``counts``."""
+    return [
+        CallTiming(a, 1, samples, call_ms(model, tiled_batch(window, a), samples, repeats)) for a in counts
+    ]
+
+
+def scene_batching(
+    model: Denoiser, windows: Sequence[SceneWindow], sizes: Sequence[int], samples: int, repeats: int
+) -> list[tuple[CallTiming, float]]:
+    """For each S in ``sizes``: one call over S scenes batched, and the sum of S one-scene calls (ms).
+
+    Scenes are taken from ``windows`` in turn (padded to the largest in a batch, as in training).
+    """
+    out = []
+    for size in sizes:
+        chosen = [windows[i % len(windows)] for i in range(size)]
+        batched = call_ms(model, collate(chosen), samples, repeats)
+        separate = sum(call_ms(model, collate([w]), samples, repeats) for w in chosen)
+        agents = max(w.num_agents for w in chosen)
+        out.append((CallTiming(agents, size, samples, batched), separate))
+    return out

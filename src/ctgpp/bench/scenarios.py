@@ -1,0 +1,116 @@
+"""Whole guided closed-loop scenarios timed per sampler preset, each preset in a fresh process.
+
+A fresh process per preset gives each its own peak memory (the process's maximum resident set) and
+keeps one preset's caches from flattering the next. The episodes' fail rate, rule violation and
+realism are measured beside the time, so a speed-up that costs quality shows in the same table.
+"""
+
+from __future__ import annotations
+
+import math
+import multiprocessing
+import resource
+import statistics
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from tqdm import tqdm
+
+from ctgpp.data.catalog import Catalog
+from ctgpp.eval.runner import episode_rule
+from ctgpp.metrics import compute_metrics
+from ctgpp.sim.closed_loop import simulate
+from ctgpp.sim.diffusion_policy import DiffusionPolicy
+from ctgpp.sim.factory import PolicyFactory
+from ctgpp.sim.presets import preset
+
+
+@dataclass(frozen=True)
+class EpisodeTiming:
+    """One closed-loop episode: wall seconds for the whole 10-s scenario and its metrics."""
+
+    scene: str
+    start_s: float
+    vehicles: int
+    seconds: float
+    denoiser_calls: int
+    fail: float
+    rule_violation: float
+    real: float
+    rel_real: float
+
+
+@dataclass(frozen=True)
+class PresetResult:
+    """Every episode of one preset and the peak resident memory of the process that ran them (MiB)."""
+
+    preset: str
+    description: str
+    episodes: list[EpisodeTiming]
+    peak_rss_mib: float
+    threads: int
+
+    @property
+    def median_seconds(self) -> float:
+        return statistics.median(e.seconds for e in self.episodes)
+
+    @property
+    def calls_per_second(self) -> float:
+        return sum(e.denoiser_calls for e in self.episodes) / sum(e.seconds for e in self.episodes)
+
+    def mean(self, metric: str) -> float:
+        """Mean of ``metric`` over the episodes where it is defined (NaN when nowhere)."""
+        values = [getattr(e, metric) for e in self.episodes if not math.isnan(getattr(e, metric))]
+        return sum(values) / len(values) if values else math.nan
+
+
+@dataclass(frozen=True)
+class BenchJob:
+    """What a child process needs to time one preset (plain values: it crosses a process boundary)."""
+
+    preset: str
+    data_dir: Path | None
+    episodes: tuple[tuple[str, float], ...]
+    rule: str
+    checkpoint: Path | None
+    seed: int
+    threads: int
+    progress: bool
+
+
+def time_preset(job: BenchJob) -> PresetResult:
+    """Run ``job``'s episodes with its preset in this process and time each whole scenario."""
+    torch.set_num_threads(job.threads)
+    chosen = preset(job.preset)
+    catalog = Catalog.open(job.data_dir)
+    factory = PolicyFactory(job.checkpoint, chosen.sampling, chosen.guidance)
+    results = []
+    for scene_id, start_s in tqdm(job.episodes, desc=job.preset, unit="ep", disable=not job.progress):
+        scene = catalog.load(scene_id)
+        spec = episode_rule(scene, start_s, job.rule)
+        loss = None if spec is None else spec.loss
+        policy = DiffusionPolicy(factory.model, chosen.sampling, loss, chosen.guidance)
+        began = time.perf_counter()
+        rollout = simulate(scene, policy, start_s, seed=job.seed)
+        seconds = time.perf_counter() - began
+        metrics = compute_metrics(rollout, ("fail", "real", "rel_real"))
+        fail = metrics["fail"] if spec is None else spec.fail(rollout)
+        violation = math.nan if spec is None else spec.violation(rollout)
+        vehicles = int(rollout.controlled.sum())
+        results.append(
+            EpisodeTiming(
+                scene_id, start_s, vehicles, seconds, policy.denoiser_calls, fail, violation,
+                metrics["real"], metrics["rel_real"],
+            )
+        )
+    peak_kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux
+    return PresetResult(job.preset, chosen.description, results, peak_kib / 1024, torch.get_num_threads())
+
+
+def time_preset_in_child(job: BenchJob) -> PresetResult:
+    """:func:`time_preset` in a fresh (spawned) process, so its peak memory is its own."""
+    with ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn")) as pool:
+        return pool.submit(time_preset, job).result()

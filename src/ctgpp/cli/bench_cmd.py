@@ -1,0 +1,143 @@
+"""``ctgpp bench``: time guided closed-loop scenarios per sampler preset, and denoiser scaling curves."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from dataclasses import asdict
+from pathlib import Path
+
+import torch
+
+from ctgpp.bench.report import agent_table, batching_table, plot_agent_curve, scenario_table
+from ctgpp.bench.scaling import agent_curve, scene_batching
+from ctgpp.bench.scenarios import BenchJob, PresetResult, time_preset_in_child
+from ctgpp.cli.common import add_data_arg, open_catalog
+from ctgpp.data.catalog import Catalog
+from ctgpp.data.windows import SceneWindow, WindowConfig, build_window
+from ctgpp.eval.rule_setup import evaluation_rules
+from ctgpp.eval.runner import NO_RULE, Episode, plan_episodes
+from ctgpp.io.atomic import write_text_atomic
+from ctgpp.scene.vehicles import controlled_vehicles
+from ctgpp.sim.closed_loop import episode_starts, start_step
+from ctgpp.sim.factory import PolicyFactory
+from ctgpp.sim.presets import PRESETS, preset
+
+
+def add_parsers(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("bench", help="time guided closed-loop scenarios per sampler preset, and scaling")
+    p.add_argument(
+        "--presets",
+        default="paper,fast",
+        help=f"comma-separated sampler presets, timed side by side: {', '.join(PRESETS)}",
+    )
+    p.add_argument(
+        "--rule", default="no_collision", help=f"guidance rule: {', '.join(evaluation_rules())}, none"
+    )
+    p.add_argument("--split", default="mini_val", help="episodes of this split (default: mini_val)")
+    p.add_argument("--scene", default=None, help="only this scene of the split")
+    p.add_argument("--spacing", type=float, default=2.0, metavar="SEC", help="seconds between episode starts")
+    p.add_argument("--episodes", type=int, default=6, help="episodes per preset, spread over the scenes")
+    p.add_argument("--seed", type=int, default=0, help="sampling seed of every episode")
+    p.add_argument("--threads", type=int, default=torch.get_num_threads(), help="torch CPU threads")
+    p.add_argument(
+        "--agents", default="8,16,32,64,128", help="agent counts of the per-call curve ('' to skip)"
+    )
+    p.add_argument("--scenes", default="1,2,4,8", help="scene batch sizes ('' to skip)")
+    p.add_argument("--repeats", type=int, default=5, help="calls per point of the curves (median)")
+    p.add_argument("--checkpoint", type=Path, default=None, metavar="DIR", help="CTG++ checkpoint directory")
+    p.add_argument("--out", type=Path, default=Path("ctgpp-bench"), metavar="DIR", help="results directory")
+    add_data_arg(p)
+    p.set_defaults(run=run_bench)
+
+
+def _ints(text: str, what: str) -> list[int]:
+    try:
+        values = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError as err:
+        raise ValueError(f"{what} must be comma-separated integers, got {text!r}") from err
+    if any(v < 1 for v in values):
+        raise ValueError(f"{what} must be positive, got {text!r}")
+    return values
+
+
+def _spread(episodes: list[Episode], count: int) -> list[Episode]:
+    """Up to ``count`` episodes taken from the scenes in turn (round robin over scenes)."""
+    by_scene: dict[str, list[Episode]] = {}
+    for ep in episodes:
+        by_scene.setdefault(ep.scene, []).append(ep)
+    queues = list(by_scene.values())
+    out: list[Episode] = []
+    while len(out) < count and any(queues):
+        for q in queues:
+            if q and len(out) < count:
+                out.append(q.pop(0))
+    return out
+
+
+def run_bench(args: argparse.Namespace) -> int:
+    names = [n.strip() for n in args.presets.split(",") if n.strip()]
+    for name in names:
+        preset(name)  # a clear error for an unknown name before any work
+    if args.rule not in [NO_RULE, *evaluation_rules()]:
+        raise ValueError(f"unknown rule {args.rule!r}; known: {', '.join(evaluation_rules())}, none")
+    if args.episodes < 0 or args.repeats < 1 or args.threads < 1 or args.spacing <= 0:
+        raise ValueError("--episodes must be ≥ 0, --repeats and --threads ≥ 1, --spacing positive")
+    agents, sizes = _ints(args.agents, "--agents"), _ints(args.scenes, "--scenes")
+    catalog = open_catalog(args)
+    torch.set_num_threads(args.threads)
+    report: dict[str, object] = {"threads": args.threads, "rule": args.rule, "split": args.split}
+    text = [f"# ctgpp bench\n\n{args.threads} torch threads; rule {args.rule}; split {args.split}.\n"]
+
+    if args.episodes and names:
+        planned = plan_episodes(catalog, args.split, ["bench"], [args.seed], args.spacing, [args.rule])
+        if args.scene is not None:
+            scene_id = catalog.entry(args.scene).id
+            planned = [e for e in planned if e.scene == scene_id]
+        chosen = _spread(planned, args.episodes)
+        if not chosen:
+            raise ValueError(f"no episode of split {args.split!r} qualifies for rule {args.rule!r}")
+        pairs = tuple((e.scene, e.start_s) for e in chosen)
+        results: list[PresetResult] = []
+        for name in names:
+            job = BenchJob(name, args.data, pairs, args.rule, args.checkpoint, args.seed, args.threads, True)
+            results.append(time_preset_in_child(job))
+        report["scenarios"] = [asdict(r) for r in results]
+        text += ["## Guided 10-s closed-loop scenarios\n", scenario_table(results)]
+
+    if agents or sizes:
+        model = PolicyFactory(args.checkpoint).model
+        busiest = _busiest_windows(catalog, args.split)
+        samples = preset("fast").sampling.num_samples
+        if agents:
+            curve = agent_curve(model, busiest[0], agents, samples, args.repeats)
+            report["agents"] = [asdict(c) for c in curve]
+            plot_agent_curve(curve, args.out / "agents.png")
+            text += ["## One denoiser call against the number of agents\n", agent_table(curve)]
+        if sizes:
+            rows = scene_batching(model, busiest, sizes, samples, args.repeats)
+            report["batching"] = [{**asdict(t), "separate_ms": s} for t, s in rows]
+            text += ["## Several scenes in one call\n", batching_table(rows)]
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(args.out / "bench.json", json.dumps(report, indent=2) + "\n")
+    write_text_atomic(args.out / "bench.md", "\n".join(text))
+    print("\n".join(text))
+    print(f"wrote {args.out / 'bench.md'}, bench.json" + (", agents.png" if agents else ""))
+    return 0
+
+
+def _busiest_windows(catalog: Catalog, split: str) -> list[SceneWindow]:
+    """One window per scene of ``split`` at its first episode start, the one with most vehicles first."""
+    windows = []
+    for scene_id in catalog.ids(split):
+        scene = catalog.load(scene_id)
+        starts = episode_starts(scene)
+        if not starts:
+            continue
+        step = start_step(scene, starts[0])
+        controlled = controlled_vehicles(scene, step)
+        windows.append(build_window(scene, step, WindowConfig(max_agents=len(controlled)), controlled))
+    if not windows:
+        raise ValueError(f"no scene of split {split!r} is long enough for an episode")
+    return sorted(windows, key=lambda w: -w.num_agents)

@@ -1,0 +1,53 @@
+"""Named sampler presets: how many denoising steps, samples and guidance steps a plan costs.
+
+``paper`` is the paper's configuration (DDPM over all K = 100 steps, guidance at every step with one
+Adam step of lr 0.3, N = 5 samples: DESIGN.md, Guided sampling). ``fast`` is the default of
+``simulate`` and ``evaluate``, chosen from ``ctgpp bench`` measurements (BENCHMARKS.md, Speed).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from ctgpp.diffusion.guided import GuidanceConfig
+from ctgpp.sim.diffusion_policy import SamplingConfig
+
+
+@dataclass(frozen=True)
+class SamplerPreset:
+    name: str
+    sampling: SamplingConfig
+    guidance: GuidanceConfig
+    description: str
+
+
+PRESETS: dict[str, SamplerPreset] = {
+    p.name: p
+    for p in (
+        SamplerPreset(
+            "paper",
+            SamplingConfig("ddpm", 100, 5),
+            GuidanceConfig(inner_steps=1, lr=0.3),
+            "DDPM, K = 100 steps, guided at every step, N = 5 (the paper)",
+        ),
+        SamplerPreset(
+            "ddim10",
+            SamplingConfig("ddim", 10, 4),
+            GuidanceConfig(inner_steps=1, lr=0.3),
+            "DDIM 10 steps, guided at every step, N = 4",
+        ),
+        SamplerPreset(
+            "fast",
+            SamplingConfig(),
+            GuidanceConfig(),
+            "the default: DDIM, few steps, N samples, guidance as configured by default",
+        ),
+    )
+}
+
+
+def preset(name: str) -> SamplerPreset:
+    """The preset called ``name`` (a clear error listing the known ones otherwise)."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown sampler preset {name!r}; known: {', '.join(PRESETS)}")
+    return PRESETS[name]

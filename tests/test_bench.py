@@ -1,0 +1,59 @@
+"""``ctgpp bench``: tiled scaling scenes are exact copies of a real one, and one whole small run."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+from ctgpp.bench.scaling import tiled_batch
+from ctgpp.cli.main import main
+from ctgpp.data.batch import collate
+from ctgpp.data.windows import build_window
+from ctgpp.model import Denoiser, ModelConfig
+from ctgpp.scene.types import Scene
+from ctgpp.sim.presets import preset
+
+TINY = ModelConfig(d_model=32, heads=2, blocks=1, edge_dim=8, lane_hidden=16)
+
+
+def test_tiled_copies_beyond_the_social_radius_predict_like_the_original(scene_0103: Scene) -> None:
+    window = build_window(scene_0103, 40)
+    a = window.num_agents
+    torch.manual_seed(0)
+    model = Denoiser(TINY).eval()
+    tiled = tiled_batch(window, 3 * a - 2)  # two whole copies and a cut one
+    assert tiled.num_agents == 3 * a - 2 and bool(tiled.agent_mask.all())
+    x_one = torch.randn(1, a, TINY.future_steps, 2, generator=torch.Generator().manual_seed(1))
+    x = torch.cat([x_one] * 3, dim=1)[:, : 3 * a - 2]
+    k = torch.tensor([40])
+    with torch.no_grad():
+        alone = model(x_one, k, collate([window]))
+        copies = model(x, k, tiled)
+    torch.testing.assert_close(copies[:, :a], alone, rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(copies[:, a : 2 * a], alone, rtol=1e-4, atol=1e-5)
+
+
+def test_bench_times_a_guided_scenario_and_the_curves(tmp_path: Path) -> None:
+    out = tmp_path / "bench"
+    argv = ["bench", "--presets", "fast", "--episodes", "1", "--agents", "4,8", "--scenes", "1,2"]
+    assert main([*argv, "--repeats", "1", "--out", str(out)]) == 0
+    report = json.loads((out / "bench.json").read_text())
+    (fast,) = report["scenarios"]
+    (episode,) = fast["episodes"]
+    steps = preset("fast").sampling.steps
+    assert episode["seconds"] > 0 and episode["denoiser_calls"] == 20 * steps  # 20 re-plans × DDIM steps
+    assert 0.0 <= episode["fail"] <= 1.0 and fast["peak_rss_mib"] > 0
+    assert [c["agents"] for c in report["agents"]] == [4, 8]
+    assert [b["scenes"] for b in report["batching"]] == [1, 2]
+    assert (out / "agents.png").stat().st_size > 0
+    assert "× faster than paper" in (out / "bench.md").read_text()
+
+
+@pytest.mark.parametrize(
+    "argv", [["--presets", "warp"], ["--agents", "8,x"], ["--rule", "fly"], ["--episodes", "-1"]]
+)
+def test_bench_mistakes_exit_2(argv: list[str], tmp_path: Path) -> None:
+    assert main(["bench", *argv, "--out", str(tmp_path)]) == 2
