@@ -55,3 +55,12 @@ def test_collate_pads_and_masks(scene_0103: Scene) -> None:
     assert not batch.hist_valid[~batch.agent_mask].any() and not batch.fut_valid[~batch.agent_mask].any()
     assert torch.allclose(batch.pose[:, 0, :2], torch.zeros(2, 2))  # poses relative to the first agent
     assert batch.hist.dtype == torch.float32 and batch.origin.dtype == torch.float64
+
+
+def test_window_without_future_keeps_the_past_and_hides_the_log(scene_0103: Scene) -> None:
+    full = build_window(scene_0103, 60)
+    past = build_window(scene_0103, 60, WindowConfig(with_future=False))
+    for name in ("pose", "hist", "hist_valid", "lanes", "lanes_valid", "agent_index"):
+        np.testing.assert_array_equal(getattr(past, name), getattr(full, name))
+    assert not past.fut_valid.any() and full.fut_valid.any()
+    assert past.fut_actions.shape == full.fut_actions.shape and not past.fut_actions.any()

@@ -21,7 +21,11 @@ from ctgpp.scene.vehicles import controlled_vehicles
 
 @dataclass(frozen=True)
 class WindowConfig:
-    """Sizes of a window. Defaults follow the paper: 31 history steps, 52 future steps at 0.1 s."""
+    """Sizes of a window. Defaults follow the paper: 31 history steps, 52 future steps at 0.1 s.
+
+    with_future: False leaves the logged future out (zeros, invalid): what a policy at inference
+    must not see anyway, and its inverse dynamics cost time at every re-plan.
+    """
 
     history_steps: int = 31
     future_steps: int = 52
@@ -29,6 +33,7 @@ class WindowConfig:
     max_lanes: int = 8
     lane_points: int = 20
     lane_radius_m: float = 60.0
+    with_future: bool = True
 
 
 @dataclass(frozen=True, eq=False)
@@ -76,12 +81,14 @@ def build_window(
     hist_t = np.arange(step - config.history_steps + 1, step + 1)
     fut_t = np.arange(step + 1, step + 1 + config.future_steps)
     hist, hist_valid = _states_in_own_frame(scene, idx, hist_t, pose)
-    fut, fut_valid = _states_in_own_frame(scene, idx, fut_t, pose)
-    fut_valid = np.cumprod(fut_valid, axis=1).astype(bool)  # (A, F): valid up to the first gap
-    cur = hist[:, -1]  # (A, 4)
-    chain = torch.from_numpy(np.concatenate([cur[:, None], fut], axis=1))  # (A, F+1, 4)
-    actions = inverse(chain, scene.dt_s).numpy()
-    actions = np.where(fut_valid[..., None], actions, 0.0)
+    if config.with_future:
+        fut, fut_valid = _states_in_own_frame(scene, idx, fut_t, pose)
+        fut_valid = np.cumprod(fut_valid, axis=1).astype(bool)  # (A, F): valid up to the first gap
+        chain = torch.from_numpy(np.concatenate([hist[:, -1:], fut], axis=1))  # (A, F+1, 4)
+        actions = np.where(fut_valid[..., None], inverse(chain, scene.dt_s).numpy(), 0.0)
+    else:
+        fut, fut_valid = np.zeros((len(idx), len(fut_t), 4)), np.zeros((len(idx), len(fut_t)), dtype=bool)
+        actions = np.zeros((len(idx), len(fut_t), 2))
     lanes, lanes_valid = _agent_lanes(scene, pose, config)
     return SceneWindow(
         scene_id=scene.id,

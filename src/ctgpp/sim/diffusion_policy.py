@@ -102,7 +102,9 @@ class DiffusionPolicy:
         whose tensors autograd refuses).
         """
         cfg = self.model.config
-        windows = WindowConfig(cfg.history_steps, cfg.future_steps, max_agents=len(obs.controlled))
+        windows = WindowConfig(
+            cfg.history_steps, cfg.future_steps, max_agents=len(obs.controlled), with_future=False
+        )
         seen = replace(obs.scene, agents=obs.tracks)  # the simulated past, never the logged future
         window = build_window(seen, obs.step, windows, agent_index=obs.controlled)
         n, v = self.sampling.num_samples, window.num_agents
