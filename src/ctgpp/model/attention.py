@@ -70,16 +70,16 @@ class GatedSpatialAttention(nn.Module):
         heads, se = self.heads, edges.shape[0]
         r = s // se  # samples per edge row
         h = self.norm(x)
-        q = self.q(h).view(s, t, a, heads, self.head_dim)  # (S, T, A, h, dh)
+        q = self.q(h).view(s, t, a, heads, self.head_dim) / math.sqrt(self.head_dim)  # (S, T, A, h, dh)
         k, v = self.kv(h).view(s, t, a, 2, heads, self.head_dim).unbind(dim=3)
+        # the (S, T, h, A, A) tensors dominate for many agents: written once, then updated in place
         logits = q.permute(0, 1, 3, 2, 4) @ k.permute(0, 1, 3, 4, 2)  # (S, T, h, A_i, A_j)
         q_edge = torch.einsum("stihd,hde->stihe", q, self.key_edge)  # (S, T, A, h, E)
         q_edge = q_edge.view(se, r, t, a, heads, -1).permute(0, 2, 3, 5, 1, 4)  # (Se, T, A, E, r, h)
         edge_logits = edges @ q_edge.reshape(se, t, a, -1, r * heads)  # (Se, T, A_i, A_j, r*h)
         edge_logits = edge_logits.view(se, t, a, a, r, heads).permute(0, 4, 1, 5, 2, 3)  # (Se, r, T, h, A, A)
-        edge_logits = edge_logits.reshape(s, t, heads, a, a)
-        bias = torch.zeros(mask.shape, dtype=x.dtype, device=x.device).masked_fill(~mask, float("-inf"))
-        logits = (logits + edge_logits) / math.sqrt(self.head_dim) + bias[:, :, None]
+        logits.view(se, r, t, heads, a, a).add_(edge_logits)
+        logits.view(se, r, t, heads, a, a).masked_fill_(~mask[:, None, :, None], float("-inf"))
         weights = self.dropout(torch.softmax(logits, dim=-1))  # (S, T, h, A_i, A_j)
         msg = (weights @ v.permute(0, 1, 3, 2, 4)).permute(0, 1, 3, 2, 4)  # (S, T, A, h, dh)
         w = weights.view(se, r, t, heads, a, a).permute(0, 2, 4, 1, 3, 5).reshape(se, t, a, r * heads, a)
