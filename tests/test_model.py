@@ -256,3 +256,16 @@ def test_spatial_attention_matches_the_pairwise_formula(shared: bool) -> None:
         edges_s, mask_s = edges.expand(s, -1, -1, -1, -1), mask.expand(s, -1, -1, -1)
         slow = reference_spatial_attention(layer, x, edges_s, mask_s)
     torch.testing.assert_close(fast, slow, rtol=1e-5, atol=1e-5)
+
+
+def test_context_of_several_scenes_expands_scene_major(scene_0103: Scene) -> None:
+    windows = [build_window(scene_0103, 40), build_window(scene_0103, 90)]
+    model = make_model()
+    a = max(w.num_agents for w in windows)
+    x = torch.randn(4, a, 52, 2, generator=torch.Generator().manual_seed(4))
+    k = torch.tensor([5, 50, 90, 20])
+    with torch.no_grad():
+        repeated = model(x, k, collate([windows[0], windows[0], windows[1], windows[1]]))
+        batch = collate(windows)
+        expanded = model(x, k, batch, model.encode_context(batch).expand(2))
+    torch.testing.assert_close(expanded, repeated)

@@ -61,17 +61,11 @@ def call_ms(model: Denoiser, batch: SceneBatch, samples: int, repeats: int) -> f
     """One denoiser call over ``samples`` samples of each scene of ``batch`` (context encoded once)."""
     cfg = model.config
     s = batch.num_scenes
-    if s == 1:
-        context = model.encode_context(batch).expand(samples)
-        call_batch = batch
-    else:  # S scenes × N samples as S·N rows
-        rows = torch.arange(s).repeat_interleave(samples)
-        call_batch = replace(batch, **{f.name: getattr(batch, f.name)[rows] for f in fields(batch)})
-        context = model.encode_context(call_batch)
+    context = model.encode_context(batch).expand(samples)  # (S*N, ...), edges shared per scene
     gen = torch.Generator().manual_seed(0)
     x = torch.randn(s * samples, batch.num_agents, cfg.future_steps, 2, generator=gen)
     k = torch.full((s * samples,), cfg.diffusion_steps // 2)
-    return median_ms(lambda: model(x, k, call_batch, context), repeats)
+    return median_ms(lambda: model(x, k, batch, context), repeats)
 
 
 def agent_curve(

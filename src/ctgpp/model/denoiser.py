@@ -42,16 +42,23 @@ class DenoiserContext:
     lane_valid: Tensor
 
     def expand(self, n: int) -> DenoiserContext:
-        """The context of a one-scene batch repeated for ``n`` samples: (1, ...) -> (n, ...) views.
+        """The context of S scenes for ``n`` samples each: (S, ...) -> (S*n, ...), scene-major rows
+        (the n samples of scene 0, then of scene 1, ...); views when S is 1.
 
         Encoding once and expanding saves n − 1 encodings of the same scene (history, edges, lanes).
-        ``edges`` and ``spatial_mask``, the largest, keep their leading 1: the spatial attention
-        shares them across the samples.
+        ``edges`` and ``spatial_mask``, the largest, keep their S rows: the spatial attention shares
+        each scene's among its samples.
         """
         shared = ("edges", "spatial_mask")
+
+        def grow(value: Tensor) -> Tensor:
+            if value.shape[0] == 1:
+                return value.expand(n, *value.shape[1:])
+            return value.repeat_interleave(n, dim=0)
+
         return DenoiserContext(
             **{
-                f.name: (value if f.name in shared else value.expand(n, *value.shape[1:]))
+                f.name: (value if f.name in shared else grow(value))
                 for f in fields(self)
                 for value in [getattr(self, f.name)]
             }
