@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import json
 import pickle
 import shutil
@@ -12,6 +13,7 @@ import pytest
 from PIL import Image
 
 from ctgpp.cli.main import main
+from ctgpp.data.catalog import default_data_dir
 
 from .conftest import NGSIM, NUSCENES
 
@@ -54,6 +56,15 @@ def test_show_draws_the_numbered_picture(tmp_path: Path) -> None:
         (["simulate", "--data", "{tmp}/missing"], "does not exist"),
         (["scenes", "--split", "nope"], "no scenes in split 'nope'"),
         (["data", "convert", "{tmp}/missing", "{tmp}/out"], "does not exist"),
+        (
+            ["evaluate", "--methods", "ctgpp-no_edge", "--checkpoint-of", "ctgpp-no_edge={tmp}/no", "--out",
+             "{tmp}/x"],
+            "ctgpp train --variant no_edge --out DIR",
+        ),
+        (["evaluate", "--checkpoint-of", "ctgpp-unguided={tmp}", "--out", "{tmp}/x"], "METHOD=DIR"),
+        (["evaluate", "--methods", "constvel", "--split", "{tmp}/missing:heldout", "--out", "{tmp}/x"],
+         "does not exist"),
+        (["evaluate", "--methods", "constvel", "--split", "nope", "--out", "{tmp}/x"], "no scenes in split"),
     ],
 )
 def test_user_mistakes_get_one_clear_line_and_exit_2(
@@ -63,6 +74,25 @@ def test_user_mistakes_get_one_clear_line_and_exit_2(
     err = capsys.readouterr().err
     assert err.startswith("ctgpp: error:") and message in err and "Traceback" not in err
     assert not (tmp_path / "x").exists()
+
+
+def test_evaluate_over_two_sets_in_workers_writes_table_and_realism_picture(tmp_path: Path) -> None:
+    copy = tmp_path / "copy"
+    shutil.copytree(default_data_dir(), copy)
+    out = tmp_path / "eval"
+    argv = ["evaluate", "--methods", "replay,constvel", "--spacing", "6", "--workers", "2", "--out", str(out)]
+    assert main([*argv, "--split", "mini_val", "--split", f"{copy}:mini_val"]) == 0
+    with (out / "episodes.csv").open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 2 * 2 * 2 * 2  # sets × methods × scenes × starts (3 and 9 s)
+    assert {r["set"] for r in rows} == {"mini_val", "copy:mini_val"}
+    table = (out / "table.md").read_text()
+    assert table.index("### mini_val") < table.index("### copy:mini_val")
+    assert "| none | constvel | 4 |" in table
+    assert len((out / "realism.jsonl").read_text().splitlines()) == len(rows)
+    assert Image.open(out / "realism.png").size[0] > 1000
+    assert main([*argv, "--split", "mini_val", "--split", f"{copy}:mini_val"]) == 0  # nothing left to do
+    assert len((out / "episodes.csv").read_text().splitlines()) == len(rows) + 1
 
 
 def test_convert_nuscenes_and_ngsim_then_list(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

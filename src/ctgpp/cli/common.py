@@ -64,6 +64,15 @@ def open_catalog(args: argparse.Namespace) -> Catalog:
     return Catalog.open(args.data)
 
 
+def split_spec(spec: str, default_root: Path | None = None) -> tuple[Path | None, str]:
+    """``[DIR:]SPLIT`` as (data directory, split): a bare SPLIT is of ``default_root`` (None: the
+    embedded data). The split is what follows the last colon, so DIR may hold colons itself."""
+    root, _, split = spec.rpartition(":")
+    if not split:
+        raise ValueError(f"{spec!r} names no split: expected [DIR:]SPLIT (mini_val, data/ngsim:heldout)")
+    return (Path(root) if root else default_root), split
+
+
 def print_table(header: list[str], rows: list[list[object]]) -> None:
     """A plain aligned text table on stdout."""
     cells = [header] + [[_fmt(c) for c in row] for row in rows]

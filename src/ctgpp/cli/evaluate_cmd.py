@@ -1,20 +1,23 @@
-"""``ctgpp evaluate``: closed-loop metrics of policies × rules over a split, resumable."""
+"""``ctgpp evaluate``: the paper's protocol (Table 1), closed-loop metrics of methods × rules over
+evaluation sets, resumable and optionally over worker processes."""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
-from ctgpp.cli.common import add_data_arg, add_model_args, open_catalog, sampling_config
+from ctgpp.cli.common import add_data_arg, add_model_args, sampling_config, split_spec
+from ctgpp.eval.realism_plot import plot_realism, read_histograms
 from ctgpp.eval.rule_setup import evaluation_rules
-from ctgpp.eval.runner import NO_RULE, markdown_table, plan_episodes, run_episodes, summarize
+from ctgpp.eval.runner import NO_RULE, EvalSet, plan_sets, run_episodes
+from ctgpp.eval.table import markdown_table, summarize
 from ctgpp.io.atomic import write_text_atomic
-from ctgpp.sim.factory import POLICY_NAMES, PolicyFactory
+from ctgpp.sim.factory import MODEL_NAMES, POLICY_NAMES, PolicyFactory
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
-        "evaluate", help="closed-loop metrics of policies × rules over the episodes of a split"
+        "evaluate", help="closed-loop metrics of methods × rules over evaluation sets (the paper's Table 1)"
     )
     p.add_argument(
         "--methods", default="ctgpp,replay,constvel", help=f"comma-separated, of {', '.join(POLICY_NAMES)}"
@@ -26,15 +29,31 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         f"{', '.join(evaluation_rules())}",
     )
     add_model_args(p)
-    p.add_argument("--split", default="mini_val", help="scenes of this split (default: mini_val)")
+    p.add_argument(
+        "--checkpoint-of",
+        action="append",
+        default=[],
+        metavar="METHOD=DIR",
+        help=f"checkpoint directory of a model, one of {', '.join(MODEL_NAMES)} (repeatable; default: "
+        "the one shipped under its name; bits+opt uses bits', ctgpp-unguided ctgpp's)",
+    )
+    p.add_argument(
+        "--split",
+        action="append",
+        default=None,
+        metavar="[DIR:]SPLIT",
+        help="an evaluation set: a split of --data (default: the embedded data) or DIR:SPLIT "
+        "(repeatable; default: mini_val)",
+    )
     p.add_argument("--seeds", type=int, default=1, help="number of seeds (0, 1, ...)")
     p.add_argument("--spacing", type=float, default=1.0, metavar="SEC", help="seconds between episode starts")
+    p.add_argument("--workers", type=int, default=1, help="worker processes that run episodes (default: 1)")
     p.add_argument(
         "--out",
         type=Path,
         default=Path("ctgpp-eval"),
         metavar="DIR",
-        help="results directory: episodes.csv (resumable) and table.md",
+        help="results directory: episodes.csv and realism.jsonl (resumable), table.md, realism.png",
     )
     add_data_arg(p)
     p.set_defaults(run=run_evaluate)
@@ -48,6 +67,28 @@ def _names(text: str, known: list[str], what: str) -> list[str]:
     return names
 
 
+def checkpoints_of(specs: list[str], ctgpp: Path | None) -> dict[str, Path]:
+    """``METHOD=DIR`` flags (and ``--checkpoint`` for ctgpp) as {model name: checkpoint directory}."""
+    out: dict[str, Path] = {} if ctgpp is None else {"ctgpp": ctgpp}
+    for spec in specs:
+        name, sep, path = spec.partition("=")
+        name = name.strip()
+        if not sep or not path or name not in MODEL_NAMES:
+            raise ValueError(
+                f"--checkpoint-of {spec!r}: expected METHOD=DIR with METHOD one of {', '.join(MODEL_NAMES)}"
+            )
+        if name in out and out[name] != Path(path):
+            raise ValueError(f"two checkpoints given for {name}: {out[name]} and {path}")
+        out[name] = Path(path)
+    return out
+
+
+def evaluation_sets(specs: list[str] | None, data: Path | None) -> list[EvalSet]:
+    """The sets of the ``--split`` flags, in order, each once (a bare SPLIT is of ``--data``)."""
+    sets = [EvalSet.of(*split_spec(spec, data)) for spec in specs or ["mini_val"]]
+    return list(dict.fromkeys(sets))
+
+
 def run_evaluate(args: argparse.Namespace) -> int:
     methods = _names(args.methods, list(POLICY_NAMES), "methods")
     rules = (
@@ -55,14 +96,21 @@ def run_evaluate(args: argparse.Namespace) -> int:
         if args.rules == "all"
         else _names(args.rules, [NO_RULE, *evaluation_rules()], "rules")
     )
-    if args.seeds < 1 or args.spacing <= 0:
-        raise ValueError("--seeds must be at least 1 and --spacing positive")
-    factory = PolicyFactory(args.checkpoint, sampling_config(args))
-    catalog = open_catalog(args)
-    episodes = plan_episodes(catalog, args.split, methods, range(args.seeds), args.spacing, rules)
-    records = run_episodes(catalog, episodes, factory, args.out / "episodes.csv")
-    table = markdown_table(summarize(records))
+    if args.seeds < 1 or args.spacing <= 0 or args.workers < 1:
+        raise ValueError("--seeds and --workers must be at least 1 and --spacing positive")
+    factory = PolicyFactory(
+        sampling=sampling_config(args), checkpoints=checkpoints_of(args.checkpoint_of, args.checkpoint)
+    )
+    factory.check(methods)  # a missing checkpoint fails now, not in the middle of the run
+    sets = evaluation_sets(args.split, args.data)
+    episodes, catalogs = plan_sets(sets, methods, range(args.seeds), args.spacing, rules)
+    results, histograms = args.out / "episodes.csv", args.out / "realism.jsonl"
+    records = run_episodes(catalogs, episodes, factory, results, workers=args.workers, realism=histograms)
+    names = [s.name for s in sets]
+    table = markdown_table(summarize(records), names)
     write_text_atomic(args.out / "table.md", table)
+    picture = plot_realism(read_histograms(histograms, records), args.out / "realism.png", names)
     print(table)
-    print(f"wrote {args.out / 'episodes.csv'} and {args.out / 'table.md'}")
+    written = [results, histograms, args.out / "table.md", *([picture] if picture else [])]
+    print(f"wrote {', '.join(str(p) for p in written)}")
     return 0

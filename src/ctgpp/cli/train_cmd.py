@@ -7,6 +7,7 @@ import argparse
 from pathlib import Path
 
 from ctgpp.baselines.config import BaselineConfig, BITSConfig, CTGConfig
+from ctgpp.cli.common import split_spec
 from ctgpp.data.catalog import Catalog
 from ctgpp.model.config import ModelConfig
 from ctgpp.scene.types import Scene
@@ -63,8 +64,8 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
 
 def load_split(spec: str) -> list[Scene]:
     """Scenes of ``[DIR:]SPLIT``."""
-    root, _, split = spec.rpartition(":")
-    catalog = Catalog.open(Path(root) if root else None)
+    root, split = split_spec(spec)
+    catalog = Catalog.open(root)
     ids = catalog.ids(split)
     if not ids:
         raise ValueError(

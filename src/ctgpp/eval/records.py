@@ -1,15 +1,18 @@
-"""Resumable result files: one CSV line per finished unit of work, appended and flushed in one call.
+"""Resumable result files: one line per finished unit of work, appended and flushed in one call.
 
-A killed run loses at most the line in flight; :func:`read_records` drops a torn last line, so a
-re-run skips exactly the work already in the file.
+CSV rows (:func:`append_records`, :func:`read_records`) and JSON lines (:func:`append_json_lines`,
+:func:`read_json_lines`). A killed run loses at most the line in flight; readers drop a torn last
+line and writers cut it off before appending, so a re-run skips exactly the work already in the file.
 """
 
 from __future__ import annotations
 
 import csv
+import json
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 
 def read_records(path: Path, required: Sequence[str]) -> list[dict[str, str]]:
@@ -35,6 +38,14 @@ def append_records(path: Path, fields: Sequence[str]) -> Iterator[Callable[[dict
     path.parent.mkdir(parents=True, exist_ok=True)
     _drop_torn_line(path)
     new_file = not path.exists() or path.stat().st_size == 0
+    if not new_file:
+        with path.open(newline="", encoding="utf-8") as f:
+            header = next(csv.reader(f), [])
+        if header != list(fields):
+            raise ValueError(
+                f"{path} has the columns {', '.join(header)}, not {', '.join(fields)}: it was written by "
+                "another kind of run or an older ctgpp; write the results to another directory"
+            )
     with path.open("a", newline="", encoding="utf-8") as f:
         writer = csv.DictWriter(f, fieldnames=list(fields), lineterminator="\n")
         if new_file:
@@ -43,6 +54,37 @@ def append_records(path: Path, fields: Sequence[str]) -> Iterator[Callable[[dict
 
         def write(row: dict[str, str]) -> None:
             writer.writerow(row)
+            f.flush()
+
+        yield write
+
+
+def read_json_lines(path: Path) -> list[dict[str, Any]]:
+    """The objects of a JSON-lines file, one a line (a torn or unreadable line is ignored). An absent
+    file has none."""
+    if not path.exists():
+        return []
+    out = []
+    for line in path.read_text(encoding="utf-8").splitlines():
+        try:
+            item = json.loads(line)
+        except ValueError:
+            continue
+        if isinstance(item, dict):
+            out.append(item)
+    return out
+
+
+@contextmanager
+def append_json_lines(path: Path) -> Iterator[Callable[[dict[str, Any]], None]]:
+    """Open ``path`` for appending JSON objects, a torn last line cut off first; yields ``write(obj)``,
+    which writes one line (compact JSON) and flushes it."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    _drop_torn_line(path)
+    with path.open("a", encoding="utf-8") as f:
+
+        def write(item: dict[str, Any]) -> None:
+            f.write(json.dumps(item, separators=(",", ":")) + "\n")
             f.flush()
 
         yield write

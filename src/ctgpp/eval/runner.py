@@ -1,54 +1,53 @@
-"""Run closed-loop episodes of policies × rules over the scenes of a split, resumably.
+"""Run closed-loop episodes of policies × rules over the scenes of evaluation sets, resumably.
 
-Every finished episode is appended as one CSV line (written and flushed in one call), so a killed
-run loses at most the episode in flight; a re-run skips the episodes already in the file.
+Every finished episode is appended as one CSV line (written and flushed in one call), with its
+realism histograms as one JSON line written just before it, so a killed run loses at most the
+episodes in flight; a re-run skips the episodes already in the CSV. With several workers the
+episodes run in worker processes (:mod:`ctgpp.eval.parallel`) and this process alone writes.
 """
 
 from __future__ import annotations
 
-import math
-from collections.abc import Callable, Iterable
-from dataclasses import dataclass
+from collections.abc import Iterable, Iterator, Mapping, Sequence
+from contextlib import closing, nullcontext
 from pathlib import Path
 
 from tqdm import tqdm
 
 from ctgpp.data.catalog import Catalog
-from ctgpp.eval.records import append_records, record_key
+from ctgpp.eval.episode import (
+    FIELDS,
+    KEY,
+    METRICS,
+    NO_RULE,
+    Episode,
+    EpisodeResult,
+    EvalSet,
+    PolicyMaker,
+    episode_failure,
+    episode_rule,
+    message_of,
+    run_episode,
+    user_error_kind,
+)
+from ctgpp.eval.parallel import parallel_results
+from ctgpp.eval.records import append_json_lines, append_records, record_key
 from ctgpp.eval.records import read_records as read_csv_records
-from ctgpp.eval.rule_setup import RuleSpec, setup_rule
-from ctgpp.guidance.base import GuidanceLoss
-from ctgpp.metrics import compute_metrics
 from ctgpp.scene.types import Scene
-from ctgpp.scene.vehicles import controlled_vehicles
-from ctgpp.sim.closed_loop import episode_starts, simulate, start_step
-from ctgpp.sim.policy import Policy
+from ctgpp.sim.closed_loop import episode_starts
 
-NO_RULE = "none"
-KEY = ("method", "rule", "scene", "start_s", "seed")
-METRICS = ("fail", "collision_rate", "offroad_rate", "real", "rel_real", "rule_violation")
-PolicyMaker = Callable[[str, GuidanceLoss | None], Policy]
-
-
-@dataclass(frozen=True)
-class Episode:
-    method: str
-    rule: str
-    scene: str
-    start_s: float
-    seed: int
-
-    @property
-    def key(self) -> tuple[str, ...]:
-        return (self.method, self.rule, self.scene, f"{self.start_s:.1f}", str(self.seed))
-
-
-def episode_rule(scene: Scene, start_s: float, rule: str) -> RuleSpec | None:
-    """The rule of an episode from its log (None for no rule, or when the episode does not qualify)."""
-    if rule == NO_RULE:
-        return None
-    step = start_step(scene, start_s)
-    return setup_rule(rule, scene, step, controlled_vehicles(scene, step))
+__all__ = [
+    "KEY",
+    "METRICS",
+    "NO_RULE",
+    "Episode",
+    "EvalSet",
+    "episode_rule",
+    "plan_episodes",
+    "plan_sets",
+    "read_records",
+    "run_episodes",
+]
 
 
 def plan_episodes(
@@ -58,12 +57,18 @@ def plan_episodes(
     seeds: Iterable[int],
     spacing_s: float,
     rules: Iterable[str] = (NO_RULE,),
+    set_name: str | None = None,
 ) -> list[Episode]:
     """Every method × rule × scene of ``split`` × start time (``spacing_s`` apart) × seed, leaving
-    out the episodes a rule skips (no qualifying pair, no moving vehicle)."""
+    out the episodes a rule skips (no qualifying pair, no moving vehicle). The episodes belong to set
+    ``set_name`` (default: the split's name)."""
     scene_ids = catalog.ids(split)
     if not scene_ids:
-        raise ValueError(f"no scenes in split {split!r}; splits: {', '.join(catalog.splits())}")
+        raise ValueError(
+            f"no scenes in split {split!r} of {catalog.root}; splits: {', '.join(catalog.splits())}"
+        )
+    name = (split or "") if set_name is None else set_name
+    methods, seeds, rules = list(methods), list(seeds), list(rules)
     episodes = []
     for scene_id in scene_ids:
         scene = catalog.load(scene_id)
@@ -73,8 +78,32 @@ def plan_episodes(
                 for t in episode_starts(scene, spacing_s)
                 if rule == NO_RULE or episode_rule(scene, t, rule) is not None
             ]
-            episodes += [Episode(m, rule, scene_id, t, s) for m in methods for s in seeds for t in starts]
+            episodes += [
+                Episode(m, rule, scene_id, t, s, name) for m in methods for s in seeds for t in starts
+            ]
     return episodes
+
+
+def plan_sets(
+    sets: Sequence[EvalSet],
+    methods: Iterable[str],
+    seeds: Iterable[int],
+    spacing_s: float,
+    rules: Iterable[str] = (NO_RULE,),
+) -> tuple[list[Episode], dict[str, Catalog]]:
+    """The episodes of every set (:func:`plan_episodes`), and each set's catalog by set name."""
+    names = [s.name for s in sets]
+    clash = sorted({n for n in names if names.count(n) > 1})
+    if clash:
+        raise ValueError(f"two evaluation sets are named {clash[0]!r}: give each data directory its own name")
+    methods, seeds, rules = list(methods), list(seeds), list(rules)
+    catalogs = {s.name: s.open() for s in sets}
+    episodes = [
+        ep
+        for s in sets
+        for ep in plan_episodes(catalogs[s.name], s.split, methods, seeds, spacing_s, rules, s.name)
+    ]
+    return episodes, catalogs
 
 
 def read_records(path: Path) -> list[dict[str, str]]:
@@ -83,64 +112,60 @@ def read_records(path: Path) -> list[dict[str, str]]:
 
 
 def run_episodes(
-    catalog: Catalog,
-    episodes: list[Episode],
+    catalogs: Catalog | Mapping[str, Catalog],
+    episodes: Sequence[Episode],
     make_policy: PolicyMaker,
     results: Path,
     progress: bool = True,
+    workers: int = 1,
+    realism: Path | None = None,
 ) -> list[dict[str, str]]:
     """Simulate every episode not yet in ``results`` and append its metrics; return all records.
 
-    ``make_policy(method, guidance)`` builds the episode's policy; the guidance is the episode's
-    rule loss. The fail rate leaves out the pair a collision rule asks to crash.
+    ``catalogs`` maps each set name to its catalog (one Catalog: every episode's). ``make_policy
+    (method, guidance)`` builds the episode's policy; with ``workers`` > 1 it must be picklable and
+    each worker process gets its own copy. ``realism``, when given, is the JSON-lines file of the
+    episodes' realism histograms (:func:`ctgpp.eval.episode.realism_histograms`), keyed like the rows.
     """
+    if workers < 1:
+        raise ValueError(f"--workers must be at least 1, got {workers}")
     done = {record_key(r, KEY) for r in read_records(results)}
     todo = [e for e in episodes if e.key not in done]
-    fields = [*KEY, "vehicles", *METRICS]
-    scenes: dict[str, Scene] = {}
-    with append_records(results, fields) as write:
-        for ep in tqdm(todo, desc="episodes", unit="ep", disable=not progress):
-            if ep.scene not in scenes:
-                scenes[ep.scene] = catalog.load(ep.scene)
-            scene = scenes[ep.scene]
-            spec = episode_rule(scene, ep.start_s, ep.rule)
-            policy = make_policy(ep.method, None if spec is None else spec.loss)
-            rollout = simulate(scene, policy, ep.start_s, seed=ep.seed)
-            metrics = compute_metrics(rollout, METRICS[:-1])
-            if spec is not None:
-                metrics["fail"] = spec.fail(rollout)
-                metrics["rule_violation"] = spec.violation(rollout)
-            row = dict(zip(KEY, ep.key, strict=True))
-            row["vehicles"] = str(int(rollout.controlled.sum()))
-            row.update({k: "" if math.isnan(v) else f"{v:.6f}" for k, v in metrics.items()})
-            write(row)
+    if not isinstance(catalogs, Mapping):
+        catalogs = {e.set: catalogs for e in todo}
+    unknown = sorted({e.set for e in todo} - set(catalogs))
+    if unknown:
+        raise ValueError(f"no catalog for the evaluation sets {unknown}")
+    workers = min(workers, len(todo))
+    stream = (
+        parallel_results(todo, {name: c.root for name, c in catalogs.items()}, make_policy, workers)
+        if workers > 1
+        else _sequential_results(todo, catalogs, make_policy)
+    )
+    with (
+        closing(stream),
+        append_records(results, FIELDS) as write_row,
+        append_json_lines(realism) if realism is not None else nullcontext(None) as write_histograms,
+    ):
+        bar = tqdm(stream, total=len(todo), desc="episodes", unit="ep", disable=not progress, smoothing=0.05)
+        for result in bar:
+            if write_histograms is not None:
+                key = {k: result.row[k] for k in KEY}
+                write_histograms({**key, "histograms": result.histograms})
+            write_row(result.row)
     return read_records(results)
 
 
-def summarize(records: list[dict[str, str]]) -> list[dict[str, object]]:
-    """Per method and rule: metric means over scenes (each scene's episodes averaged first)."""
-    groups: dict[tuple[str, str], list[dict[str, str]]] = {}
-    for r in records:
-        groups.setdefault((r["method"], r["rule"]), []).append(r)
-    table: list[dict[str, object]] = []
-    for (method, rule), rows in groups.items():
-        summary: dict[str, object] = {"method": method, "rule": rule, "episodes": len(rows)}
-        for metric in METRICS:
-            per_scene: dict[str, list[float]] = {}
-            for r in rows:
-                if r.get(metric):
-                    per_scene.setdefault(r["scene"], []).append(float(r[metric]))
-            means = [sum(v) / len(v) for v in per_scene.values()]
-            summary[metric] = sum(means) / len(means) if means else math.nan
-        table.append(summary)
-    return table
-
-
-def markdown_table(summary: list[dict[str, object]]) -> str:
-    """The summary as a markdown table, rows by rule then method."""
-    head = "| rule | method | episodes | fail | collision | off-road | real | rel real | rule violation |"
-    lines = [head, "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
-    for s in sorted(summary, key=lambda s: (str(s["rule"]), str(s["method"]))):
-        vals = " | ".join("-" if math.isnan(float(s[m])) else f"{float(s[m]):.3f}" for m in METRICS)
-        lines.append(f"| {s['rule']} | {s['method']} | {s['episodes']} | {vals} |")
-    return "\n".join(lines) + "\n"
+def _sequential_results(
+    todo: Sequence[Episode], catalogs: Mapping[str, Catalog], make_policy: PolicyMaker
+) -> Iterator[EpisodeResult]:
+    """The episodes run one after the other in this process, each scene loaded once in a row."""
+    loaded: tuple[tuple[str, str], Scene] | None = None
+    for ep in todo:
+        try:
+            if loaded is None or loaded[0] != (ep.set, ep.scene):
+                loaded = ((ep.set, ep.scene), catalogs[ep.set].load(ep.scene))
+            result = run_episode(loaded[1], ep, make_policy)
+        except Exception as err:
+            raise episode_failure(ep, user_error_kind(err), message_of(err)) from err
+        yield result

@@ -83,16 +83,24 @@ def motion_features(
     return {"lon_acc": acc[..., 0][acc_ok], "lat_acc": acc[..., 1][acc_ok], "jerk": jerk[jerk_ok]}
 
 
-def histogram(values: np.ndarray, value_range: tuple[float, float], num_bins: int = NUM_BINS) -> np.ndarray:
-    """Normalized histogram (num_bins,) summing to 1, values outside the range clipped into the edge bins.
+def feature_range(name: str) -> tuple[float, float]:
+    """The histogram range of feature ``name``: m/s² for accelerations, m/s³ for jerk."""
+    return JERK_RANGE_MPS3 if name == "jerk" else ACC_RANGE_MPS2
 
-    Bins are half-open [lo + k·w, lo + (k+1)·w) with w = (hi − lo) / num_bins. Empty input -> all NaN.
-    """
+
+def bin_counts(values: np.ndarray, value_range: tuple[float, float], num_bins: int = NUM_BINS) -> np.ndarray:
+    """Counts (num_bins,) int64 of ``values`` in equal bins, values outside the range clipped into the
+    edge bins. Bins are half-open [lo + k·w, lo + (k+1)·w) with w = (hi − lo) / num_bins."""
     lo, hi = value_range
+    index = np.floor((values - lo) * num_bins / (hi - lo)).astype(np.int64)
+    return np.bincount(np.clip(index, 0, num_bins - 1), minlength=num_bins)
+
+
+def histogram(values: np.ndarray, value_range: tuple[float, float], num_bins: int = NUM_BINS) -> np.ndarray:
+    """Normalized histogram (num_bins,) summing to 1: :func:`bin_counts` normalized. Empty input -> NaN."""
     if values.size == 0:
         return np.full(num_bins, np.nan)
-    index = np.floor((values - lo) * num_bins / (hi - lo)).astype(np.int64)
-    counts = np.bincount(np.clip(index, 0, num_bins - 1), minlength=num_bins)
+    counts = bin_counts(values, value_range, num_bins)
     return counts / counts.sum()
 
 
@@ -105,7 +113,7 @@ def feature_distances(sim: dict[str, np.ndarray], log: dict[str, np.ndarray]) ->
     """Wasserstein distance per feature between simulated and logged samples (NaN where one is empty)."""
     out = {}
     for name in FEATURES:
-        value_range = JERK_RANGE_MPS3 if name == "jerk" else ACC_RANGE_MPS2
+        value_range = feature_range(name)
         width = (value_range[1] - value_range[0]) / NUM_BINS
         p, q = histogram(sim[name], value_range), histogram(log[name], value_range)
         out[name] = wasserstein_1d(p, q, width)
@@ -119,15 +127,20 @@ def _summarize(distances: dict[str, float]) -> MetricValue:
     return MetricValue(float(values.mean()), True)
 
 
-def realism_distances(rollout: Rollout) -> dict[str, float]:
-    """Per-feature Wasserstein distances of the vehicles' own body-frame motion, sim vs log."""
+def realism_features(rollout: Rollout) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """The vehicles' own body-frame motion features (:func:`motion_features`), simulated and logged."""
     agents = realism_vehicles(rollout)
     dt_s = rollout.dt_s * SUBSAMPLE_STEPS
     features = []
     for tracks in (rollout.sim, rollout.log):
         xy, yaw, valid = subsample(tracks, agents, rollout.current)
         features.append(motion_features(xy, valid, dt_s, frame_yaw=yaw))
-    return feature_distances(*features)
+    return features[0], features[1]
+
+
+def realism_distances(rollout: Rollout) -> dict[str, float]:
+    """Per-feature Wasserstein distances of the vehicles' own body-frame motion, sim vs log."""
+    return feature_distances(*realism_features(rollout))
 
 
 def interaction_pairs(rollout: Rollout, agents: np.ndarray) -> np.ndarray:
@@ -139,8 +152,8 @@ def interaction_pairs(rollout: Rollout, agents: np.ndarray) -> np.ndarray:
     return np.stack([agents[i], agents[j]], axis=-1)
 
 
-def relative_realism_distances(rollout: Rollout) -> dict[str, float]:
-    """Per-feature Wasserstein distances of pairwise relative motion (j in i's frame), sim vs log."""
+def relative_realism_features(rollout: Rollout) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """Motion features of pairwise relative motion (j in i's frame), simulated and logged."""
     pairs = interaction_pairs(rollout, realism_vehicles(rollout))  # (P, 2)
     dt_s = rollout.dt_s * SUBSAMPLE_STEPS
     features = []
@@ -149,7 +162,12 @@ def relative_realism_distances(rollout: Rollout) -> dict[str, float]:
         xy_j, _, valid_j = subsample(tracks, pairs[:, 1], rollout.current)
         relative = world_to_local(xy_j, xy_i, yaw_i)  # (P, K, 2) in i's frame at each sample
         features.append(motion_features(relative, valid_i & valid_j, dt_s))
-    return feature_distances(*features)
+    return features[0], features[1]
+
+
+def relative_realism_distances(rollout: Rollout) -> dict[str, float]:
+    """Per-feature Wasserstein distances of pairwise relative motion (j in i's frame), sim vs log."""
+    return feature_distances(*relative_realism_features(rollout))
 
 
 @register_metric("real")

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from importlib import resources
 from pathlib import Path
 
@@ -10,19 +10,36 @@ from torch import nn
 
 from ctgpp.baselines.bits_policy import BITSPlanConfig, BITSPolicy
 from ctgpp.baselines.ctg_policy import CTGPolicy
-from ctgpp.baselines.kinds import load_model
+from ctgpp.baselines.kinds import checkpoint_kind, load_model
 from ctgpp.diffusion.guided import GuidanceConfig
 from ctgpp.guidance.base import GuidanceLoss
-from ctgpp.model.checkpoint import load_checkpoint
+from ctgpp.model.checkpoint import load_checkpoint, load_config
 from ctgpp.model.denoiser import Denoiser
 from ctgpp.sim.diffusion_policy import DiffusionPolicy, SamplingConfig
 from ctgpp.sim.policy import ConstantVelocityPolicy, Policy, ReplayPolicy
 
 # ctgpp: the diffusion model, guided by the episode's rule when there is one;
 # ctgpp-unguided: the same model never guided (the rule is only measured);
+# ctgpp-no_edge, ctgpp-scene_centric: the paper's ablations, guided like ctgpp, each from its own checkpoint;
 # ctg, bits, bits+opt: the paper's baselines (ctgpp.baselines), each from a checkpoint of its kind.
-POLICY_NAMES = ("ctgpp", "ctgpp-unguided", "ctg", "bits", "bits+opt", "replay", "constvel")
+POLICY_NAMES = (
+    "ctgpp", "ctgpp-unguided", "ctgpp-no_edge", "ctgpp-scene_centric",
+    "ctg", "bits", "bits+opt", "replay", "constvel",
+)
 BASELINE_KINDS = {"ctg": "ctg", "bits": "bits", "bits+opt": "bits"}  # policy -> model kind
+# policy -> the model (named like its checkpoint directory) it runs; replay and constvel have none
+MODEL_OF = {"ctgpp": "ctgpp", "ctgpp-unguided": "ctgpp", "ctgpp-no_edge": "ctgpp-no_edge",
+            "ctgpp-scene_centric": "ctgpp-scene_centric", **BASELINE_KINDS}
+ABLATIONS = {"ctgpp-no_edge": "no_edge", "ctgpp-scene_centric": "scene_centric"}  # model -> variant
+MODEL_NAMES = ("ctgpp", "ctgpp-no_edge", "ctgpp-scene_centric", "ctg", "bits")
+# how each model is trained (named in the error for a missing checkpoint)
+TRAIN_COMMANDS = {
+    "ctgpp": "ctgpp train --out DIR",
+    "ctgpp-no_edge": "ctgpp train --variant no_edge --out DIR",
+    "ctgpp-scene_centric": "ctgpp train --variant scene_centric --out DIR",
+    "ctg": "ctgpp train --model ctg --out DIR",
+    "bits": "ctgpp train --model bits --out DIR",
+}
 BITS_OPT = BITSPlanConfig(opt_steps=30)
 
 
@@ -34,9 +51,11 @@ def default_checkpoint(kind: str = "ctgpp") -> Path:
 class PolicyFactory:
     """Makes policies by name; each model is loaded once, on first use.
 
-    ``checkpoint`` is the CTG++ denoiser's; ``checkpoints`` maps a baseline's model kind (``ctg``,
-    ``bits``) to its checkpoint directory (default: the one shipped under that kind's name).
-    ``bits`` and ``bits_opt`` configure the BITS and BITS+opt planners.
+    ``checkpoint`` is the CTG++ denoiser's; ``checkpoints`` maps a model name of ``MODEL_NAMES``
+    (``ctgpp``, ``ctgpp-no_edge``, ``ctgpp-scene_centric``, ``ctg``, ``bits``) to its checkpoint
+    directory, overriding ``checkpoint`` for ``ctgpp``; a model not named there uses the one shipped
+    under its name (:func:`default_checkpoint`). ``bits`` and ``bits_opt`` configure the BITS and
+    BITS+opt planners. A factory that has loaded no model yet is cheap to pickle (worker processes).
     """
 
     def __init__(
@@ -48,46 +67,79 @@ class PolicyFactory:
         bits: BITSPlanConfig = BITSPlanConfig(),
         bits_opt: BITSPlanConfig = BITS_OPT,
     ) -> None:
-        self.checkpoint = default_checkpoint() if checkpoint is None else Path(checkpoint)
+        unknown = sorted(set(checkpoints or {}) - set(MODEL_NAMES))
+        if unknown:
+            raise ValueError(f"no model named {unknown}; models with a checkpoint: {', '.join(MODEL_NAMES)}")
+        self.checkpoints = {m: default_checkpoint(m) for m in MODEL_NAMES}
+        if checkpoint is not None:
+            self.checkpoints["ctgpp"] = Path(checkpoint)
+        self.checkpoints.update({k: Path(v) for k, v in (checkpoints or {}).items()})
         self.sampling = sampling
         self.guidance_config = guidance_config
-        self.checkpoints = {k: Path(v) for k, v in (checkpoints or {}).items()}
         self.bits, self.bits_opt = bits, bits_opt
-        self._model: Denoiser | None = None
-        self._baselines: dict[str, nn.Module] = {}
+        self._models: dict[str, nn.Module] = {}
+
+    @property
+    def checkpoint(self) -> Path:
+        """The CTG++ denoiser's checkpoint directory."""
+        return self.checkpoints["ctgpp"]
+
+    def check(self, methods: Iterable[str]) -> None:
+        """Raise a clear error, before any work, for an unknown method, or a checkpoint of one of
+        ``methods`` that is missing or holds another model (only the checkpoints' headers are read)."""
+        for name in methods:
+            if name not in POLICY_NAMES:
+                raise ValueError(f"unknown policy {name!r}; known: {', '.join(POLICY_NAMES)}")
+            if name in MODEL_OF:
+                self._verified(MODEL_OF[name])
+
+    def _verified(self, model: str) -> Path:
+        """The checkpoint directory of ``model``, checked to exist and to hold that model."""
+        path = self.checkpoints[model]
+        if not path.is_dir():
+            raise FileNotFoundError(
+                f"no {model} checkpoint at {path}: train one with `{TRAIN_COMMANDS[model]}` and pass it "
+                f"(ctgpp evaluate --checkpoint-of {model}=DIR, ctgpp simulate --checkpoint DIR)"
+            )
+        if model in BASELINE_KINDS:
+            found = checkpoint_kind(path)
+            if found != model:
+                raise ValueError(f"{path} holds a {found!r} model, not {model!r}")
+        else:  # a scene-level denoiser (load_config checks the kind); an ablation's must be that ablation
+            config, _ = load_config(path)
+            found = "no_edge" if not config.use_edges else "scene_centric" if config.scene_centric else "full"
+            wanted = ABLATIONS.get(model)
+            if wanted is not None and found != wanted:
+                raise ValueError(f"{path} holds the {found} ctgpp model, not the {wanted} ablation")
+        return path
 
     @property
     def model(self) -> Denoiser:
-        if self._model is None:
-            if not self.checkpoint.is_dir():
-                raise FileNotFoundError(f"checkpoint directory {self.checkpoint} does not exist")
-            self._model = load_checkpoint(self.checkpoint)[0]
-        return self._model
+        """The CTG++ denoiser, loaded on first use."""
+        return self.denoiser("ctgpp")
+
+    def denoiser(self, model: str) -> Denoiser:
+        """The scene-level denoiser ``model`` (``ctgpp`` or one of its ablations), loaded on first use."""
+        if model not in self._models:
+            self._models[model] = load_checkpoint(self._verified(model))[0]
+        return self._models[model]  # type: ignore[return-value]
 
     def baseline(self, kind: str) -> nn.Module:
         """The model of baseline ``kind`` (``ctg`` or ``bits``), loaded on first use."""
-        if kind not in self._baselines:
-            path = self.checkpoints.get(kind, default_checkpoint(kind))
-            if not path.is_dir():
-                raise FileNotFoundError(
-                    f"no {kind} checkpoint at {path}: train one with `ctgpp train --model {kind} --out DIR` "
-                    f"and pass it (PolicyFactory(checkpoints={{{kind!r}: DIR}}))"
-                )
-            model, _, _, found = load_model(path)
-            if found != kind:
-                raise ValueError(f"{path} holds a {found!r} model, not {kind!r}")
-            self._baselines[kind] = model
-        return self._baselines[kind]
+        if kind not in self._models:
+            self._models[kind] = load_model(self._verified(kind))[0]
+        return self._models[kind]
 
     def __call__(self, name: str, guidance: GuidanceLoss | None = None) -> Policy:
-        """Policy ``name``; ``guidance`` steers ``ctgpp`` and the baselines (replay, constvel ignore it)."""
+        """Policy ``name``; ``guidance`` steers the diffusion models and the baselines (``ctgpp-unguided``,
+        replay and constvel ignore it)."""
         if name == "ctg":
             return CTGPolicy(self.baseline("ctg"), self.sampling, guidance, self.guidance_config)  # type: ignore[arg-type]
         if name in ("bits", "bits+opt"):
             config = self.bits if name == "bits" else self.bits_opt
             return BITSPolicy(self.baseline("bits"), config, guidance)  # type: ignore[arg-type]
-        if name == "ctgpp":
-            return DiffusionPolicy(self.model, self.sampling, guidance, self.guidance_config)
+        if name in ("ctgpp", "ctgpp-no_edge", "ctgpp-scene_centric"):
+            return DiffusionPolicy(self.denoiser(name), self.sampling, guidance, self.guidance_config)
         if name == "ctgpp-unguided":
             return DiffusionPolicy(self.model, self.sampling, None, self.guidance_config)
         if name == "replay":
@@ -105,9 +157,8 @@ def make_policy(
     guidance_config: GuidanceConfig = GuidanceConfig(),
 ) -> Policy:
     """A policy by name: ``ctgpp`` (the diffusion model of ``checkpoint``, default the shipped one),
-    ``ctgpp-unguided``, ``ctg``, ``bits``, ``bits+opt`` (the baselines, ``checkpoint`` being one of
-    their kind), ``replay`` (the log) or ``constvel`` (constant velocity)."""
-    if name in BASELINE_KINDS and checkpoint is not None:
-        factory = PolicyFactory(None, sampling, guidance_config, {BASELINE_KINDS[name]: Path(checkpoint)})
-        return factory(name, guidance)
-    return PolicyFactory(checkpoint, sampling, guidance_config)(name, guidance)
+    ``ctgpp-unguided``, ``ctgpp-no_edge``, ``ctgpp-scene_centric`` (the ablations), ``ctg``, ``bits``,
+    ``bits+opt`` (the baselines), ``replay`` (the log) or ``constvel`` (constant velocity);
+    ``checkpoint``, when given, holds the model the policy runs."""
+    checkpoints = {MODEL_OF[name]: Path(checkpoint)} if name in MODEL_OF and checkpoint is not None else {}
+    return PolicyFactory(None, sampling, guidance_config, checkpoints)(name, guidance)

@@ -37,6 +37,24 @@ PRESETS: dict[str, SamplerPreset] = {
             "DDIM 10 steps, guided at every step, N = 4",
         ),
         SamplerPreset(
+            "ddim5",
+            SamplingConfig("ddim", 5, 4),
+            GuidanceConfig(inner_steps=1, lr=0.3),
+            "DDIM 5 steps, guided at every step, N = 4",
+        ),
+        SamplerPreset(
+            "ddim3",
+            SamplingConfig("ddim", 3, 4),
+            GuidanceConfig(inner_steps=1, lr=0.3),
+            "DDIM 3 steps, guided at every step, N = 4",
+        ),
+        SamplerPreset(
+            "ddim5-n2",
+            SamplingConfig("ddim", 5, 2),
+            GuidanceConfig(inner_steps=1, lr=0.3),
+            "DDIM 5 steps, guided at every step, N = 2",
+        ),
+        SamplerPreset(
             "fast",
             SamplingConfig(),
             GuidanceConfig(),
