@@ -55,6 +55,12 @@ PRESETS: dict[str, SamplerPreset] = {
             "DDIM 5 steps, guided at every step, N = 2",
         ),
         SamplerPreset(
+            "ddim3-n2",
+            SamplingConfig("ddim", 3, 2),
+            GuidanceConfig(inner_steps=1, lr=0.3),
+            "DDIM 3 steps, guided at every step, N = 2",
+        ),
+        SamplerPreset(
             "fast",
             SamplingConfig(),
             GuidanceConfig(),
