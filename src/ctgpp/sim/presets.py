@@ -55,6 +55,12 @@ PRESETS: dict[str, SamplerPreset] = {
             "DDIM 5 steps, guided at every step, N = 2",
         ),
         SamplerPreset(
+            "ddim5-n3",
+            SamplingConfig("ddim", 5, 3),
+            GuidanceConfig(inner_steps=1, lr=0.3),
+            "DDIM 5 steps, guided at every step, N = 3",
+        ),
+        SamplerPreset(
             "ddim3-n2",
             SamplingConfig("ddim", 3, 2),
             GuidanceConfig(inner_steps=1, lr=0.3),
@@ -62,9 +68,9 @@ PRESETS: dict[str, SamplerPreset] = {
         ),
         SamplerPreset(
             "fast",
-            SamplingConfig(),
-            GuidanceConfig(),
-            "the default: DDIM, few steps, N samples, guidance as configured by default",
+            SamplingConfig(),  # the defaults: DDIM 5 steps, N = 2
+            GuidanceConfig(),  # the default: 3 Adam steps of lr 0.3 at every denoising step
+            "the default: DDIM 5 steps, guided at every step with 3 Adam steps, N = 2",
         ),
     )
 }
