@@ -126,11 +126,13 @@ def run_episodes(
     (method, guidance)`` builds the episode's policy; with ``workers`` > 1 it must be picklable and
     each worker process gets its own copy. ``realism``, when given, is the JSON-lines file of the
     episodes' realism histograms (:func:`ctgpp.eval.episode.realism_histograms`), keyed like the rows.
+    Episodes run seed by seed (seed 0 of every method, rule and scene first).
     """
     if workers < 1:
         raise ValueError(f"--workers must be at least 1, got {workers}")
     done = {record_key(r, KEY) for r in read_records(results)}
-    todo = [e for e in episodes if e.key not in done]
+    # seed by seed: a run stopped early leaves whole tables for its first seeds (stable within a seed)
+    todo = sorted((e for e in episodes if e.key not in done), key=lambda e: e.seed)
     if not isinstance(catalogs, Mapping):
         catalogs = {e.set: catalogs for e in todo}
     unknown = sorted({e.set for e in todo} - set(catalogs))
