@@ -151,10 +151,10 @@ def test_make_loss_errors() -> None:
 
 
 @pytest.mark.parametrize("buffer_m", [0.2, 5.0, 20.0])
-def test_no_collision_over_near_pairs_equals_every_pair(
+def test_no_collision_over_near_pairs_equals_all_pairs(
     buffer_m: float, batch: GuidanceBatch, x: torch.Tensor
 ) -> None:
-    """Skipping the far vehicle pairs is exact: the sum over all ordered pairs, halved, is the same."""
+    """Skipping the far vehicle and obstacle pairs is exact: the sums over all pairs are the same."""
     from ctgpp.guidance.rules_common import disc_centres, disc_layout, time_weights, world_states
     from ctgpp.guidance.rules_interaction import _penetration
 
@@ -166,5 +166,11 @@ def test_no_collision_over_near_pairs_equals_every_pair(
     pen = _penetration(discs[:, None], ra, discs[None], rb, buffer_m)  # (B, B, N, T)
     pen = pen * (1 - torch.eye(x.shape[0]))[..., None, None]  # without self pairs
     w = time_weights(x.shape[2], loss.decay, x)
-    want = 0.5 * (pen * w).sum((0, 1, 3)) + loss._obstacles(discs, radius, w, batch, x, None)
+    want = 0.5 * (pen * w).sum((0, 1, 3))
+    n_t = x.shape[2]  # every vehicle against every replayed agent
+    o_off, o_rad = disc_layout(batch.obstacles_extent)
+    o_discs = disc_centres(batch.obstacles_xy[:, :n_t], batch.obstacles_yaw[:, :n_t], o_off[:, None])
+    o_pen = _penetration(discs[:, None], ra, o_discs[None, :, None], o_rad[None, :, None, None], buffer_m)
+    want = want + (o_pen * batch.obstacles_valid[None, :, None, :n_t] * w).sum((0, 1, 3))  # (B, O, N, T)
+    assert batch.num_obstacles > 0
     torch.testing.assert_close(loss(x, batch), want)

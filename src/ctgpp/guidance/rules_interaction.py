@@ -76,21 +76,19 @@ class NoCollision(Rule):
         o_xy = data_batch.obstacles_xy[:, :n_t].to(x)  # (O, T, 2)
         o_valid = data_batch.obstacles_valid[:, :n_t].to(x.device)
         o_off, o_rad = disc_layout(data_batch.obstacles_extent.to(x))  # (O, D), (O,)
-        near = _near_obstacles(discs, radius, o_xy, o_valid, o_off, o_rad, self.buffer_m)
-        if near.numel() == 0:
+        vi, oi = _near_obstacles(discs, radius, o_xy, o_valid, o_off, o_rad, self.buffer_m)  # (P,), (P,)
+        if vi.numel() == 0:
             return x.new_zeros(x.shape[1])
-        o_xy, o_valid, o_off, o_rad = o_xy[near], o_valid[near], o_off[near], o_rad[near]
-        o_yaw = data_batch.obstacles_yaw[near, :n_t].to(x)
-        o_discs = disc_centres(o_xy, o_yaw, o_off[:, None])  # (O', T, D, 2)
-        # (B, 1, N, T, D, 2) against (1, O, 1, T, D, 2)
+        o_yaw = data_batch.obstacles_yaw[oi, :n_t].to(x)
+        o_discs = disc_centres(o_xy[oi], o_yaw, o_off[oi, None])  # (P, T, D, 2)
+        # vehicle vi's discs (P, N, T, D, 2) against obstacle oi's (P, 1, T, D, 2)
         pen = _penetration(
-            discs[:, None], radius[:, None, None, None], o_discs[None, :, None],
-            o_rad[None, :, None, None], self.buffer_m,
-        )  # (B, O, N, T)
-        pen = pen * o_valid[None, :, None, :]
+            discs[vi], radius[vi, None, None], o_discs[:, None], o_rad[oi, None, None], self.buffer_m
+        )  # (P, N, T)
+        pen = pen * o_valid[oi][:, None, :]
         if agt_mask is not None:
-            pen = pen * agt_mask.to(x)[:, None, None, None]
-        return (pen * w).sum((0, 1, 3))
+            pen = pen * agt_mask.to(x)[vi, None, None]
+        return (pen * w).sum((0, 2))
 
 
 def _near_pairs(discs: Tensor, radius: Tensor, buffer_m: float) -> tuple[Tensor, Tensor]:
@@ -108,16 +106,18 @@ def _near_pairs(discs: Tensor, radius: Tensor, buffer_m: float) -> tuple[Tensor,
 def _near_obstacles(
     discs: Tensor, radius: Tensor, o_xy: Tensor, o_valid: Tensor, o_off: Tensor, o_rad: Tensor,
     buffer_m: float,
-) -> Tensor:
-    """Indices of the obstacles that some vehicle disc may overlap (a cheap bound on centre
-    distances, without gradient); the others contribute nothing."""
+) -> tuple[Tensor, Tensor]:
+    """The (vehicle, obstacle) pairs whose discs may overlap at some sample and step (a cheap bound on
+    centre distances, without gradient): (P,) vehicle rows and (P,) obstacle rows; every other pair
+    contributes nothing."""
     with torch.no_grad():
         centre = discs.mean(-2)  # (B, N, T, 2)
         reach_v = (discs - centre[..., None, :]).norm(dim=-1).amax(-1) + radius[:, None, None]  # (B, N, T)
         reach_o = o_off.abs().amax(-1) + o_rad  # (O,)
         d = (centre[:, None] - o_xy[None, :, None]).norm(dim=-1)  # (B, O, N, T)
         close = (d < reach_v[:, None] + reach_o[None, :, None, None] + buffer_m) & o_valid[None, :, None]
-        return torch.nonzero(close.flatten(2).any(-1).any(0)).flatten()
+        vi, oi = torch.nonzero(close.flatten(2).any(-1), as_tuple=True)  # (B, O) -> pairs
+    return vi, oi
 
 
 def _pair_distance(x: Tensor, data_batch: GuidanceBatch, a: int, b: int) -> Tensor:

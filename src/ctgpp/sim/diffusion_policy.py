@@ -102,8 +102,9 @@ class DiffusionPolicy:
     def sample_plans(self, obs: Observation) -> PlanSamples:
         """Sample N joint futures (guided when the policy has a loss) and choose one per vehicle.
 
-        The denoiser runs without gradients; only the guidance steps enable them (no inference mode,
-        whose tensors autograd refuses).
+        The denoiser runs in inference mode (its outputs cloned back to normal tensors, which the
+        guidance steps may use: autograd refuses inference tensors); only the guidance steps enable
+        gradients.
         """
         cfg = self.model.config
         windows = WindowConfig(
@@ -120,7 +121,9 @@ class DiffusionPolicy:
 
         def denoise(x: Tensor, k: int) -> Tensor:
             self.denoiser_calls += 1
-            return self.model(x, torch.full((n,), k, dtype=torch.long), batch, context)
+            with torch.inference_mode():  # no autograd bookkeeping at all: cheaper than no_grad
+                out = self.model(x, torch.full((n,), k, dtype=torch.long), batch, context)
+            return out.clone()  # a normal tensor again, which the guidance steps may differentiate around
 
         objective = None
         if self.guidance is not None:
