@@ -107,3 +107,26 @@ def test_forward_inverse_reproduces_logged_vehicles(scene_0103: Scene) -> None:
     assert (err < 1e-3).mean() > 0.8
     assert err.mean() < 0.05
     assert np.quantile(err, 0.99) < 1.0
+
+
+def test_speed_clipped_at_zero_matches_the_recursion_in_values_and_gradients() -> None:
+    """The vectorized rollout (running-minimum reflection) against the step-by-step recursion, on
+    actions that brake to a stop, stay stopped while braking, and drive off again."""
+    profile = [-8.0] * 10 + [-3.0] * 5 + [2.0] * 10 + [-10.0] * 5 + [1.0] * 10
+    acc = torch.tensor([profile], dtype=torch.float64)
+    yaw_rate = torch.linspace(-0.3, 0.3, 40, dtype=torch.float64)[None]
+    actions = torch.stack([acc, yaw_rate], dim=-1).requires_grad_(True)  # (1, 40, 2)
+    state0 = torch.tensor([[0.0, 0.0, 4.05, 0.2]], dtype=torch.float64, requires_grad=True)  # no exact 0
+    fast = rollout(state0, actions, 0.1)
+    s, slow = state0, []
+    for t in range(40):
+        s = step(s, actions[:, t], 0.1)
+        slow.append(s)
+    slow_t = torch.stack(slow, dim=1)
+    torch.testing.assert_close(fast, slow_t)
+    assert (fast[0, :, 2] == 0).sum() >= 5  # the clip acted
+    weights = torch.randn(fast.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    grads_fast = torch.autograd.grad((fast * weights).sum(), [actions, state0])
+    grads_slow = torch.autograd.grad((slow_t * weights).sum(), [actions, state0])
+    for a, b in zip(grads_fast, grads_slow, strict=True):
+        torch.testing.assert_close(a, b)

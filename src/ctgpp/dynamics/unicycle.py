@@ -47,16 +47,30 @@ def rollout(state0: Tensor, actions: Tensor, dt_s: float) -> Tensor:
     Differentiable with respect to both arguments. The speed clip makes the speed recursive; the
     heading and positions are cumulative sums.
     """
-    speeds = []
-    speed = state0[..., 2]
-    for t in range(actions.shape[-2]):
-        speed = (speed + actions[..., t, 0] * dt_s).clamp(0.0, SPEED_MAX_MPS)
-        speeds.append(speed)
-    speed_t = torch.stack(speeds, dim=-1)  # (..., T)
+    speed_t = _speeds(state0[..., 2], actions[..., 0], dt_s)  # (..., T)
     yaw_t = state0[..., 3:4] + torch.cumsum(actions[..., 1], dim=-1) * dt_s  # (..., T)
     x_t = state0[..., 0:1] + torch.cumsum(speed_t * torch.cos(yaw_t), dim=-1) * dt_s
     y_t = state0[..., 1:2] + torch.cumsum(speed_t * torch.sin(yaw_t), dim=-1) * dt_s
     return torch.stack([x_t, y_t, speed_t, yaw_t], dim=-1)
+
+
+def _speeds(speed0: Tensor, acc: Tensor, dt_s: float) -> Tensor:
+    """v_t = clip(v_{t−1} + a_t·dt, 0, v_max) for all t at once: speed0 (...), acc (..., T) -> (..., T).
+
+    Clipping at 0 alone is the running sum reflected at its running minimum, v_t = S_t − min(0,
+    min_{k≤t} S_k) with S_t = v_0 + Σ_{k≤t} a_k·dt (values and gradients as the step-by-step
+    recursion's). When that path stays below v_max the upper clip never acts and it is exact;
+    otherwise the recursion runs step by step.
+    """
+    total = speed0[..., None] + torch.cumsum(acc * dt_s, dim=-1)  # (..., T)
+    speed = total - torch.cummin(total, dim=-1).values.clamp(max=0.0)
+    if not bool((speed > SPEED_MAX_MPS).any()):
+        return speed
+    speeds, v = [], speed0
+    for t in range(acc.shape[-1]):
+        v = (v + acc[..., t] * dt_s).clamp(0.0, SPEED_MAX_MPS)
+        speeds.append(v)
+    return torch.stack(speeds, dim=-1)
 
 
 def inverse(states: Tensor, dt_s: float) -> Tensor:
