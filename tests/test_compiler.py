@@ -83,7 +83,7 @@ CASES: list[tuple[str, list[tuple[str, dict, tuple[int, ...] | None]]]] = [
     ("vehicle 4 should come to a stop ahead", [("target_speed", {"speed_mps": 0.0}, (4,))]),
     (
         "vehicle 4 should reach (612, 1655.3)",
-        [("goal_waypoint", {"vehicle": 4, "x": 612.0, "y": 1655.3}, None)],
+        [("reach_point", {"vehicle": 4, "x": 612.0, "y": 1655.3}, None)],
     ),
     (
         "vehicle 3 should cut in ahead of vehicle 7",
@@ -148,6 +148,7 @@ def test_code_is_python_that_names_every_part() -> None:
     calls = [n.func.id for n in ast.walk(tree) if isinstance(n, ast.Call) and isinstance(n.func, ast.Name)]
     assert calls.count("make_loss") == 2 and "ForVehicles" in calls and "CompositeLoss" in calls
     assert 'make_loss("keep_distance", follower=3, leader=1, min_m=0.0, max_m=10.0)' in compiled.code
+    assert "SteerOnly" in calls and "vehicles=[3])" in compiled.code  # the subject steers alone
 
 
 @pytest.mark.parametrize(
@@ -233,12 +234,25 @@ def test_every_compiled_loss_keeps_the_contract(batch: GuidanceBatch, x: torch.T
         cost.sum().backward()
         assert torch.isfinite(xg.grad).all() and float(xg.grad.abs().sum()) > 0, query
         covered |= {p.rule for p in compiled.parts}
-    assert covered >= set(registered_losses()) - {"acceleration_limit"}
+    # acceleration_limit and goal_waypoint (evaluation rule 7) have no query family of their own
+    assert covered >= set(registered_losses()) - {"acceleration_limit", "goal_waypoint"}
 
 
 def test_restricted_rule_only_costs_its_vehicles(batch: GuidanceBatch, x: torch.Tensor) -> None:
     cost = compile_query("vehicle 3 should not exceed 1 m/s", N_VEHICLES).loss(x, batch)  # (B, N)
     assert float(cost[3].sum()) > 0 and float(cost[torch.arange(N_VEHICLES) != 3].abs().sum()) == 0
+
+
+def test_a_relation_steers_only_its_subject(batch: GuidanceBatch, x: torch.Tensor) -> None:
+    compiled = compile_query("vehicle 2 stays within 1 m of vehicle 0", N_VEHICLES)
+    assert compiled.parts[0].steers == (2,)
+    xg = x.clone().requires_grad_(True)
+    cost = compiled.loss(xg, batch)
+    plain = make_loss("keep_distance", follower=2, leader=0, min_m=0.0, max_m=1.0)(x, batch)
+    assert torch.allclose(cost.detach(), plain)  # the same cost ...
+    cost.sum().backward()
+    assert float(xg.grad[2].abs().sum()) > 0 and float(xg.grad[0].abs().sum()) == 0  # ... moving only 2
+    assert compile_query("vehicle 2 collides with vehicle 0", N_VEHICLES).parts[0].steers is None
 
 
 def test_relative_rules_by_hand(batch: GuidanceBatch) -> None:
@@ -254,7 +268,7 @@ def test_relative_rules_by_hand(batch: GuidanceBatch) -> None:
     x[1, 0, :, 0] = torch.tensor([10.0, 6.0])  # target 10 then 6 m ahead: bumpers 6 then 2 m apart
     hit = make_loss("collide_from_behind", vehicle=0, target=1, contact_m=0.0)(x, two)
     assert float(hit) == pytest.approx(2.0, abs=1e-3)
-    cut = make_loss("cut_in", vehicle=1, ahead_of=0, gap_m=1.0)  # gap 6 then 2 m: excess 5, 1
+    cut = make_loss("cut_in", vehicle=1, ahead_of=0, gap_m=1.0, min_gap_m=0.5)  # gap 6, 2 m: excess 5, 1
     gap_cost = cut(x, replace(two, memo={}))
     assert gap_cost.shape == (1,) and float(gap_cost) > 1.0
 

@@ -34,6 +34,7 @@ def _active_params(batch: GuidanceBatch) -> dict[str, dict]:
         "acceleration_limit": {"max_mps2": 0.05},
         "no_offroad": {"margin_m": 20.0},
         "goal_waypoint": {"vehicle": 0, "x": far[0], "y": far[1], "target_speed_mps": 3.0},
+        "reach_point": {"vehicle": 0, "x": far[0], "y": far[1], "target_speed_mps": 3.0},
         "stop_region": {"vehicle": 1, "x": ahead[0], "y": ahead[1], "radius_m": 2.0},
         "no_collision": {"buffer_m": 20.0},
         "keep_distance": {"follower": 0, "leader": 1, "min_m": 100.0, "max_m": 200.0},

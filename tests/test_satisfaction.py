@@ -120,6 +120,9 @@ def test_stop_region_reach_and_turn(replay: Rollout) -> None:
         turned,
         "vehicle 2 turns left at the next intersection, vehicle 2 turns right at the next intersection",
     ) == [True, False]
+    # the same heading change while standing still is no turn
+    spun = _edited(replay, 2, np.repeat(xy[:1], len(t), axis=0), t, np.zeros(len(t)))
+    assert _verdicts(spun, "vehicle 2 turns left at the next intersection") == [False]
 
 
 def test_lane_change_onto_the_mapped_neighbour() -> None:

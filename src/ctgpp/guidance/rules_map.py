@@ -1,5 +1,6 @@
 """Map-aware rules the paper could not express (DESIGN.md, Language interface): lane changes, the
-rightmost lane, turns at the next intersection, lane following and cut-ins.
+rightmost lane, turns at the next intersection and lane following (cut-ins and reaching a point along
+the lanes: :mod:`ctgpp.guidance.rules_route`).
 
 Each rule picks a target centerline from the lane graph (:mod:`ctgpp.guidance.lane_paths`) and costs
 the signed lateral offset (m) of the vehicle's predicted positions from it, differentiably. A lane
@@ -7,7 +8,7 @@ change, the rightmost lane and a turn are *committed*: the target lane is chosen
 of an episode and kept for the rest of it (up to ``COMMIT_STEPS``), so a vehicle that has changed
 lanes is not asked to change again from its new lane. One loss instance serves one episode at a time
 (:meth:`CommittedLaneRule.reset` forgets the choices). Importing this module also registers the
-rules of :mod:`ctgpp.guidance.rules_relative`.
+rules of :mod:`ctgpp.guidance.rules_relative` and :mod:`ctgpp.guidance.rules_route`.
 """
 
 from __future__ import annotations
@@ -20,39 +21,25 @@ import torch
 from torch import Tensor
 
 import ctgpp.guidance.rules_relative  # noqa: F401  (registers the relative rules)
+import ctgpp.guidance.rules_route  # noqa: F401  (registers cut_in and reach_point)
 from ctgpp.guidance.base import register_loss
 from ctgpp.guidance.context import GuidanceBatch
 from ctgpp.guidance.helpers import get_current_lane_projection
-from ctgpp.guidance.lane_helpers import lane_offset
-from ctgpp.guidance.lane_paths import (
-    get_adjacent_lane,
-    get_current_lane,
-    get_rightmost_lane,
-    get_turn_lane,
-    project_onto_polyline,
-)
+from ctgpp.guidance.lane_helpers import lane_offset, ramp_weights, signed_offset
+from ctgpp.guidance.lane_paths import get_adjacent_lane, get_current_lane, get_rightmost_lane, get_turn_lane
 from ctgpp.guidance.rules_common import Rule, apply_mask, check_vehicle, soft_abs, world_states
-from ctgpp.guidance.rules_relative import relative_position
 from ctgpp.scene.lanes import lane_points_ahead, nearest_lane
 
 COMMIT_STEPS = 150  # a committed target lane is kept this many scene steps (15 s)
 EPISODE_REACH_S = 15.0  # committed target lanes reach this long ahead at 1.5x the current speed
 
 
-def signed_offset(points: Tensor, line: Tensor) -> Tensor:
-    """Signed lateral offset (...) m of points (..., 2) from a polyline (M, 2), left of its direction
-    positive; beyond the polyline's ends the end segments continue straight."""
-    foot, heading = project_onto_polyline(points, line)
-    rel = points - foot
-    return -torch.sin(heading) * rel[..., 0] + torch.cos(heading) * rel[..., 1]
-
-
-def ramp_weights(num_steps: int, dt_s: float, ramp_s: float, like: Tensor) -> Tensor:
-    """(T,) weights rising linearly to 1 over the first ``ramp_s`` seconds, normalized to sum 1:
-    a manoeuvre needs time, so its first steps count less."""
-    t = torch.arange(1, num_steps + 1, dtype=like.dtype, device=like.device) * dt_s
-    w = (t / max(ramp_s, 1e-6)).clamp(max=1.0)
-    return w / w.sum()
+def free_speed(x_row: Tensor, speed_now: Tensor, dt_s: float) -> Tensor:
+    """Speeds (..., T) m/s of one vehicle's x_row (..., T, 6) integrated from its current speed and
+    accelerations without the rollout's clip at zero: equal to the speeds while the vehicle moves,
+    negative where a stopped vehicle is sampled braking. A speed term on these keeps its gradient
+    on the accelerations of a stopped vehicle (the clipped speed has none), so it can set it going."""
+    return speed_now + torch.cumsum(x_row[..., 4], dim=-1) * dt_s
 
 
 def shifted(line: Tensor, offset_m: float) -> Tensor:
@@ -121,9 +108,10 @@ class CommittedLaneRule(Rule):
         local = data_batch.to_local(hit[1])
         return torch.as_tensor(local, dtype=data_batch.pose.dtype, device=data_batch.device)
 
-    def cost(self, pos: Tensor, x_row: Tensor, line: Tensor, dt_s: float) -> Tensor:
-        """(N,) lateral offset cost of positions pos (N, T, 2) from ``line``, ramped over ``ramp_s``."""
-        w = ramp_weights(pos.shape[1], dt_s, self.ramp_s, pos)
+    def cost(self, pos: Tensor, x_row: Tensor, line: Tensor, data_batch: GuidanceBatch, row: int) -> Tensor:
+        """(N,) lateral offset cost of vehicle ``row``'s positions pos (N, T, 2) from ``line``, ramped
+        over ``ramp_s``; x_row (N, T, 6) is its row of x."""
+        w = ramp_weights(pos.shape[1], data_batch.dt_s, self.ramp_s, pos)
         return (soft_abs(signed_offset(pos, line)) * w).sum(-1)
 
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
@@ -132,7 +120,7 @@ class CommittedLaneRule(Rule):
         if line is None:  # nothing to steer toward: zero cost, still part of the graph
             return x[..., 0].sum(-1) * 0.0
         pos, _ = world_states(x, data_batch)  # (B, N, T, 2)
-        cost = self.cost(pos[row], x[row], line.to(x), data_batch.dt_s)
+        cost = self.cost(pos[row], x[row], line.to(x), data_batch, row)
         return apply_mask(_one_row(x, row, cost), agt_mask)
 
 
@@ -183,8 +171,9 @@ class MoveToRightmostLane(CommittedLaneRule):
 class TurnAtNextIntersection(CommittedLaneRule):
     """A vehicle turns left or right (or goes straight) at the next intersection ahead: the mean
     lateral offset (m) from the lane path through it that turns that way, plus the mean shortfall
-    below ``min_speed_mps`` (m/s) so that it keeps going. Zero when no intersection lies ahead
-    within 150 m or none of its paths turns that way."""
+    below ``min_speed_mps`` (m/s) so that it keeps going, on the speeds without the clip at zero
+    (:func:`free_speed`) so that a vehicle that has stopped is set going again rather than turned on
+    the spot. Zero when no intersection lies ahead within 150 m or none of its paths turns that way."""
 
     ramp_s: ClassVar[float] = 0.5
     param_doc = {
@@ -202,8 +191,10 @@ class TurnAtNextIntersection(CommittedLaneRule):
     def choose(self, data_batch: GuidanceBatch, i: int) -> Tensor | None:
         return get_turn_lane(data_batch, i, self.direction)  # type: ignore[arg-type]
 
-    def cost(self, pos: Tensor, x_row: Tensor, line: Tensor, dt_s: float) -> Tensor:
-        return super().cost(pos, x_row, line, dt_s) + torch.relu(self.min_speed_mps - x_row[..., 2]).mean(-1)
+    def cost(self, pos: Tensor, x_row: Tensor, line: Tensor, data_batch: GuidanceBatch, row: int) -> Tensor:
+        speed = free_speed(x_row, data_batch.speed[row].to(x_row), data_batch.dt_s)  # (N, T)
+        shortfall = torch.relu(self.min_speed_mps - speed).mean(-1)  # (N,)
+        return super().cost(pos, x_row, line, data_batch, row) + shortfall
 
 
 @register_loss("follow_lane")
@@ -226,49 +217,14 @@ class FollowLane(Rule):
         return apply_mask(cost, agt_mask)
 
 
-@register_loss("cut_in")
-class CutIn(Rule):
-    """A vehicle cuts in ahead of another: it should end up in the other's lane (lateral offset from
-    that lane's centerline, or from the other's heading line off the lane graph) with a bumper gap
-    ahead of it between 0.5 m and ``gap_m`` (shortfall or excess in m, in the other's predicted
-    frame); both weighted up over the first 3 s. One cost per sample (N)."""
-
-    couples_agents: ClassVar[bool] = True
-    param_doc = {
-        "vehicle": ("", "displayed number of the vehicle that cuts in"),
-        "ahead_of": ("", "displayed number of the vehicle it cuts in front of"),
-        "gap_m": ("m", "largest bumper-to-bumper gap ahead of the other vehicle"),
-    }
-
-    def __init__(self, vehicle: int, ahead_of: int, gap_m: float = 10.0) -> None:
-        super().__init__()
-        if int(vehicle) == int(ahead_of):
-            raise ValueError(f"a vehicle cannot cut in ahead of itself (vehicle {vehicle})")
-        self.vehicle, self.ahead_of, self.gap_m = int(vehicle), int(ahead_of), float(gap_m)
-
-    def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
-        a = check_vehicle(self.vehicle, data_batch, x.shape[0])
-        b = check_vehicle(self.ahead_of, data_batch, x.shape[0])
-        lon, lat = relative_position(x, data_batch, a, b)  # (N, T)
-        line = get_current_lane(data_batch, b)
-        if line is not None:
-            pos, _ = world_states(x, data_batch)
-            lat = signed_offset(pos[a], line.to(x))
-        half = data_batch.extent[:, 0].to(x) / 2
-        gap = lon - half[a] - half[b]  # (N, T) bumper gap ahead of vehicle b
-        lon_cost = torch.relu(0.5 - gap) + torch.relu(gap - self.gap_m)
-        w = ramp_weights(x.shape[2], data_batch.dt_s, 3.0, x)
-        return ((soft_abs(lat) + lon_cost) * w).sum(-1)
-
-
 __all__ = [
     "CommittedLaneRule",
-    "CutIn",
     "FollowLane",
     "LaneChange",
     "MoveToRightmostLane",
     "TurnAtNextIntersection",
     "extended",
+    "free_speed",
     "ramp_weights",
     "shifted",
     "signed_offset",

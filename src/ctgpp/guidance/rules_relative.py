@@ -1,8 +1,16 @@
-"""Rules about one vehicle relative to another, and :class:`ForVehicles`, a rule restricted to some vehicles.
+"""Rules about one vehicle relative to another; :class:`ForVehicles`, a rule restricted to some vehicles,
+and :class:`SteerOnly`, a rule that steers only some vehicles.
 
 Rules that couple two vehicles (``couples_agents``) return one cost per sample (N); vehicle arguments
 are displayed numbers (rows of x). The relative position of a vehicle is measured in the *other*
 vehicle's predicted frame at the same step (x forward along its heading, y to its left).
+
+:func:`along_path` serves rules that a vehicle should meet with its speed alone (keeping away): the
+sampler's Adam steps move every action element that has any gradient by about the learning rate,
+however small the gradient (Adam is invariant to the loss's scale, so a weight cannot make a rule
+stronger), so a distance measured on the plain positions swerves the vehicle sideways, off its path,
+and the denoiser's last steps undo the swerve; measured along the sampled paths, only the
+accelerations move.
 """
 
 from __future__ import annotations
@@ -14,7 +22,7 @@ import torch
 from torch import Tensor
 
 from ctgpp.guidance.base import GuidanceLoss, register_loss
-from ctgpp.guidance.rules_common import Rule, as_list, check_vehicle, world_states
+from ctgpp.guidance.rules_common import Rule, as_list, check_vehicle, time_weights, world_states
 
 
 class ForVehicles(GuidanceLoss):
@@ -40,6 +48,43 @@ class ForVehicles(GuidanceLoss):
         if agt_mask is not None:
             mask = mask & agt_mask.to(device=x.device, dtype=torch.bool)
         return self.loss(x, data_batch, mask)
+
+
+class SteerOnly(GuidanceLoss):
+    """A loss whose gradient reaches only the trajectories of ``vehicles`` (displayed numbers); every
+    other vehicle's row of x is held as sampled. The cost is unchanged. "Vehicle 2 stays within 25 m
+    of vehicle 0" steers vehicle 2 and lets vehicle 0 drive as the model samples it, rather than
+    slowing it down to wait (and meet the traffic it would have passed):
+    ``SteerOnly(make_loss("keep_distance", follower=2, leader=0, min_m=0, max_m=25), vehicles=[2])``."""
+
+    def __init__(self, loss: GuidanceLoss, vehicles: int | Sequence[int]) -> None:
+        super().__init__()
+        self.loss = loss
+        self.vehicles = [int(v) for v in as_list(vehicles)]
+        if not self.vehicles:
+            raise ValueError("SteerOnly needs at least one vehicle")
+
+    @property
+    def couples_agents(self) -> bool:  # type: ignore[override]
+        return bool(self.loss.couples_agents)
+
+    def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
+        steered = torch.zeros(x.shape[0], dtype=torch.bool, device=x.device)
+        for v in self.vehicles:
+            steered[check_vehicle(v, data_batch, x.shape[0])] = True
+        held = torch.where(steered[:, None, None, None], x, x.detach())  # (B, N, T, 6)
+        return self.loss(held, data_batch, agt_mask)
+
+
+def along_path(x: Tensor, dt_s: float) -> Tensor:
+    """x (..., T, 6) whose positions keep their values but depend on the speeds alone: the headings
+    of the sampled path are held, so a gradient through them reaches the accelerations, never the yaw
+    rates. Position t is the sum over k ≤ t of speed_k · dt · (cos yaw_k, sin yaw_k), as in the
+    unicycle rollout (:func:`ctgpp.dynamics.rollout`)."""
+    speed, yaw = x[..., 2], x[..., 3].detach()
+    heading = torch.stack([torch.cos(yaw), torch.sin(yaw)], dim=-1)  # (..., T, 2)
+    moved = torch.cumsum(((speed - speed.detach()) * dt_s)[..., None] * heading, dim=-2)  # zero-valued
+    return torch.cat([x[..., :2].detach() + moved, x[..., 2:]], dim=-1)
 
 
 def relative_position(x: Tensor, data_batch: Any, vehicle: int, other: int) -> tuple[Tensor, Tensor]:
@@ -112,24 +157,32 @@ class SameDirection(_Pair):
 
 @register_loss("stay_away")
 class StayAway(_Pair):
-    """A vehicle keeps at least ``min_m`` (centre to centre) from another: the mean over the horizon
-    of the shortfall (m)."""
+    """A vehicle keeps at least ``min_m`` (centre to centre) from another: the shortfall (m) below
+    ``min_m + margin_m`` at each step, weighted by ``decay``**t (normalized; the near term, which the
+    closed loop executes, weighs most), summed over the horizon. Distances are measured along the
+    sampled paths (:func:`along_path`): the vehicles keep away by their speeds, brake before the
+    other or pass it sooner, and do not swerve off their paths."""
 
     param_doc = {
         "vehicle": ("", "displayed number of one vehicle"),
         "other": ("", "displayed number of the other vehicle"),
         "min_m": ("m", "smallest allowed centre distance"),
+        "margin_m": ("m", "the guidance aims this far beyond min_m (plans are not executed exactly)"),
+        "decay": ("per step", "weight of step t is decay**t: near-term shortfalls matter more"),
     }
 
-    def __init__(self, vehicle: int, other: int, min_m: float = 10.0) -> None:
+    def __init__(
+        self, vehicle: int, other: int, min_m: float = 10.0, margin_m: float = 1.0, decay: float = 0.9
+    ) -> None:
         super().__init__(vehicle, other)
-        self.min_m = float(min_m)
+        self.min_m, self.margin_m, self.decay = float(min_m), float(margin_m), float(decay)
 
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         a, b = self.rows(x, data_batch)
-        pos, _ = world_states(x, data_batch)
+        pos, _ = world_states(along_path(x, data_batch.dt_s), data_batch)  # (B, N, T, 2)
         d = torch.sqrt(((pos[a] - pos[b]) ** 2).sum(-1) + 1e-6)  # (N, T)
-        return torch.relu(self.min_m - d).mean(-1)
+        w = time_weights(x.shape[2], self.decay, x)  # (T,)
+        return (torch.relu(self.min_m + self.margin_m - d) * w).sum(-1)
 
 
 @register_loss("collide_from_behind")
@@ -162,4 +215,13 @@ class CollideFromBehind(_Pair):
         return torch.relu(d.min(-1).values - self.contact_m)
 
 
-__all__ = ["CollideFromBehind", "ForVehicles", "SameDirection", "StayAway", "StaySideOf", "relative_position"]
+__all__ = [
+    "CollideFromBehind",
+    "ForVehicles",
+    "SameDirection",
+    "StayAway",
+    "StaySideOf",
+    "SteerOnly",
+    "along_path",
+    "relative_position",
+]

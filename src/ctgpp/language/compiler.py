@@ -6,8 +6,10 @@ query into clauses at "and", ",", ";", "while", "then", "but" (not inside "betwe
 a point "(x, y)"; a piece that names no rule, such as "vehicle 1" in "vehicle 1 and vehicle 2
 collide", is joined with the next one), recognises each clause's family
 (:mod:`ctgpp.language.compiler_families`) and joins the rules in a :class:`CompositeLoss` (the
-conjunction, every part weighted 1). A clause without its own vehicle inherits the previous one's
-("vehicle 3 should change to the left lane and then turn right at the next intersection").
+conjunction, every part weighted 1). A relation of one vehicle to another ("vehicle 2 stays within
+25 m of vehicle 0") steers only its subject (:class:`SteerOnly`); the other keeps driving as sampled.
+A clause without its own vehicle inherits the previous one's ("vehicle 3 should change to the left
+lane and then turn right at the next intersection").
 Vehicles are displayed numbers: "vehicle 3", "car 3", "v3", "#3", "the ego" (= 0).
 Nothing is guessed: a clause no family recognises raises :class:`UnsupportedQuery` with the closest
 supported phrasings, a vehicle outside the scene raises :class:`VehicleOutOfRange`.
@@ -21,7 +23,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from ctgpp.guidance import CompositeLoss, GuidanceLoss, make_loss
-from ctgpp.guidance.rules_relative import ForVehicles
+from ctgpp.guidance.rules_relative import ForVehicles, SteerOnly
 from ctgpp.language.compiler_families import Context, PartSpec, QueryError, recognise
 from ctgpp.language.compiler_patterns import EXAMPLES, Clause, analyse, split_points
 
@@ -58,7 +60,9 @@ class QueryPart:
     in scene world metres); text: the clause of the query it came from and span (start, end) its
     position in the query; family: the query family ("lane_change", "keep_within", "stop", ...,
     what :mod:`ctgpp.language.satisfaction` checks); vehicles: the vehicles a global rule is
-    restricted to (None: the rule's own scope, every vehicle for speed limits and the like).
+    restricted to (None: the rule's own scope, every vehicle for speed limits and the like);
+    steers: the only vehicles the rule's gradient moves (None: every vehicle it involves), the
+    subject of a relation to another vehicle, which then keeps driving as sampled.
     """
 
     rule: str
@@ -67,17 +71,23 @@ class QueryPart:
     span: tuple[int, int]
     family: str
     vehicles: tuple[int, ...] | None = None
+    steers: tuple[int, ...] | None = None
 
     def build(self) -> GuidanceLoss:
-        """The loss of this part: the registered rule, restricted to ``vehicles`` when given."""
+        """The loss of this part: the registered rule, restricted to ``vehicles`` and steering only
+        ``steers`` when given."""
         loss = make_loss(self.rule, **self.params)
-        return loss if self.vehicles is None else ForVehicles(loss, list(self.vehicles))
+        if self.vehicles is not None:
+            loss = ForVehicles(loss, list(self.vehicles))
+        return loss if self.steers is None else SteerOnly(loss, list(self.steers))
 
     def code(self) -> str:
         """Python source of :meth:`build`."""
         args = "".join(f", {k}={v!r}" for k, v in self.params.items())
         call = f"make_loss({self.rule!r}{args})".replace("'", '"')
-        return call if self.vehicles is None else f"ForVehicles({call}, vehicles={list(self.vehicles)})"
+        if self.vehicles is not None:
+            call = f"ForVehicles({call}, vehicles={list(self.vehicles)})"
+        return call if self.steers is None else f"SteerOnly({call}, vehicles={list(self.steers)})"
 
 
 @dataclass(frozen=True, eq=False)
@@ -181,7 +191,7 @@ def compile_query(query: str, num_vehicles: int) -> CompiledQuery:
         for spec in handler(clause, Context(subject, joined)):
             _check_vehicles(spec, num_vehicles, text)
             parts.append(QueryPart(spec.rule, dict(spec.params), text.strip(), (clause.start, clause.end),
-                                   spec.family, spec.only))
+                                   spec.family, spec.only, spec.steers))
         if clause.vehicles:
             subject = clause.vehicles[0]
     loss = CompositeLoss([(part.build(), 1.0) for part in parts])
@@ -191,8 +201,10 @@ def compile_query(query: str, num_vehicles: int) -> CompiledQuery:
 def render_code(parts: list[QueryPart]) -> str:
     """Readable Python source that builds the same loss as the compiled ``parts``."""
     lines = ["from ctgpp.guidance import CompositeLoss, make_loss"]
-    if any(p.vehicles is not None for p in parts):
-        lines.append("from ctgpp.guidance.rules_relative import ForVehicles")
+    wrappers = [name for name, used in (("ForVehicles", any(p.vehicles is not None for p in parts)),
+                                        ("SteerOnly", any(p.steers is not None for p in parts))) if used]
+    if wrappers:
+        lines.append(f"from ctgpp.guidance.rules_relative import {', '.join(wrappers)}")
     lines += ["", "loss = CompositeLoss(["]
     for p in parts:
         lines.append(f"    ({p.code()}, 1.0),  # {p.text}")

@@ -4,6 +4,11 @@ the library it becomes.
 Families are tried in order; the first whose ``matches`` holds handles the clause. A handler returns
 :class:`PartSpec` values (rule name, parameters, an optional restriction to some vehicles) or raises
 :class:`QueryError` when the clause names too few vehicles or a needed quantity is missing.
+
+Relations of a subject to another vehicle (keep a distance, stay within or away, stay on a side, same
+direction) steer only the subject: moving the other vehicle as well (slowing the leader down to wait
+for its follower, say) puts it where the traffic it would have passed meets it. Collisions and cut-ins
+steer both: the pair meets halfway, and the vehicle cut in front of keeps its lane.
 """
 
 from __future__ import annotations
@@ -28,12 +33,15 @@ class QueryError(ValueError):
 @dataclass(frozen=True)
 class PartSpec:
     """A rule to build: ``rule`` name, its ``params``, ``only`` (vehicles it is restricted to, None
-    for the rule's own scope) and the query ``family`` it came from."""
+    for the rule's own scope), ``steers`` (the only vehicles its gradient moves, None for all: the
+    subject of a relation to another vehicle, which keeps driving as sampled) and the query
+    ``family`` it came from."""
 
     family: str
     rule: str
     params: dict[str, Any]
     only: tuple[int, ...] | None = None
+    steers: tuple[int, ...] | None = None
 
 
 @dataclass(frozen=True)
@@ -154,12 +162,12 @@ _SIDE_OF = r"(?:on|to)\s+(?:the\s+)?(?:left|right)(?:[- ]hand)?\s+(?:side\s+)?of
 
 def _side_of(c: Clause, ctx: Context) -> list[PartSpec]:
     side = _side_word(c, _SIDE_OF)
-    return [PartSpec("stay_side_of", "stay_side_of", {"vehicle": a, "other": b, "side": side})
+    return [PartSpec("stay_side_of", "stay_side_of", {"vehicle": a, "other": b, "side": side}, steers=(a,))
             for a, b in _pairs(c, ctx, "staying beside a vehicle")]
 
 
 def _same_direction(c: Clause, ctx: Context) -> list[PartSpec]:
-    return [PartSpec("same_direction", "same_direction", {"vehicle": a, "other": b})
+    return [PartSpec("same_direction", "same_direction", {"vehicle": a, "other": b}, steers=(a,))
             for a, b in _pairs(c, ctx, "driving in the same direction")]
 
 
@@ -177,7 +185,7 @@ def _reach(c: Clause, ctx: Context) -> list[PartSpec]:
     params: dict[str, Any] = {"x": x, "y": y}
     if c.speeds:
         params["target_speed_mps"] = c.speeds[0]
-    return [PartSpec("reach", "goal_waypoint", {"vehicle": v, **params}) for v in _subjects(c, ctx)]
+    return [PartSpec("reach", "reach_point", {"vehicle": v, **params}) for v in _subjects(c, ctx)]
 
 
 def _speed_limit(c: Clause, ctx: Context) -> list[PartSpec]:
@@ -190,26 +198,26 @@ def _target_speed(c: Clause, ctx: Context) -> list[PartSpec]:
 
 def _keep_range(c: Clause, ctx: Context) -> list[PartSpec]:
     lo, hi = c.ranges[0]
-    return [PartSpec("keep_distance", "keep_distance", {"follower": a, "leader": b, "min_m": lo, "max_m": hi})
-            for a, b in _pairs(c, ctx, "keeping a distance")]
+    return [PartSpec("keep_distance", "keep_distance", {"follower": a, "leader": b, "min_m": lo, "max_m": hi},
+                     steers=(a,)) for a, b in _pairs(c, ctx, "keeping a distance")]
 
 
 def _stay_away(c: Clause, ctx: Context) -> list[PartSpec]:
     d = _distance(c, DEFAULT_AWAY_M)
-    return [PartSpec("stay_away", "stay_away", {"vehicle": a, "other": b, "min_m": d})
+    return [PartSpec("stay_away", "stay_away", {"vehicle": a, "other": b, "min_m": d}, steers=(a,))
             for a, b in _pairs(c, ctx, "staying away")]
 
 
 def _keep_within(c: Clause, ctx: Context) -> list[PartSpec]:
     d = _distance(c, DEFAULT_NEAR_M)
-    return [PartSpec("keep_within", "keep_distance", {"follower": a, "leader": b, "min_m": 0.0, "max_m": d})
-            for a, b in _pairs(c, ctx, "staying close")]
+    return [PartSpec("keep_within", "keep_distance", {"follower": a, "leader": b, "min_m": 0.0, "max_m": d},
+                     steers=(a,)) for a, b in _pairs(c, ctx, "staying close")]
 
 
 def _follow_vehicle(c: Clause, ctx: Context) -> list[PartSpec]:
     lo, hi = FOLLOW_RANGE_M
-    return [PartSpec("keep_distance", "keep_distance", {"follower": a, "leader": b, "min_m": lo, "max_m": hi})
-            for a, b in _pairs(c, ctx, "following a vehicle")]
+    return [PartSpec("keep_distance", "keep_distance", {"follower": a, "leader": b, "min_m": lo, "max_m": hi},
+                     steers=(a,)) for a, b in _pairs(c, ctx, "following a vehicle")]
 
 
 def _offroad(c: Clause, ctx: Context) -> list[PartSpec]:

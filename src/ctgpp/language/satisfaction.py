@@ -13,9 +13,9 @@ Each returns whether the part holds and what was measured, in words. Tolerances:
   last 5 s ≤ 1 m/s; stop: the lowest speed < 0.5 m/s; stop in a region: the lowest speed while
   inside the region < 0.5 m/s; reach: the closest approach ≤ 2 m; stay on the road: no centre
   leaves the drivable area (vehicles that start off it excluded, as in the fail metric).
-- lane rules: see :mod:`ctgpp.language.satisfaction_lanes`; same direction: headings within 30° at
-  the end; stay on a side: the lateral coordinate in the other's frame has the right sign at every
-  step.
+- lane rules (a turn: the heading change while moving): see :mod:`ctgpp.language.satisfaction_lanes`;
+  same direction: headings within 30° at the end; stay on a side: the lateral coordinate in the
+  other's frame has the right sign at every step.
 """
 
 from __future__ import annotations
@@ -226,7 +226,8 @@ def _follow_lane(rollout: Rollout, part: QueryPart) -> tuple[bool, str]:
 
 
 def _turn(rollout: Rollout, part: QueryPart) -> tuple[bool, str]:
-    return lanes_check.turn(_valid_track(rollout, part.params["vehicle"]).yaw, part.params["direction"])
+    t = _valid_track(rollout, part.params["vehicle"])
+    return lanes_check.turn(t.yaw, t.speed, part.params["direction"])
 
 
 def _cut_in(rollout: Rollout, part: QueryPart) -> tuple[bool, str]:

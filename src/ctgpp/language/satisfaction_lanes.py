@@ -29,6 +29,7 @@ FOLLOW_LANE_MAX_OFFSET_M = 1.5  # follow lane: largest lateral offset from the l
 LANE_CHANGE_FALLBACK_M = 2.5  # lane change without a mapped neighbour: lateral displacement needed
 TURN_MIN_DEG = 45.0  # a turn changes the heading by more than this
 STRAIGHT_MAX_DEG = 30.0  # going straight changes it by less
+MOVING_MPS = 0.5  # a turn: heading changes count only at this speed or above
 IN_LANE_M = 1.75  # cut in: lateral offset from the other's lane that counts as inside it
 SUCCESSOR_DEPTH = 8
 
@@ -132,14 +133,17 @@ def rightmost(lanes: LaneGraph, xy: np.ndarray, yaw: np.ndarray) -> tuple[bool, 
     return True, f"ends on lane {end.lane}, with no lane to its right"
 
 
-def turn(yaw: np.ndarray, direction: str) -> tuple[bool, str]:
-    """Whether the heading changes over the track yaw (T,) in ``direction``: left > +45°,
-    right < -45°, straight within ±30°."""
-    change = math.degrees(float(np.unwrap(yaw)[-1] - np.unwrap(yaw)[0]))
+def turn(yaw: np.ndarray, speed: np.ndarray, direction: str) -> tuple[bool, str]:
+    """Whether the direction of travel changes over the track yaw (T,) rad, speed (T,) m/s in
+    ``direction``: left > +45°, right < -45°, straight within ±30°. Only the heading changes of steps
+    at which the vehicle moves (at least ``MOVING_MPS``) count: turning on the spot is no turn."""
+    dyaw = np.diff(np.unwrap(yaw))  # (T-1,) rad, step k -> k+1
+    moving = (speed[1:] >= MOVING_MPS) | (speed[:-1] >= MOVING_MPS)
+    change = math.degrees(float((dyaw * moving).sum()))
     ok = {"left": change > TURN_MIN_DEG, "right": change < -TURN_MIN_DEG}.get(
         direction, abs(change) < STRAIGHT_MAX_DEG
     )
-    return ok, f"heading change {change:+.0f}° (left +)"
+    return ok, f"heading change while moving {change:+.0f}° (left +)"
 
 
 def follows_lane(lanes: LaneGraph, xy: np.ndarray, yaw: np.ndarray) -> tuple[bool, str]:

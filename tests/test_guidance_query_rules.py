@@ -1,0 +1,147 @@
+"""Hand-computed cases of the query rules that steer along paths and lanes: stay_away (along the
+sampled paths), cut_in, reach_point and its lane route, and the turn's speed term on free speeds; and
+guided samples that lower each of these losses."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from ctgpp.diffusion.guided import action_trajectories
+from ctgpp.guidance import GuidanceBatch, build_guidance_batch, make_loss
+from ctgpp.guidance.lane_helpers import get_route_to_point, signed_offset
+from ctgpp.guidance.lane_paths import vehicle_lane
+from ctgpp.guidance.rules_map import free_speed
+from ctgpp.guidance.rules_relative import along_path
+from ctgpp.scene.types import Scene
+from ctgpp.sim.diffusion_policy import DiffusionPolicy, SamplingConfig
+from tests.test_guidance_helpers import real_observation
+from tests.test_guided import PriorDenoiser, losses, make_model
+
+GOAL = np.array([640.6, 1617.5])  # on vehicle 2's lane, 45 m ahead through the intersection (scene-0103)
+
+
+@pytest.fixture(scope="module")
+def batch() -> GuidanceBatch:
+    return build_guidance_batch(real_observation())
+
+
+def _off_lanes(batch: GuidanceBatch, n: int) -> GuidanceBatch:
+    """n vehicles at the local origin, 10 km from every lane (no lane paths), 4 m x 2 m boxes."""
+    return replace(
+        batch, origin=batch.origin + 1e4, pose=torch.zeros(n, 3), speed=torch.zeros(n),
+        extent=torch.tensor([[4.0, 2.0]] * n), memo={},
+    )
+
+
+def test_along_path_keeps_positions_and_moves_only_speeds() -> None:
+    x = torch.randn(2, 3, 5, 6, requires_grad=True)
+    moved = along_path(x, 0.1)
+    assert torch.equal(moved.detach(), x.detach())
+    moved[..., :2].sum().backward()
+    assert x.grad[..., 2].abs().sum() > 0
+    assert x.grad[..., [0, 1, 3, 4, 5]].abs().sum() == 0  # no gradient reaches positions or headings
+
+
+def test_stay_away_by_hand(batch: GuidanceBatch) -> None:
+    # vehicle 1 still 8 m ahead of vehicle 0; vehicle 0 at 8, 10, 12 m from it (it backs off)
+    two = _off_lanes(batch, 2)
+    x = torch.zeros(2, 1, 3, 6)
+    x[1, 0, :, 0] = 8.0
+    x[0, 0, :, 0] = torch.tensor([0.0, -2.0, -4.0])
+    x.requires_grad_(True)
+    cost = make_loss("stay_away", vehicle=0, other=1, min_m=10.0)(x, two)  # aims at 10 + 1 m
+    # shortfalls 3, 1, 0 m; weights 0.9**t normalized: (3 + 0.9) / 2.71
+    assert cost.shape == (1,) and float(cost.detach()) == pytest.approx(3.9 / 2.71, abs=1e-4)
+    cost.sum().backward()
+    assert float(x.grad[0, 0, 0, 2]) > 0  # descent slows vehicle 0 down, away from vehicle 1
+    assert x.grad[..., [0, 1, 3]].abs().sum() == 0  # along its path: no swerve
+
+
+def test_cut_in_by_hand(batch: GuidanceBatch) -> None:
+    # off the lane graph the lane is vehicle 0's heading line; vehicle 1 cuts in 10 then 6 m ahead
+    two = _off_lanes(batch, 2)
+    x = torch.zeros(2, 1, 2, 6)
+    x[1, 0, :, 0] = torch.tensor([10.0, 6.0])
+    x[1, 0, :, 1] = torch.tensor([1.0, 0.0])  # 1 m beside the line, then on it
+    cost = make_loss("cut_in", vehicle=1, ahead_of=0, gap_m=5.0, min_gap_m=2.0)(x, two)
+    # bumper gaps 6, 2 m -> costs 1, 0; offsets ~1, 0; ramp weights 1/3, 2/3
+    offset = (1.0 + 1e-6) ** 0.5 - 1e-3
+    assert cost.shape == (1,) and float(cost) == pytest.approx((1.0 + offset) / 3, abs=1e-5)
+    with pytest.raises(ValueError, match="min_gap_m"):
+        make_loss("cut_in", vehicle=1, ahead_of=0, gap_m=1.0)  # the default 2 m floor is above 1 m
+
+
+def test_cut_in_keeps_the_other_in_its_lane(batch: GuidanceBatch) -> None:
+    # on a lane: moving the vehicle cut in front (vehicle 0) sideways costs as moving the cutter does
+    x = torch.zeros(batch.num_vehicles, 1, 1, 6)
+    loss = make_loss("cut_in", vehicle=2, ahead_of=0)
+    base = float(loss(x, batch))
+    x[0, 0, :, 1] = 3.0
+    assert float(loss(x, replace(batch, memo={}))) > base + 0.5
+
+
+def test_reach_point_off_the_lanes_by_hand(batch: GuidanceBatch) -> None:
+    one = _off_lanes(batch, 1)
+    x = torch.zeros(1, 1, 3, 6)
+    x[0, 0, :, 0] = torch.tensor([0.0, 5.0, 10.0])
+    goal = one.to_world(np.array([20.0, 0.0]))
+    cost = make_loss("reach_point", vehicle=0, x=goal[0], y=goal[1], reach_m=1.0)(x, one)
+    assert cost.shape == (1, 1) and float(cost) == pytest.approx(9.0, abs=1e-3)  # closest 10 m, hinge 1
+
+
+def test_route_to_a_point_follows_the_lanes(batch: GuidanceBatch) -> None:
+    route = get_route_to_point(batch, 2, GOAL)
+    assert route is not None
+    goal_local = torch.as_tensor(batch.to_local(GOAL), dtype=route.dtype)
+    assert abs(float(signed_offset(goal_local, route))) < 2.0
+    # vehicle 0's nearest lane is the right-turn connector forking where its straight lane starts
+    assert vehicle_lane(batch, 0).lane != vehicle_lane(batch, 2).lane
+    assert get_route_to_point(batch, 0, GOAL) is not None
+    behind = batch.to_world(batch.pose[2, :2].numpy()) - 30.0 * np.array([np.cos(-0.5), np.sin(-0.5)])
+    assert get_route_to_point(replace(batch, memo={}), 2, behind) is None
+    # the route adds its lateral offset: a plan that stays put costs more than the bare hinge
+    x = torch.zeros(batch.num_vehicles, 1, 4, 6)
+    x[2, 0, :, 1] = 3.0  # 3 m to the left of the vehicle's current position
+    rule = make_loss("reach_point", vehicle=2, x=GOAL[0], y=GOAL[1])
+    hinge = make_loss("goal_waypoint", vehicle=2, x=GOAL[0], y=GOAL[1])
+    # the hinge gives up reach_m = 1 m of the closest approach, the route adds over 2 m of offset
+    assert float(rule(x, replace(batch, memo={}))[2]) > float(hinge(x, batch)[2]) + 1.0
+
+
+def test_turn_sets_a_stopped_vehicle_going(batch: GuidanceBatch) -> None:
+    # vehicle 0 stopped and sampled braking: its clipped speeds are zero and carry no gradient
+    stopped = replace(batch, speed=torch.zeros(batch.num_vehicles), memo={})
+    current = torch.zeros(batch.num_vehicles, 4)
+    actions = torch.zeros(1, batch.num_vehicles, 20, 2)
+    actions[..., 0] = -1.0
+    actions.requires_grad_(True)
+    x = action_trajectories(actions, current, 0.1)  # (B, 1, 20, 6)
+    assert float(x[0, ..., 2].detach().abs().sum()) == 0.0
+    speeds = free_speed(x[0], stopped.speed[0], 0.1)
+    assert torch.allclose(speeds[0, :3], torch.tensor([-0.1, -0.2, -0.3]))
+    rule = make_loss("turn_at_next_intersection", vehicle=0, direction="right", min_speed_mps=2.0)
+    rule(x, stopped)[0].sum().backward()
+    assert float(actions.grad[0, 0, :, 0].max()) < 0  # descent accelerates every step
+
+
+@pytest.mark.parametrize(
+    ("name", "params"),
+    [
+        ("stay_away", {"vehicle": 0, "other": 4, "min_m": 30.0}),
+        ("cut_in", {"vehicle": 0, "ahead_of": 2}),
+        ("reach_point", {"vehicle": 2, "x": float(GOAL[0]), "y": float(GOAL[1])}),
+        ("turn_at_next_intersection", {"vehicle": 3, "direction": "left"}),
+    ],
+)
+def test_a_guided_sample_lowers_the_query_loss(scene_0103: Scene, name: str, params: dict) -> None:
+    model = make_model(PriorDenoiser)
+    sampling = SamplingConfig("ddim", 5, 2)
+    unguided = losses(DiffusionPolicy(model, sampling), make_loss(name, **params), scene_0103)
+    guided = losses(DiffusionPolicy(model, sampling, make_loss(name, **params)), make_loss(name, **params),
+                    scene_0103)
+    assert float(unguided.sum()) > 0
+    assert float(guided.sum()) < 0.9 * float(unguided.sum())
