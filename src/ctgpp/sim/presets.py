@@ -21,6 +21,18 @@ class SamplerPreset:
     description: str
 
 
+def _ddim(steps: int, samples: int) -> SamplerPreset:
+    """A DDIM candidate guided as the paper (1 Adam step of lr 0.3 at every step): ``ddim{steps}``,
+    with ``-n{samples}`` unless N = 4."""
+    name = f"ddim{steps}" + ("" if samples == 4 else f"-n{samples}")
+    return SamplerPreset(
+        name,
+        SamplingConfig("ddim", steps, samples),
+        GuidanceConfig(inner_steps=1, lr=0.3),
+        f"DDIM {steps} steps, guided at every step, N = {samples}",
+    )
+
+
 PRESETS: dict[str, SamplerPreset] = {
     p.name: p
     for p in (
@@ -30,42 +42,7 @@ PRESETS: dict[str, SamplerPreset] = {
             GuidanceConfig(inner_steps=1, lr=0.3),
             "DDPM, K = 100 steps, guided at every step, N = 5 (the paper)",
         ),
-        SamplerPreset(
-            "ddim10",
-            SamplingConfig("ddim", 10, 4),
-            GuidanceConfig(inner_steps=1, lr=0.3),
-            "DDIM 10 steps, guided at every step, N = 4",
-        ),
-        SamplerPreset(
-            "ddim5",
-            SamplingConfig("ddim", 5, 4),
-            GuidanceConfig(inner_steps=1, lr=0.3),
-            "DDIM 5 steps, guided at every step, N = 4",
-        ),
-        SamplerPreset(
-            "ddim3",
-            SamplingConfig("ddim", 3, 4),
-            GuidanceConfig(inner_steps=1, lr=0.3),
-            "DDIM 3 steps, guided at every step, N = 4",
-        ),
-        SamplerPreset(
-            "ddim5-n2",
-            SamplingConfig("ddim", 5, 2),
-            GuidanceConfig(inner_steps=1, lr=0.3),
-            "DDIM 5 steps, guided at every step, N = 2",
-        ),
-        SamplerPreset(
-            "ddim5-n3",
-            SamplingConfig("ddim", 5, 3),
-            GuidanceConfig(inner_steps=1, lr=0.3),
-            "DDIM 5 steps, guided at every step, N = 3",
-        ),
-        SamplerPreset(
-            "ddim3-n2",
-            SamplingConfig("ddim", 3, 2),
-            GuidanceConfig(inner_steps=1, lr=0.3),
-            "DDIM 3 steps, guided at every step, N = 2",
-        ),
+        *(_ddim(steps, n) for steps, n in ((10, 4), (5, 4), (5, 3), (5, 2), (3, 4), (3, 2))),
         SamplerPreset(
             "fast",
             SamplingConfig(),  # the defaults: DDIM 5 steps, N = 2
