@@ -3,18 +3,13 @@ agent-level CTG denoiser, each re-plan's rasters bound to the model."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 from torch import Tensor, nn
 
 from ctgpp.baselines.ctg import CTGContext, CTGDenoiser
-from ctgpp.baselines.kinds import load_model
 from ctgpp.baselines.raster import observation_raster, with_raster
 from ctgpp.data.batch import SceneBatch
-from ctgpp.diffusion.guided import GuidanceConfig
-from ctgpp.guidance.base import GuidanceLoss
-from ctgpp.model.checkpoint import CheckpointError
-from ctgpp.sim.diffusion_policy import DiffusionPolicy, PlanSamples, SamplingConfig
+from ctgpp.model.denoiser import Denoiser
+from ctgpp.sim.diffusion_policy import DiffusionPolicy
 from ctgpp.sim.policy import Observation
 
 
@@ -47,22 +42,7 @@ class CTGPolicy(DiffusionPolicy):
     name = "ctg"
     hold_stationary = True
 
-    @classmethod
-    def from_checkpoint(
-        cls,
-        path: Path,
-        sampling: SamplingConfig = SamplingConfig(),
-        guidance: GuidanceLoss | None = None,
-        guidance_config: GuidanceConfig = GuidanceConfig(),
-    ) -> CTGPolicy:
-        model, _, _, kind = load_model(path)
-        if kind != "ctg":
-            raise CheckpointError(f"{path} holds a {kind!r} model, not CTG")
-        return cls(model, sampling, guidance, guidance_config)  # type: ignore[arg-type]
-
-    def sample_plans(self, obs: Observation) -> PlanSamples:
-        """N samples of every controlled vehicle's actions (see :meth:`DiffusionPolicy.sample_plans`)."""
+    def denoiser_for(self, obs: Observation) -> Denoiser:
+        """The CTG denoiser with this observation's rasters bound to it."""
         raster = observation_raster(obs, self.model.config.raster())
-        bound = RasterBound(self.model, raster)  # type: ignore[arg-type]
-        inner = DiffusionPolicy(bound, self.sampling, self.guidance, self.guidance_config)  # type: ignore[arg-type]
-        return inner.sample_plans(obs)
+        return RasterBound(self.model, raster)  # type: ignore[arg-type,return-value]

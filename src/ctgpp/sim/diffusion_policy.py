@@ -98,6 +98,11 @@ class DiffusionPolicy:
         model, _, _ = load_checkpoint(path)
         return cls(model, sampling, guidance, guidance_config)
 
+    def denoiser_for(self, obs: Observation) -> Denoiser:
+        """The denoiser that samples the plans of ``obs`` (the policy's model; a subclass may bind
+        per-observation inputs to it)."""
+        return self.model
+
     @torch.no_grad()
     def sample_plans(self, obs: Observation) -> PlanSamples:
         """Sample N joint futures (guided when the policy has a loss) and choose one per vehicle.
@@ -106,7 +111,8 @@ class DiffusionPolicy:
         guidance steps may use: autograd refuses inference tensors); only the guidance steps enable
         gradients.
         """
-        cfg = self.model.config
+        model = self.denoiser_for(obs)
+        cfg = model.config
         windows = WindowConfig(
             cfg.history_steps, cfg.future_steps, max_agents=len(obs.controlled), with_future=False
         )
@@ -114,15 +120,15 @@ class DiffusionPolicy:
         window = build_window(seen, obs.step, windows, agent_index=obs.controlled)
         n, v = self.sampling.num_samples, window.num_agents
         batch = collate([window])  # (1, V, ...): the N samples share one scene
-        context = self.model.encode_context(batch).expand(n)  # encoded once, (N, V, ...) views
+        context = model.encode_context(batch).expand(n)  # encoded once, (N, V, ...) views
         gen = torch.Generator().manual_seed(int(obs.rng.integers(2**31)))
         current = batch.hist[0, :, -1]  # (V, 4)
-        normalizer = self.model.normalizer
+        normalizer = model.normalizer
 
         def denoise(x: Tensor, k: int) -> Tensor:
             self.denoiser_calls += 1
             with torch.inference_mode():  # no autograd bookkeeping at all: cheaper than no_grad
-                out = self.model(x, torch.full((n,), k, dtype=torch.long), batch, context)
+                out = model(x, torch.full((n,), k, dtype=torch.long), batch, context)
             return out.clone()  # a normal tensor again, which the guidance steps may differentiate around
 
         objective = None
