@@ -91,12 +91,18 @@ class NoCollision(Rule):
         return (pen * w).sum((0, 2))
 
 
+def _reach(discs: Tensor, radius: Tensor) -> tuple[Tensor, Tensor]:
+    """Each vehicle's disc-set centre (B, N, T, 2) and the distance from it that its discs cover
+    (B, N, T) m: a bound for the cheap near-pair tests."""
+    centre = discs.mean(-2)
+    return centre, (discs - centre[..., None, :]).norm(dim=-1).amax(-1) + radius[:, None, None]
+
+
 def _near_pairs(discs: Tensor, radius: Tensor, buffer_m: float) -> tuple[Tensor, Tensor]:
     """The vehicle pairs (i < j) whose discs may overlap at some sample and step (a cheap bound on
     centre distances, without gradient): every other pair's penetration is exactly zero."""
     with torch.no_grad():
-        centre = discs.mean(-2)  # (B, N, T, 2)
-        reach = (discs - centre[..., None, :]).norm(dim=-1).amax(-1) + radius[:, None, None]  # (B, N, T)
+        centre, reach = _reach(discs, radius)
         d = (centre[:, None] - centre[None]).norm(dim=-1)  # (B, B, N, T)
         close = (d < reach[:, None] + reach[None] + buffer_m).flatten(2).any(-1)  # (B, B)
         i, j = torch.nonzero(torch.triu(close, diagonal=1), as_tuple=True)
@@ -111,8 +117,7 @@ def _near_obstacles(
     centre distances, without gradient): (P,) vehicle rows and (P,) obstacle rows; every other pair
     contributes nothing."""
     with torch.no_grad():
-        centre = discs.mean(-2)  # (B, N, T, 2)
-        reach_v = (discs - centre[..., None, :]).norm(dim=-1).amax(-1) + radius[:, None, None]  # (B, N, T)
+        centre, reach_v = _reach(discs, radius)
         reach_o = o_off.abs().amax(-1) + o_rad  # (O,)
         d = (centre[:, None] - o_xy[None, :, None]).norm(dim=-1)  # (B, O, N, T)
         close = (d < reach_v[:, None] + reach_o[None, :, None, None] + buffer_m) & o_valid[None, :, None]
