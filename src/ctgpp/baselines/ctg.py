@@ -20,6 +20,7 @@ from ctgpp.baselines.config import CTGConfig
 from ctgpp.baselines.encoders import HistoryEncoder, RasterEncoder
 from ctgpp.data.batch import SceneBatch
 from ctgpp.dynamics import clip_actions, rollout
+from ctgpp.model.denoiser import repeat_samples
 from ctgpp.model.embeddings import StepEmbedding
 from ctgpp.model.normalization import Normalizer
 
@@ -36,13 +37,9 @@ class CTGContext:
     cond: Tensor
 
     def expand(self, n: int) -> CTGContext:
-        """The context of a one-scene batch repeated for ``n`` samples: (1, ...) -> (n, ...) views."""
-        return CTGContext(
-            **{
-                f.name: getattr(self, f.name).expand(n, *getattr(self, f.name).shape[1:])
-                for f in fields(self)
-            }
-        )
+        """The context of S scenes for ``n`` samples each: (S, ...) -> (S*n, ...), scene-major (views
+        when S is 1), as :meth:`ctgpp.model.denoiser.DenoiserContext.expand`."""
+        return CTGContext(**{f.name: repeat_samples(getattr(self, f.name), n) for f in fields(self)})
 
 
 class ResBlock1d(nn.Module):

@@ -23,6 +23,14 @@ from ctgpp.model.lane_encoder import LaneEncoder
 from ctgpp.model.normalization import Normalizer
 
 
+def repeat_samples(value: Tensor, n: int) -> Tensor:
+    """(S, ...) -> (S*n, ...): each scene's row repeated for its ``n`` samples, scene-major; a view
+    when S is 1."""
+    if value.shape[0] == 1:
+        return value.expand(n, *value.shape[1:])
+    return value.repeat_interleave(n, dim=0)
+
+
 @dataclass(frozen=True, eq=False)
 class DenoiserContext:
     """What stays fixed across the denoising steps of one batch (computed once per sample call).
@@ -50,15 +58,9 @@ class DenoiserContext:
         each scene's among its samples.
         """
         shared = ("edges", "spatial_mask")
-
-        def grow(value: Tensor) -> Tensor:
-            if value.shape[0] == 1:
-                return value.expand(n, *value.shape[1:])
-            return value.repeat_interleave(n, dim=0)
-
         return DenoiserContext(
             **{
-                f.name: (value if f.name in shared else grow(value))
+                f.name: (value if f.name in shared else repeat_samples(value, n))
                 for f in fields(self)
                 for value in [getattr(self, f.name)]
             }
