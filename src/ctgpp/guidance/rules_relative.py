@@ -25,53 +25,49 @@ from ctgpp.guidance.base import GuidanceLoss, register_loss
 from ctgpp.guidance.rules_common import Rule, as_list, check_vehicle, time_weights, world_states
 
 
-class ForVehicles(GuidanceLoss):
-    """A loss applied only to some vehicles: ``loss`` evaluated with ``agt_mask`` selecting
-    ``vehicles`` (displayed numbers; and-ed with the caller's mask). "Vehicle 3 obeys a 10 m/s
-    limit" is ``ForVehicles(make_loss("speed_limit", limit_mps=10), vehicles=[3])``."""
+class _ForSomeVehicles(GuidanceLoss):
+    """A wrapper of ``loss`` that concerns some ``vehicles`` (displayed numbers) only."""
 
     def __init__(self, loss: GuidanceLoss, vehicles: int | Sequence[int]) -> None:
         super().__init__()
         self.loss = loss
         self.vehicles = [int(v) for v in as_list(vehicles)]
         if not self.vehicles:
-            raise ValueError("ForVehicles needs at least one vehicle")
+            raise ValueError(f"{type(self).__name__} needs at least one vehicle")
 
     @property
     def couples_agents(self) -> bool:  # type: ignore[override]
         return bool(self.loss.couples_agents)
 
-    def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
+    def rows(self, x: Tensor, data_batch: Any) -> Tensor:
+        """(B,) bool, True on the rows of x of ``vehicles``."""
         mask = torch.zeros(x.shape[0], dtype=torch.bool, device=x.device)
         for v in self.vehicles:
             mask[check_vehicle(v, data_batch, x.shape[0])] = True
+        return mask
+
+
+class ForVehicles(_ForSomeVehicles):
+    """A loss applied only to some vehicles: ``loss`` evaluated with ``agt_mask`` selecting
+    ``vehicles`` (displayed numbers; and-ed with the caller's mask). "Vehicle 3 obeys a 10 m/s
+    limit" is ``ForVehicles(make_loss("speed_limit", limit_mps=10), vehicles=[3])``."""
+
+    def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
+        mask = self.rows(x, data_batch)
         if agt_mask is not None:
             mask = mask & agt_mask.to(device=x.device, dtype=torch.bool)
         return self.loss(x, data_batch, mask)
 
 
-class SteerOnly(GuidanceLoss):
+class SteerOnly(_ForSomeVehicles):
     """A loss whose gradient reaches only the trajectories of ``vehicles`` (displayed numbers); every
     other vehicle's row of x is held as sampled. The cost is unchanged. "Vehicle 2 stays within 25 m
     of vehicle 0" steers vehicle 2 and lets vehicle 0 drive as the model samples it, rather than
     slowing it down to wait (and meet the traffic it would have passed):
     ``SteerOnly(make_loss("keep_distance", follower=2, leader=0, min_m=0, max_m=25), vehicles=[2])``."""
 
-    def __init__(self, loss: GuidanceLoss, vehicles: int | Sequence[int]) -> None:
-        super().__init__()
-        self.loss = loss
-        self.vehicles = [int(v) for v in as_list(vehicles)]
-        if not self.vehicles:
-            raise ValueError("SteerOnly needs at least one vehicle")
-
-    @property
-    def couples_agents(self) -> bool:  # type: ignore[override]
-        return bool(self.loss.couples_agents)
-
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
-        steered = torch.zeros(x.shape[0], dtype=torch.bool, device=x.device)
-        for v in self.vehicles:
-            steered[check_vehicle(v, data_batch, x.shape[0])] = True
+        steered = self.rows(x, data_batch)
         held = torch.where(steered[:, None, None, None], x, x.detach())  # (B, N, T, 6)
         return self.loss(held, data_batch, agt_mask)
 
