@@ -22,7 +22,7 @@ from ctgpp.model import (
     save_checkpoint,
     training_loss,
 )
-from ctgpp.model.attention import GatedSpatialAttention
+from ctgpp.model.attention import GatedSpatialAttention, softmax_last
 from ctgpp.scene.types import Scene
 
 TINY = ModelConfig(d_model=32, heads=2, blocks=1, edge_dim=8, lane_hidden=16)
@@ -256,6 +256,17 @@ def test_spatial_attention_matches_the_pairwise_formula(shared: bool) -> None:
         edges_s, mask_s = edges.expand(s, -1, -1, -1, -1), mask.expand(s, -1, -1, -1)
         slow = reference_spatial_attention(layer, x, edges_s, mask_s)
     torch.testing.assert_close(fast, slow, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("keys", [1, 8, 12, 16, 33])
+def test_softmax_last_equals_torch_softmax_with_masked_keys(keys: int) -> None:
+    torch.manual_seed(keys)
+    logits = 30 * torch.randn(2, 7, 3, keys, keys)  # large logits: the max must be subtracted
+    mask = (torch.rand(logits.shape) < 0.6) | torch.eye(keys, dtype=torch.bool)
+    logits = logits.masked_fill(~mask, float("-inf"))
+    weights = softmax_last(logits.clone())
+    torch.testing.assert_close(weights, torch.softmax(logits, dim=-1))
+    assert torch.isfinite(weights).all() and (weights[~mask] == 0).all()
 
 
 def test_context_of_several_scenes_expands_scene_major(scene_0103: Scene) -> None:

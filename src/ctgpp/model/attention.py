@@ -75,12 +75,14 @@ class GatedSpatialAttention(nn.Module):
         # the (S, T, h, A, A) tensors dominate for many agents: written once, then updated in place
         logits = q.permute(0, 1, 3, 2, 4) @ k.permute(0, 1, 3, 4, 2)  # (S, T, h, A_i, A_j)
         q_edge = torch.einsum("stihd,hde->stihe", q, self.key_edge)  # (S, T, A, h, E)
-        q_edge = q_edge.view(se, r, t, a, heads, -1).permute(0, 2, 3, 5, 1, 4)  # (Se, T, A, E, r, h)
-        edge_logits = edges @ q_edge.reshape(se, t, a, -1, r * heads)  # (Se, T, A_i, A_j, r*h)
-        edge_logits = edge_logits.view(se, t, a, a, r, heads).permute(0, 4, 1, 5, 2, 3)  # (Se, r, T, h, A, A)
+        # (Se, T, A, r*h, E): E stays innermost, so this copy is cheap (E outside made it 10× dearer)
+        q_edge = q_edge.view(se, r, t, a, heads, -1).permute(0, 2, 3, 1, 4, 5)
+        q_edge = q_edge.reshape(se, t, a, r * heads, -1)
+        edge_logits = q_edge @ edges.transpose(-1, -2)  # (Se, T, A_i, r*h, A_j)
+        edge_logits = edge_logits.view(se, t, a, r, heads, a).permute(0, 3, 1, 4, 2, 5)  # (Se, r, T, h, A, A)
         logits.view(se, r, t, heads, a, a).add_(edge_logits)
         logits.view(se, r, t, heads, a, a).masked_fill_(~mask[:, None, :, None], float("-inf"))
-        weights = self.dropout(torch.softmax(logits, dim=-1))  # (S, T, h, A_i, A_j)
+        weights = self.dropout(softmax_last(logits))  # (S, T, h, A_i, A_j)
         msg = (weights @ v.permute(0, 1, 3, 2, 4)).permute(0, 1, 3, 2, 4)  # (S, T, A, h, dh)
         w = weights.view(se, r, t, heads, a, a).permute(0, 2, 4, 1, 3, 5).reshape(se, t, a, r * heads, a)
         edge_msg = (w @ edges).view(se, t, a, r, heads, -1).permute(0, 3, 1, 2, 4, 5)  # (Se, r, T, A, h, E)
@@ -89,6 +91,22 @@ class GatedSpatialAttention(nn.Module):
         msg = self.out(msg.reshape(s, t, a, d))
         g = torch.sigmoid(self.gate(torch.cat([h, msg], dim=-1)))
         return g * msg + (1 - g) * x
+
+
+SMALL_SOFTMAX = 16  # below this many keys, PyTorch's CPU softmax kernel is the slow one
+
+
+def softmax_last(logits: Tensor) -> Tensor:
+    """Softmax over the last dimension, equal to ``torch.softmax(logits, -1)`` up to round-off.
+
+    With fewer than 16 keys (a scene of 8 or 12 vehicles) PyTorch's CPU softmax kernel takes ~20 ns per
+    element, 5× its cost at 16 keys; five elementwise passes (max, subtract, exp, sum, divide) are then
+    ~3× faster (BENCHMARKS.md, Speed). They work in place, so autograd keeps ``torch.softmax``.
+    """
+    if logits.shape[-1] >= SMALL_SOFTMAX or logits.requires_grad:
+        return torch.softmax(logits, dim=-1)
+    e = (logits - logits.amax(dim=-1, keepdim=True)).exp_()
+    return e.div_(e.sum(dim=-1, keepdim=True))
 
 
 def masked_softmax(logits: Tensor, mask: Tensor, dim: int) -> Tensor:
