@@ -121,36 +121,124 @@ def _states_in_own_frame(
 
 
 def _agent_lanes(scene: Scene, pose: np.ndarray, config: WindowConfig) -> tuple[np.ndarray, np.ndarray]:
-    """Each agent's nearest lanes, resampled to P points in its frame: (A, L, P, 4) and (A, L, P)."""
-    n_agents, n_lanes, n_points = pose.shape[0], config.max_lanes, config.lane_points
-    out = np.zeros((n_agents, n_lanes, n_points, 4), dtype=np.float32)
-    valid = np.zeros((n_agents, n_lanes, n_points), dtype=bool)
+    """Each agent's nearest lanes, resampled to P points in its frame: (A, L, P, 4) and (A, L, P).
+
+    A lane is near when one of its points lies within ``lane_radius_m`` of the agent; the L nearest
+    fill the slots, nearest first. Each keeps the stretch from its first to its last point within the
+    radius, resampled equally in arc length, with the lane direction from finite differences.
+
+    Points travel as (2, ...) arrays, x and y apart: numpy is slow on a trailing axis of two.
+    """
+    n_agents, n_points, radius = pose.shape[0], config.lane_points, config.lane_radius_m
+    out = np.zeros((n_agents, config.max_lanes, n_points, 4), dtype=np.float32)
+    valid = np.zeros((n_agents, config.max_lanes, n_points), dtype=bool)
     lanes = scene.lanes
     if lanes.num_lanes == 0 or n_agents == 0:
         return out, valid
-    points = lanes.points  # (Pt, 2)
-    dist = np.linalg.norm(points[None] - pose[:, None, :2], axis=-1)  # (A, Pt)
-    lane_dist = np.minimum.reduceat(dist, lanes.offsets[:-1], axis=1)  # (A, Lt)
-    for i in range(n_agents):
-        near = np.flatnonzero(lane_dist[i] < config.lane_radius_m)
-        near = near[np.argsort(lane_dist[i, near])][:n_lanes]
-        for slot, lane in enumerate(near):
-            lo, hi = lanes.offsets[lane], lanes.offsets[lane + 1]
-            inside = np.flatnonzero(dist[i, lo:hi] < config.lane_radius_m)
-            line = points[lo + inside.min() : lo + inside.max() + 1]
-            pts = _resample(line, n_points)
-            local = world_to_local(pts, pose[i, :2], pose[i, 2])
-            direction = np.gradient(local, axis=0) if len(local) > 1 else np.array([[1.0, 0.0]])
-            direction /= np.maximum(np.linalg.norm(direction, axis=-1, keepdims=True), 1e-6)
-            out[i, slot] = np.concatenate([local, direction], axis=-1)
-            valid[i, slot] = True
+    points = np.ascontiguousarray(lanes.points.T)  # (2, Pt)
+    agent_xy = np.ascontiguousarray(pose[:, :2].T)  # (2, A)
+    cand = _lanes_in_reach(points, lanes.offsets, agent_xy, radius)  # (C,) lane indices
+    if len(cand) == 0:
+        return out, valid
+    # The candidate lanes' points only, lane after lane (Q of them): a lane's distance is the same as
+    # over all the points of the scene, and a lane left out is farther than the radius from every agent.
+    lens = lanes.offsets[cand + 1] - lanes.offsets[cand]  # (C,)
+    sub_offsets = np.concatenate([[0], np.cumsum(lens)[:-1]])  # (C,)
+    point_idx = np.repeat(lanes.offsets[cand] - sub_offsets, lens) + np.arange(lens.sum())  # (Q,)
+    dist = _norm(np.take(points, point_idx, axis=1)[:, None] - agent_xy[..., None])  # (A, Q)
+    lane_dist = np.minimum.reduceat(dist, sub_offsets, axis=1)  # (A, C)
+    inside, pos = dist < radius, np.arange(dist.shape[1])
+    first = np.minimum.reduceat(np.where(inside, pos, dist.shape[1]), sub_offsets, axis=1)  # (A, C)
+    last = np.maximum.reduceat(np.where(inside, pos, -1), sub_offsets, axis=1)  # (A, C)
+    agent, slot, lane = _nearest_lanes(lane_dist, radius, config.max_lanes)  # (K,) each
+    if len(agent) == 0:
+        return out, valid
+    start = point_idx[first[agent, lane]]  # (K,) into lanes.points: the stretches are contiguous
+    length = last[agent, lane] - first[agent, lane] + 1  # (K,)
+    pts = np.stack(_resample(points, start, length, n_points), axis=-1)  # (K, P, 2)
+    local = world_to_local(pts, pose[agent, None, :2], pose[agent, None, 2])  # (K, P, 2)
+    if n_points > 1:
+        direction = np.gradient(local, axis=1)
+    else:
+        direction = np.broadcast_to(np.array([1.0, 0.0]), local.shape)
+    direction = direction / np.maximum(_norm(np.moveaxis(direction, -1, 0)), 1e-6)[..., None]
+    out[agent, slot] = np.concatenate([local, direction], axis=-1)
+    valid[agent, slot] = True
     return out, valid
 
 
-def _resample(line: np.ndarray, n: int) -> np.ndarray:
-    """(m, 2) polyline -> (n, 2) points equally spaced in arc length."""
-    if len(line) == 1:
-        return np.repeat(line, n, axis=0)
-    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(line, axis=0), axis=-1))])
-    target = np.linspace(0.0, s[-1], n)
-    return np.stack([np.interp(target, s, line[:, 0]), np.interp(target, s, line[:, 1])], axis=-1)
+def _lanes_in_reach(points: np.ndarray, offsets: np.ndarray, xy: np.ndarray, radius: float) -> np.ndarray:
+    """Indices (C,) of the lanes whose bounding box comes within ``radius`` of one of the agents.
+
+    points: (2, Pt) lane points, lane i at ``offsets[i]:offsets[i + 1]``; xy: (2, A). The distance to
+    the box is a lower bound of every lane point's distance, in floating point too (each step is
+    monotonic), so no lane with a point within the radius is left out.
+    """
+    lo = np.minimum.reduceat(points, offsets[:-1], axis=1)  # (2, L)
+    hi = np.maximum.reduceat(points, offsets[:-1], axis=1)  # (2, L)
+    gap = np.maximum(np.maximum(lo[:, None] - xy[..., None], xy[..., None] - hi[:, None]), 0.0)  # (2, A, L)
+    return np.flatnonzero((_norm(gap) < radius).any(axis=0))
+
+
+def _nearest_lanes(
+    lane_dist: np.ndarray, radius: float, max_lanes: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each agent's lanes within ``radius``, nearest first, at most ``max_lanes``.
+
+    lane_dist: (A, C) -> agent, slot, lane: (K,) each, lane indexing the columns of ``lane_dist``.
+    """
+    near = [np.flatnonzero(row < radius) for row in lane_dist]
+    lane = [n[np.argsort(row[n])][:max_lanes] for n, row in zip(near, lane_dist, strict=True)]
+    count = np.array([len(n) for n in lane])  # (A,)
+    agent = np.repeat(np.arange(len(lane_dist)), count)
+    slot = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
+    return agent, slot, np.concatenate(lane)
+
+
+def _resample(
+    points: np.ndarray, start: np.ndarray, length: np.ndarray, n: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Polylines ``points[:, start[k] : start[k] + length[k]]`` of (2, Pt) -> x, y (K, n) of n points
+    equally spaced in arc length.
+
+    Row by row the numbers of ``np.interp`` over the cumulative arc length at ``np.linspace(0, total,
+    n)``; a one-point polyline repeats its point.
+    """
+    n_rows, width = len(start), int(length.max()) + 1  # a spare column: every segment has an end
+    col = np.arange(width)
+    line = np.take(points, start[:, None] + np.minimum(col, length[:, None] - 1), axis=1)  # (2, K, W)
+    seg = _norm(np.diff(line, axis=-1))  # (K, W-1), zero past the end
+    s = np.concatenate([np.zeros((n_rows, 1)), np.cumsum(seg, axis=1)], axis=1)  # (K, W) arc length
+    s = np.where(col < length[:, None], s, np.inf)
+    total = s[np.arange(n_rows), length - 1]  # (K,)
+    target = np.arange(n) * (total / max(n - 1, 1))[:, None]  # (K, n)
+    if n > 1:
+        target[:, -1] = total
+    j = _segment_of(s, target)  # (K, n)
+    flat = j + width * np.arange(n_rows)[:, None]  # (K, n) into the rows laid end to end
+    s0, s1 = s.ravel()[flat], s.ravel()[flat + 1]
+    f0 = np.take(line.reshape(2, -1), flat, axis=1)  # (2, K, n)
+    f1 = np.take(line.reshape(2, -1), flat + 1, axis=1)
+    on_point = (j == length[:, None] - 1) | (s0 == target)  # np.interp takes the point itself there
+    x, y = np.where(on_point, f0, (f1 - f0) / (s1 - s0) * (target - s0) + f0)
+    return x, y
+
+
+def _segment_of(s: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Indices j (K, n) with ``s[k, j] <= t[k, i] < s[k, j + 1]``, for non-decreasing rows s (K, W), t (K, n).
+
+    One search for all the rows: numpy orders complex numbers by real part, then imaginary part, so
+    the keys (row, s) laid end to end are sorted.
+    """
+    row = np.arange(len(s))[:, None]
+    keys = np.empty(s.shape, dtype=complex)
+    keys.real, keys.imag = row, s
+    queries = np.empty(t.shape, dtype=complex)
+    queries.real, queries.imag = row, t
+    found = np.searchsorted(keys.ravel(), queries.ravel(), side="right").reshape(t.shape)  # (K, n)
+    return found - row * s.shape[1] - 1
+
+
+def _norm(v: np.ndarray) -> np.ndarray:
+    """Lengths (...) of vectors (2, ...) given as x, y: the numbers of ``np.linalg.norm`` over x, y."""
+    return np.sqrt(v[0] * v[0] + v[1] * v[1])
