@@ -76,14 +76,14 @@ class NoCollision(Rule):
         o_xy = data_batch.obstacles_xy[:, :n_t].to(x)  # (O, T, 2)
         o_valid = data_batch.obstacles_valid[:, :n_t].to(x.device)
         o_off, o_rad = disc_layout(data_batch.obstacles_extent.to(x))  # (O, D), (O,)
-        vi, oi = _near_obstacles(discs, radius, o_xy, o_valid, o_off, o_rad, self.buffer_m)  # (P,), (P,)
+        o_yaw = data_batch.obstacles_yaw[:, :n_t].to(x)
+        o_discs = disc_centres(o_xy, o_yaw, o_off[:, None])  # (O, T, D, 2): replayed, no gradient
+        vi, oi = _near_obstacles(discs, radius, o_discs, o_valid, o_rad, self.buffer_m)  # (P,), (P,)
         if vi.numel() == 0:
             return x.new_zeros(x.shape[1])
-        o_yaw = data_batch.obstacles_yaw[oi, :n_t].to(x)
-        o_discs = disc_centres(o_xy[oi], o_yaw, o_off[oi, None])  # (P, T, D, 2)
         # vehicle vi's discs (P, N, T, D, 2) against obstacle oi's (P, 1, T, D, 2)
         pen = _penetration(
-            discs[vi], radius[vi, None, None], o_discs[:, None], o_rad[oi, None, None], self.buffer_m
+            discs[vi], radius[vi, None, None], o_discs[oi, None], o_rad[oi, None, None], self.buffer_m
         )  # (P, N, T)
         pen = pen * o_valid[oi][:, None, :]
         if agt_mask is not None:
@@ -91,38 +91,45 @@ class NoCollision(Rule):
         return (pen * w).sum((0, 2))
 
 
-def _reach(discs: Tensor, radius: Tensor) -> tuple[Tensor, Tensor]:
-    """Each vehicle's disc-set centre (B, N, T, 2) and the distance from it that its discs cover
-    (B, N, T) m: a bound for the cheap near-pair tests."""
-    centre = discs.mean(-2)
-    return centre, (discs - centre[..., None, :]).norm(dim=-1).amax(-1) + radius[:, None, None]
+def _boxes(discs: Tensor, radius: Tensor, valid: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """Axis-aligned boxes (lo, hi), each (B, 2) m, covering every disc of each of B agents over all
+    samples and steps: discs (B, ..., D, 2), radius (B,), valid (B, T) or None (steps an invalid
+    agent is not at are left out; an agent never valid gets an empty box)."""
+    with torch.no_grad():
+        r = radius.reshape(-1, *[1] * (discs.ndim - 1))
+        lo, hi = discs - r, discs + r
+        if valid is not None:
+            keep = valid.reshape(*valid.shape, *[1] * (discs.ndim - valid.ndim))
+            lo = torch.where(keep, lo, torch.full_like(lo, float("inf")))
+            hi = torch.where(keep, hi, torch.full_like(hi, float("-inf")))
+        return lo.flatten(1, -2).amin(1), hi.flatten(1, -2).amax(1)
+
+
+def _overlap(lo_a: Tensor, hi_a: Tensor, lo_b: Tensor, hi_b: Tensor, buffer_m: float) -> Tensor:
+    """(A, B) bool: box a and box b come within ``buffer_m`` of each other (boxes (A, 2), (B, 2))."""
+    gap_ab = lo_b[None] - hi_a[:, None]  # (A, B, 2): > 0 where b lies beyond a
+    gap_ba = lo_a[:, None] - hi_b[None]
+    return (torch.maximum(gap_ab, gap_ba) < buffer_m).all(-1)
 
 
 def _near_pairs(discs: Tensor, radius: Tensor, buffer_m: float) -> tuple[Tensor, Tensor]:
-    """The vehicle pairs (i < j) whose discs may overlap at some sample and step (a cheap bound on
-    centre distances, without gradient): every other pair's penetration is exactly zero."""
-    with torch.no_grad():
-        centre, reach = _reach(discs, radius)
-        d = (centre[:, None] - centre[None]).norm(dim=-1)  # (B, B, N, T)
-        close = (d < reach[:, None] + reach[None] + buffer_m).flatten(2).any(-1)  # (B, B)
-        i, j = torch.nonzero(torch.triu(close, diagonal=1), as_tuple=True)
-    return i, j
+    """The vehicle pairs (i < j) whose discs may overlap at some sample and step: those whose boxes
+    over the whole horizon (:func:`_boxes`) do. Every other pair's penetration is exactly zero, and the
+    box test costs a few operations on (B, B): no (B, B, N, T) distances, no gradient."""
+    lo, hi = _boxes(discs, radius)
+    close = _overlap(lo, hi, lo, hi, buffer_m)
+    return torch.nonzero(torch.triu(close, diagonal=1), as_tuple=True)
 
 
 def _near_obstacles(
-    discs: Tensor, radius: Tensor, o_xy: Tensor, o_valid: Tensor, o_off: Tensor, o_rad: Tensor,
-    buffer_m: float,
+    discs: Tensor, radius: Tensor, o_discs: Tensor, o_valid: Tensor, o_rad: Tensor, buffer_m: float
 ) -> tuple[Tensor, Tensor]:
-    """The (vehicle, obstacle) pairs whose discs may overlap at some sample and step (a cheap bound on
-    centre distances, without gradient): (P,) vehicle rows and (P,) obstacle rows; every other pair
+    """The (vehicle, obstacle) pairs whose discs may overlap at some sample and step (boxes over the
+    horizon, as :func:`_near_pairs`): (P,) vehicle rows and (P,) obstacle rows; every other pair
     contributes nothing."""
-    with torch.no_grad():
-        centre, reach_v = _reach(discs, radius)
-        reach_o = o_off.abs().amax(-1) + o_rad  # (O,)
-        d = (centre[:, None] - o_xy[None, :, None]).norm(dim=-1)  # (B, O, N, T)
-        close = (d < reach_v[:, None] + reach_o[None, :, None, None] + buffer_m) & o_valid[None, :, None]
-        vi, oi = torch.nonzero(close.flatten(2).any(-1), as_tuple=True)  # (B, O) -> pairs
-    return vi, oi
+    lo_v, hi_v = _boxes(discs, radius)
+    lo_o, hi_o = _boxes(o_discs, o_rad, o_valid)
+    return torch.nonzero(_overlap(lo_v, hi_v, lo_o, hi_o, buffer_m), as_tuple=True)
 
 
 def _pair_distance(x: Tensor, data_batch: GuidanceBatch, a: int, b: int) -> Tensor:
