@@ -22,7 +22,7 @@ from ctgpp.model import (
     save_checkpoint,
     training_loss,
 )
-from ctgpp.model.attention import GatedSpatialAttention, softmax_last
+from ctgpp.model.attention import GatedSpatialAttention, MaskedAttention, softmax_last
 from ctgpp.scene.types import Scene
 
 TINY = ModelConfig(d_model=32, heads=2, blocks=1, edge_dim=8, lane_hidden=16)
@@ -256,6 +256,23 @@ def test_spatial_attention_matches_the_pairwise_formula(shared: bool) -> None:
         edges_s, mask_s = edges.expand(s, -1, -1, -1, -1), mask.expand(s, -1, -1, -1)
         slow = reference_spatial_attention(layer, x, edges_s, mask_s)
     torch.testing.assert_close(fast, slow, rtol=1e-5, atol=1e-5)
+
+
+def test_folded_keys_attend_as_the_attention_itself() -> None:
+    """Folding fixed keys into the projections changes nothing: outputs and gradients are equal,
+    rows without keys included (they get zeros)."""
+    torch.manual_seed(2)
+    layer = MaskedAttention(16, 4)
+    query, context = torch.randn(5, 9, 16, requires_grad=True), torch.randn(5, 6, 16)
+    mask = torch.rand(5, 6) < 0.5
+    mask[0], mask[1] = False, True  # a row with no key at all, a row with every key
+    want = layer(query, context, mask)
+    got = layer.attend(query, layer.fold(context, mask))
+    torch.testing.assert_close(got, want)
+    assert (got[0] == 0).all()
+    (g_want,) = torch.autograd.grad(want.square().sum(), query)
+    (g_got,) = torch.autograd.grad(got.square().sum(), query)
+    torch.testing.assert_close(g_got, g_want)
 
 
 @pytest.mark.parametrize("keys", [1, 8, 12, 16, 33])

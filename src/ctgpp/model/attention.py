@@ -6,17 +6,41 @@ receive a zero message, never NaN.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from dataclasses import dataclass, fields
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
 
+@dataclass(frozen=True, eq=False)
+class FoldedKeys:
+    """Fixed keys and values of a :class:`MaskedAttention`, folded into its query and output
+    projections (:meth:`MaskedAttention.fold`): attending over them is then two matmuls.
+
+    logit (..., d, h*Tk) maps a query to its logits; bias (..., h*Tk) adds the query bias's part and
+    −inf at masked keys; value (..., h*Tk, d) is each key's value already through the output
+    projection; has_key (...) bool. The leading dimensions are the rows (B) or (S, A).
+    """
+
+    logit: Tensor
+    bias: Tensor
+    value: Tensor
+    has_key: Tensor
+
+    def map(self, fn: Callable[[Tensor], Tensor]) -> FoldedKeys:
+        """``fn`` applied to every tensor (e.g. to reshape or repeat the leading dimensions)."""
+        return FoldedKeys(**{f.name: fn(getattr(self, f.name)) for f in fields(self)})
+
+
 class MaskedAttention(nn.Module):
     """Multi-head attention of queries (B, Tq, d) over keys/values (B, Tk, d).
 
     ``key_mask`` (B, Tk) bool is True for keys that may be attended to; a query whose keys are all
-    masked gets a zero output.
+    masked gets a zero output. Keys that stay fixed over many calls (the lane tokens of the map
+    attention across denoising steps) can be folded once (:meth:`fold`) and attended with
+    :meth:`attend`: the same result without the per-call key, query and output projections.
     """
 
     def __init__(self, d_model: int, heads: int, dropout: float = 0.0) -> None:
@@ -38,6 +62,35 @@ class MaskedAttention(nn.Module):
         att = F.scaled_dot_product_attention(q, k, v, attn_mask=safe, dropout_p=drop)  # (B, h, Tq, dh)
         att = att.transpose(1, 2).reshape(b, tq, d)
         return self.out(att) * has_key[:, None, None].to(att.dtype)
+
+    def fold(self, context: Tensor, key_mask: Tensor) -> FoldedKeys:
+        """Fold keys/values (B, Tk, d) with ``key_mask`` (B, Tk) for :meth:`attend`.
+
+        Head h's logit of query x at key l is (W_q,h x + b_q,h) · k_h,l / sqrt(dh) = x · M_h,l + c_h,l
+        and the output is Σ_h W_o,h Σ_l w_h,l v_h,l + b_o = Σ_h,l w_h,l U_h,l + b_o, with
+        M = W_q,hᵀ k / sqrt(dh), c = b_q,h · k / sqrt(dh) and U = W_o,h v precomputed here.
+        """
+        b, tk, d = context.shape
+        heads, dh = self.heads, d // self.heads
+        k, v = self.kv(context).view(b, tk, 2, heads, dh).unbind(dim=2)  # (B, Tk, h, dh)
+        scale = 1 / math.sqrt(dh)
+        logit = torch.einsum("blhe,hed->bdhl", k, self.q.weight.view(heads, dh, d)) * scale
+        bias = torch.einsum("blhe,he->bhl", k, self.q.bias.view(heads, dh)) * scale  # (B, h, Tk)
+        has_key = key_mask.any(dim=-1)  # (B,)
+        safe = key_mask | ~has_key[:, None]  # a row without keys attends to all, then is zeroed
+        bias = bias.masked_fill(~safe[:, None, :], float("-inf"))
+        value = torch.einsum("blhe,dhe->bhld", v, self.out.weight.view(d, heads, dh))  # (B, h, Tk, d)
+        return FoldedKeys(logit.reshape(b, d, -1), bias.reshape(b, -1), value.reshape(b, -1, d), has_key)
+
+    def attend(self, query: Tensor, keys: FoldedKeys) -> Tensor:
+        """``forward(query, context, key_mask)`` for the folded ``keys = fold(context, key_mask)``:
+        query (B, Tq, d) -> (B, Tq, d)."""
+        b, tq, d = query.shape
+        logits = torch.baddbmm(keys.bias[:, None, :], query, keys.logit)  # (B, Tq, h*Tk)
+        weights = softmax_last(logits.view(b, tq, self.heads, -1))  # per head over its Tk keys
+        weights = F.dropout(weights, self.dropout, self.training).view(b, tq, -1)
+        out = torch.baddbmm(self.out.bias, weights, keys.value)  # (B, Tq, d)
+        return out * keys.has_key[:, None, None].to(out.dtype)
 
 
 class GatedSpatialAttention(nn.Module):

@@ -15,7 +15,7 @@ from torch import Tensor, nn
 
 from ctgpp.data.batch import SceneBatch
 from ctgpp.dynamics import clip_actions, rollout
-from ctgpp.model.attention import GatedSpatialAttention, MaskedAttention
+from ctgpp.model.attention import FoldedKeys, GatedSpatialAttention, MaskedAttention
 from ctgpp.model.config import ModelConfig
 from ctgpp.model.embeddings import RowFFN, StepEmbedding, TimeEmbedding
 from ctgpp.model.inputs import AgentInputs, edge_features, prepare_inputs
@@ -37,7 +37,8 @@ class DenoiserContext:
 
     agent_mask (S, A); current (S, A, 4) current states in the input frame; hist_tokens (S, A, H, d);
     token_valid (S, A, H+F); edges (S or 1, H+F, A, A, E) embedded e_ij; spatial_mask (S or 1, H+F, A, A);
-    lane_tokens (S, A, L, d); lane_valid (S, A, L).
+    map_keys: per block, each agent's L lane tokens folded into that block's map attention
+    (:class:`FoldedKeys` with leading dimensions (S, A)).
     """
 
     agent_mask: Tensor
@@ -46,8 +47,7 @@ class DenoiserContext:
     token_valid: Tensor
     edges: Tensor
     spatial_mask: Tensor
-    lane_tokens: Tensor
-    lane_valid: Tensor
+    map_keys: tuple[FoldedKeys, ...]
 
     def expand(self, n: int) -> DenoiserContext:
         """The context of S scenes for ``n`` samples each: (S, ...) -> (S*n, ...), scene-major rows
@@ -57,13 +57,13 @@ class DenoiserContext:
         ``edges`` and ``spatial_mask``, the largest, keep their S rows: the spatial attention shares
         each scene's among its samples.
         """
-        shared = ("edges", "spatial_mask")
+        shared = ("edges", "spatial_mask", "map_keys")
+        expanded = {
+            f.name: repeat_samples(getattr(self, f.name), n) for f in fields(self) if f.name not in shared
+        }
+        map_keys = tuple(keys.map(lambda value: repeat_samples(value, n)) for keys in self.map_keys)
         return DenoiserContext(
-            **{
-                f.name: (value if f.name in shared else repeat_samples(value, n))
-                for f in fields(self)
-                for value in [getattr(self, f.name)]
-            }
+            **expanded, edges=self.edges, spatial_mask=self.spatial_mask, map_keys=map_keys
         )
 
 
@@ -81,14 +81,15 @@ class Block(nn.Module):
             nn.Linear(d, config.ffn_mult * d), nn.GELU(), nn.Dropout(p), nn.Linear(config.ffn_mult * d, d)
         )
 
-    def forward(self, x: Tensor, ctx: DenoiserContext) -> Tensor:
+    def forward(self, x: Tensor, ctx: DenoiserContext, map_keys: FoldedKeys) -> Tensor:
+        """x (S, A, T, d); ``map_keys`` this block's folded lane tokens (leading dimensions (S, A))."""
         s, a, t, d = x.shape
         h = self.temporal_norm(x).reshape(s * a, t, d)  # (S, A, T, d) -> (S*A, T, d)
         x = x + self.temporal(h, h, ctx.token_valid.reshape(s * a, t)).view(s, a, t, d)
         x = self.spatial(x.transpose(1, 2), ctx.edges, ctx.spatial_mask).transpose(1, 2)  # via (S, T, A, d)
         h = self.map_norm(x).reshape(s * a, t, d)
-        lanes = ctx.lane_tokens.reshape(s * a, -1, d)  # (S, A, L, d) -> (S*A, L, d)
-        x = x + self.map(h, lanes, ctx.lane_valid.reshape(s * a, -1)).view(s, a, t, d)
+        lanes = map_keys.map(lambda value: value.reshape(s * a, *value.shape[2:]))  # rows (S*A)
+        x = x + self.map.attend(h, lanes).view(s, a, t, d)
         return x + self.ffn(self.ffn_norm(x))
 
 
@@ -134,8 +135,17 @@ class Denoiser(nn.Module):
             token_valid=torch.cat([inputs.hist_valid, future_valid], dim=-1),
             edges=edges,
             spatial_mask=spatial_mask,
-            lane_tokens=lane_tokens,
-            lane_valid=lane_valid,
+            map_keys=self._fold_lanes(lane_tokens, lane_valid),
+        )
+
+    def _fold_lanes(self, lane_tokens: Tensor, lane_valid: Tensor) -> tuple[FoldedKeys, ...]:
+        """Each block's map-attention keys from the lane tokens (S, A, L, d) and their mask (S, A, L):
+        encoded once per batch, as they do not change across denoising steps."""
+        s, a, n_lanes, d = lane_tokens.shape
+        tokens, valid = lane_tokens.reshape(s * a, n_lanes, d), lane_valid.reshape(s * a, n_lanes)
+        return tuple(
+            block.map.fold(tokens, valid).map(lambda value: value.reshape(s, a, *value.shape[1:]))
+            for block in self.blocks
         )
 
     def forward(
@@ -160,7 +170,7 @@ class Denoiser(nn.Module):
         x = torch.cat([ctx.hist_tokens, fut_tokens], dim=2)  # (S, A, H+F, d)
         k_t = torch.as_tensor(k, device=x.device).long().expand(x.shape[0])  # (S,)
         x = x + self.time_emb()[None, None] + self.step_emb(k_t)[:, None, None]
-        for block in self.blocks:
-            x = block(x, ctx)
+        for block, map_keys in zip(self.blocks, ctx.map_keys, strict=True):
+            x = block(x, ctx, map_keys)
         out = self.out(self.out_norm(x[:, :, self.config.history_steps :]))  # (S, A, F, 2)
         return torch.where(mask, out, torch.zeros_like(out))
