@@ -175,3 +175,16 @@ def test_no_collision_over_near_pairs_equals_all_pairs(
     want = want + (o_pen * batch.obstacles_valid[None, :, None, :n_t] * w).sum((0, 1, 3))  # (B, O, N, T)
     assert batch.num_obstacles > 0
     torch.testing.assert_close(loss(x, batch), want)
+
+
+def test_no_collision_keeps_the_replayed_discs_of_one_batch_only(
+    batch: GuidanceBatch, x: torch.Tensor
+) -> None:
+    """The replayed agents' discs are kept across the calls on one batch, never reused for another."""
+    loss = make_loss("no_collision")
+    moved = replace(batch, obstacles_xy=batch.obstacles_xy + torch.tensor([0.7, -0.4]))
+    first = loss(x, batch)
+    second = loss(x, moved)
+    torch.testing.assert_close(second, make_loss("no_collision")(x, moved))
+    assert not torch.equal(first, second)
+    torch.testing.assert_close(loss(x, batch), first)

@@ -6,6 +6,7 @@ one sample index for the whole scene. Vehicle arguments are displayed numbers (r
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import torch
@@ -48,47 +49,60 @@ class NoCollision(Rule):
         super().__init__()
         self.buffer_m = float(buffer_m)
         self.decay = float(decay)
+        self._replayed_of: tuple[GuidanceBatch, int, torch.dtype, _Replayed] | None = None
 
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
-        n_t = x.shape[2]
+        n, n_t = x.shape[1], x.shape[2]
         pos, yaw = world_states(x, data_batch)  # (B, N, T, 2), (B, N, T)
         offsets, radius = disc_layout(data_batch.extent.to(x))  # (B, D), (B,)
         discs = disc_centres(pos, yaw, offsets[:, None, None])  # (B, N, T, D, 2)
-        w = time_weights(n_t, self.decay, x)  # (T,)
-        i, j = _near_pairs(discs, radius, self.buffer_m)  # (P,), (P,) with i < j; far pairs cost 0
+        lo, hi = _boxes(discs, radius)
+        # the pairs that may touch (boxes over the horizon): vehicle i < j, vehicle vi and replayed oi
+        i, j = torch.nonzero(torch.triu(_overlap(lo, hi, lo, hi, self.buffer_m), diagonal=1), as_tuple=True)
+        replayed = self._replayed(data_batch, n_t, x)
+        vi, oi = torch.nonzero(_overlap(lo, hi, replayed.lo, replayed.hi, self.buffer_m), as_tuple=True)
+        if len(i) + len(vi) == 0:  # nothing near: the cost is 0 whatever x
+            return x.new_zeros(n)
+        # one penetration over both kinds of pairs: (P, N, T) with P = vehicle pairs + replayed pairs
         pen = _penetration(
-            discs[i], radius[i, None, None], discs[j], radius[j, None, None], self.buffer_m
-        )  # (P, N, T)
+            torch.cat([discs[i], discs[vi]]),
+            torch.cat([radius[i], radius[vi]])[:, None, None],
+            torch.cat([discs[j], replayed.discs[oi, None].expand(-1, n, -1, -1, -1)]),
+            torch.cat([radius[j], replayed.radius[oi]])[:, None, None],
+            self.buffer_m,
+        )
+        pen = pen * torch.cat([x.new_ones(len(i), n_t), replayed.valid[oi]])[:, None]  # replayed: when logged
         if agt_mask is not None:
             m = agt_mask.to(x)
-            pen = pen * torch.maximum(m[i], m[j])[:, None, None]
-        cost = (pen * w).sum((0, 2))  # (N,): each pair once
-        return cost + self._obstacles(discs, radius, w, data_batch, x, agt_mask)
+            pen = pen * torch.cat([torch.maximum(m[i], m[j]), m[vi]])[:, None, None]
+        return (pen * time_weights(n_t, self.decay, x)).sum((0, 2))  # (N,): each pair once
 
-    def _obstacles(
-        self, discs: Tensor, radius: Tensor, w: Tensor, data_batch: GuidanceBatch, x: Tensor,
-        agt_mask: Tensor | None,
-    ) -> Tensor:
-        """Penetration into the replayed agents, (N,)."""
-        if data_batch.num_obstacles == 0:
-            return x.new_zeros(x.shape[1])
-        n_t = x.shape[2]
-        o_xy = data_batch.obstacles_xy[:, :n_t].to(x)  # (O, T, 2)
-        o_valid = data_batch.obstacles_valid[:, :n_t].to(x.device)
-        o_off, o_rad = disc_layout(data_batch.obstacles_extent.to(x))  # (O, D), (O,)
-        o_yaw = data_batch.obstacles_yaw[:, :n_t].to(x)
-        o_discs = disc_centres(o_xy, o_yaw, o_off[:, None])  # (O, T, D, 2): replayed, no gradient
-        vi, oi = _near_obstacles(discs, radius, o_discs, o_valid, o_rad, self.buffer_m)  # (P,), (P,)
-        if vi.numel() == 0:
-            return x.new_zeros(x.shape[1])
-        # vehicle vi's discs (P, N, T, D, 2) against obstacle oi's (P, 1, T, D, 2)
-        pen = _penetration(
-            discs[vi], radius[vi, None, None], o_discs[oi, None], o_rad[oi, None, None], self.buffer_m
-        )  # (P, N, T)
-        pen = pen * o_valid[oi][:, None, :]
-        if agt_mask is not None:
-            pen = pen * agt_mask.to(x)[vi, None, None]
-        return (pen * w).sum((0, 2))
+    def _replayed(self, data_batch: GuidanceBatch, n_t: int, like: Tensor) -> _Replayed:
+        """The replayed agents' discs over the horizon, kept while the same batch is guided (every
+        denoising and Adam step of one plan)."""
+        cached = self._replayed_of
+        if cached is not None and cached[0] is data_batch and cached[1:3] == (n_t, like.dtype):
+            return cached[3]
+        offsets, radius = disc_layout(data_batch.obstacles_extent.to(like))  # (O, D), (O,)
+        xy, yaw = data_batch.obstacles_xy[:, :n_t].to(like), data_batch.obstacles_yaw[:, :n_t].to(like)
+        discs = disc_centres(xy, yaw, offsets[:, None])  # (O, T, D, 2)
+        valid = data_batch.obstacles_valid[:, :n_t].to(like.device)
+        lo, hi = _boxes(discs, radius, valid)
+        replayed = _Replayed(discs, radius, valid.to(like.dtype), lo, hi)
+        self._replayed_of = (data_batch, n_t, like.dtype, replayed)
+        return replayed
+
+
+@dataclass(frozen=True)
+class _Replayed:
+    """Replayed agents over a horizon of T steps: discs (O, T, D, 2), radius (O,), valid (O, T) as 0/1,
+    and their boxes lo, hi (O, 2) (:func:`_boxes`; empty for an agent never valid)."""
+
+    discs: Tensor
+    radius: Tensor
+    valid: Tensor
+    lo: Tensor
+    hi: Tensor
 
 
 def _boxes(discs: Tensor, radius: Tensor, valid: Tensor | None = None) -> tuple[Tensor, Tensor]:
@@ -110,26 +124,6 @@ def _overlap(lo_a: Tensor, hi_a: Tensor, lo_b: Tensor, hi_b: Tensor, buffer_m: f
     gap_ab = lo_b[None] - hi_a[:, None]  # (A, B, 2): > 0 where b lies beyond a
     gap_ba = lo_a[:, None] - hi_b[None]
     return (torch.maximum(gap_ab, gap_ba) < buffer_m).all(-1)
-
-
-def _near_pairs(discs: Tensor, radius: Tensor, buffer_m: float) -> tuple[Tensor, Tensor]:
-    """The vehicle pairs (i < j) whose discs may overlap at some sample and step: those whose boxes
-    over the whole horizon (:func:`_boxes`) do. Every other pair's penetration is exactly zero, and the
-    box test costs a few operations on (B, B): no (B, B, N, T) distances, no gradient."""
-    lo, hi = _boxes(discs, radius)
-    close = _overlap(lo, hi, lo, hi, buffer_m)
-    return torch.nonzero(torch.triu(close, diagonal=1), as_tuple=True)
-
-
-def _near_obstacles(
-    discs: Tensor, radius: Tensor, o_discs: Tensor, o_valid: Tensor, o_rad: Tensor, buffer_m: float
-) -> tuple[Tensor, Tensor]:
-    """The (vehicle, obstacle) pairs whose discs may overlap at some sample and step (boxes over the
-    horizon, as :func:`_near_pairs`): (P,) vehicle rows and (P,) obstacle rows; every other pair
-    contributes nothing."""
-    lo_v, hi_v = _boxes(discs, radius)
-    lo_o, hi_o = _boxes(o_discs, o_rad, o_valid)
-    return torch.nonzero(_overlap(lo_v, hi_v, lo_o, hi_o, buffer_m), as_tuple=True)
 
 
 def _pair_distance(x: Tensor, data_batch: GuidanceBatch, a: int, b: int) -> Tensor:
