@@ -107,6 +107,29 @@ def test_clipping_bounds_the_change_of_the_mean_even_with_a_huge_lr() -> None:
     assert ((out - mean).abs() <= 0.05).all() and (out > mean).all()
 
 
+def test_guidance_steps_are_those_of_torch_adam() -> None:
+    """The written-out Adam of guide_mean takes torch.optim.Adam's steps (then the clip)."""
+
+    def objective(x: Tensor) -> Tensor:
+        return ((x - 0.3).sin() * x).sum((1, 2, 3)) + (x**3).abs().sum()
+
+    def with_torch_adam(mean: Tensor, radius: float, config: GuidanceConfig) -> Tensor:
+        delta = torch.zeros_like(mean, requires_grad=True)
+        optimizer = torch.optim.Adam([delta], lr=config.lr)
+        for _ in range(config.inner_steps):
+            optimizer.zero_grad()
+            objective(mean + delta).sum().backward()
+            optimizer.step()
+            with torch.no_grad():
+                delta.clamp_(-radius, radius)
+        return mean + delta.detach()
+
+    mean = torch.randn(2, 5, 8, 2, generator=torch.Generator().manual_seed(0))
+    for config in (GuidanceConfig(3, 0.3), GuidanceConfig(7, 0.05), GuidanceConfig(1, 1.0)):
+        want = with_torch_adam(mean, 0.4, config)
+        torch.testing.assert_close(guide_mean(mean, objective, 0.4, config), want)
+
+
 def test_each_step_moves_the_mean_by_at_most_its_radius() -> None:
     sampler = DDIMSampler(SCHEDULE, 6)
     radii = clip_radii(sampler)

@@ -15,6 +15,7 @@ the reference implementation — so the paper's guidance at every step, the last
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -25,6 +26,8 @@ from ctgpp.diffusion.schedule import Sampler, randn_like
 from ctgpp.dynamics import clip_actions, rollout
 
 Objective = Callable[[Tensor], Tensor]
+ADAM_BETAS = (0.9, 0.999)
+ADAM_EPS = 1e-8
 
 
 @dataclass(frozen=True)
@@ -66,24 +69,26 @@ def guide_mean(mean: Tensor, objective: Objective, radius: float, config: Guidan
 
     ``objective`` maps a tensor shaped like ``mean`` to the loss (any shape; its sum is minimized:
     samples are independent, so the gradient of the sum is each sample's own). No gradient reaches
-    ``mean`` or anything it was computed from.
+    ``mean`` or anything it was computed from. Adam (β = 0.9, 0.999, ε = 1e-8, the defaults of
+    ``torch.optim.Adam``, whose update this is) is written out: the optimizer object's bookkeeping
+    cost more than the update itself at every one of the many small steps of a plan.
     """
     base = mean.detach()
-    delta = torch.zeros_like(base, requires_grad=True)
-    optimizer = torch.optim.Adam([delta], lr=config.lr)
-    with torch.enable_grad():
-        for _ in range(config.inner_steps):
-            optimizer.zero_grad(set_to_none=True)
-            loss = objective(base + delta).sum()
-            if not loss.requires_grad:  # nothing near to avoid, say: the loss does not depend on x here
-                break
-            loss.backward()
-            if delta.grad is not None:
-                delta.grad = torch.nan_to_num(delta.grad, nan=0.0, posinf=0.0, neginf=0.0)
-            optimizer.step()
-            with torch.no_grad():
-                delta.clamp_(-radius, radius)  # line 9: clip the change to ±σ_k
-    return base + delta.detach()
+    delta, m, v = torch.zeros_like(base), torch.zeros_like(base), torch.zeros_like(base)
+    for step in range(1, config.inner_steps + 1):
+        point = (base + delta).requires_grad_()
+        with torch.enable_grad():
+            loss = objective(point).sum()
+        if not loss.requires_grad:  # nothing near to avoid, say: the loss does not depend on x here
+            break
+        (grad,) = torch.autograd.grad(loss, point)
+        grad = torch.nan_to_num(grad, nan=0.0, posinf=0.0, neginf=0.0)
+        m.mul_(ADAM_BETAS[0]).add_(grad, alpha=1 - ADAM_BETAS[0])
+        v.mul_(ADAM_BETAS[1]).addcmul_(grad, grad, value=1 - ADAM_BETAS[1])
+        denom = (v.sqrt() / math.sqrt(1 - ADAM_BETAS[1] ** step)).add_(ADAM_EPS)
+        delta.addcdiv_(m, denom, value=-config.lr / (1 - ADAM_BETAS[0] ** step))
+        delta.clamp_(-radius, radius)  # line 9: clip the change to ±σ_k
+    return base + delta
 
 
 def guided_sample(
