@@ -26,10 +26,14 @@ from ctgpp.guidance.rules_common import (
 
 def _penetration(a: Tensor, ra: Tensor, b: Tensor, rb: Tensor, buffer_m: float) -> Tensor:
     """Hinged overlap (m) of disc sets: a (..., Da, 2), ra (...), b (..., Db, 2), rb (...) -> (...),
-    the largest over disc pairs of max(ra + rb + buffer - distance, 0)."""
-    d = torch.sqrt(((a[..., :, None, :] - b[..., None, :, :]) ** 2).sum(-1) + 1e-6)  # (..., Da, Db)
-    pen = torch.relu((ra + rb + buffer_m)[..., None, None] - d)
-    return pen.flatten(-2).max(-1).values
+    the largest over disc pairs of max(ra + rb + buffer - distance, 0).
+
+    That is the hinge at the closest pair (the hinge falls as the distance grows), so the square root
+    and the hinge are taken once per row, not per disc pair.
+    """
+    diff = a[..., :, None, :] - b[..., None, :, :]  # (..., Da, Db, 2)
+    closest = (diff * diff).sum(-1).flatten(-2).amin(-1)  # (...) squared distance of the closest pair
+    return torch.relu(ra + rb + buffer_m - torch.sqrt(closest + 1e-6))
 
 
 @register_loss("no_collision")
