@@ -258,6 +258,26 @@ def test_spatial_attention_matches_the_pairwise_formula(shared: bool) -> None:
     torch.testing.assert_close(fast, slow, rtol=1e-5, atol=1e-5)
 
 
+def test_last_block_on_future_tokens_only_is_exact(scene_0103: Scene) -> None:
+    """The last block skips the history tokens' outputs: the prediction equals running every block on
+    all tokens and reading out the future ones."""
+    batch = collate([build_window(scene_0103, 40)])
+    model = make_model(ModelConfig(blocks=2))
+    x = torch.randn(1, batch.agent_mask.shape[1], 52, 2, generator=torch.Generator().manual_seed(8))
+    k = torch.tensor([30])
+    ctx = model.encode_context(batch)
+    with torch.no_grad():
+        got = model(x, k, batch, ctx)
+        spy: list[Tensor] = []
+        handle = model.blocks[0].register_forward_hook(lambda _m, _i, out: spy.append(out))
+        model(x, k, batch, ctx)
+        handle.remove()
+        whole = model.blocks[1](spy[0], ctx, ctx.map_keys[1])  # every token of the last block
+        want = model.out(model.out_norm(whole[:, :, model.config.history_steps :]))
+    assert whole.shape[2] == 83 and got.shape[2] == 52
+    torch.testing.assert_close(got, want * batch.agent_mask[..., None, None])
+
+
 def test_folded_keys_attend_as_the_attention_itself() -> None:
     """Folding fixed keys into the projections changes nothing: outputs and gradients are equal,
     rows without keys included (they get zeros)."""

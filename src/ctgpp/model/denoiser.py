@@ -81,15 +81,24 @@ class Block(nn.Module):
             nn.Linear(d, config.ffn_mult * d), nn.GELU(), nn.Dropout(p), nn.Linear(config.ffn_mult * d, d)
         )
 
-    def forward(self, x: Tensor, ctx: DenoiserContext, map_keys: FoldedKeys) -> Tensor:
-        """x (S, A, T, d); ``map_keys`` this block's folded lane tokens (leading dimensions (S, A))."""
+    def forward(self, x: Tensor, ctx: DenoiserContext, map_keys: FoldedKeys, keep_from: int = 0) -> Tensor:
+        """x (S, A, T, d) -> (S, A, T - keep_from, d): the tokens from ``keep_from`` on.
+
+        ``map_keys`` are this block's folded lane tokens (leading dimensions (S, A)). With
+        ``keep_from`` > 0 the dropped tokens still serve as temporal keys and values, but nothing is
+        computed for them: after the temporal attention every layer is per time step or per token, so
+        the kept tokens' outputs are exactly those of the whole block.
+        """
         s, a, t, d = x.shape
+        kept = t - keep_from
         h = self.temporal_norm(x).reshape(s * a, t, d)  # (S, A, T, d) -> (S*A, T, d)
-        x = x + self.temporal(h, h, ctx.token_valid.reshape(s * a, t)).view(s, a, t, d)
-        x = self.spatial(x.transpose(1, 2), ctx.edges, ctx.spatial_mask).transpose(1, 2)  # via (S, T, A, d)
-        h = self.map_norm(x).reshape(s * a, t, d)
+        attended = self.temporal(h[:, keep_from:], h, ctx.token_valid.reshape(s * a, t))
+        x = x[:, :, keep_from:] + attended.view(s, a, kept, d)
+        edges, spatial_mask = ctx.edges[:, keep_from:], ctx.spatial_mask[:, keep_from:]
+        x = self.spatial(x.transpose(1, 2), edges, spatial_mask).transpose(1, 2)  # via (S, T, A, d)
+        h = self.map_norm(x).reshape(s * a, kept, d)
         lanes = map_keys.map(lambda value: value.reshape(s * a, *value.shape[2:]))  # rows (S*A)
-        x = x + self.map.attend(h, lanes).view(s, a, t, d)
+        x = x + self.map.attend(h, lanes).view(s, a, kept, d)
         return x + self.ffn(self.ffn_norm(x))
 
 
@@ -170,7 +179,9 @@ class Denoiser(nn.Module):
         x = torch.cat([ctx.hist_tokens, fut_tokens], dim=2)  # (S, A, H+F, d)
         k_t = torch.as_tensor(k, device=x.device).long().expand(x.shape[0])  # (S,)
         x = x + self.time_emb()[None, None] + self.step_emb(k_t)[:, None, None]
-        for block, map_keys in zip(self.blocks, ctx.map_keys, strict=True):
-            x = block(x, ctx, map_keys)
-        out = self.out(self.out_norm(x[:, :, self.config.history_steps :]))  # (S, A, F, 2)
+        last = len(self.blocks) - 1
+        for i, (block, map_keys) in enumerate(zip(self.blocks, ctx.map_keys, strict=True)):
+            # only the future tokens are read out: the last block computes nothing for the history ones
+            x = block(x, ctx, map_keys, keep_from=self.config.history_steps if i == last else 0)
+        out = self.out(self.out_norm(x))  # (S, A, F, 2)
         return torch.where(mask, out, torch.zeros_like(out))
