@@ -28,11 +28,20 @@ def _penetration(a: Tensor, ra: Tensor, b: Tensor, rb: Tensor, buffer_m: float) 
     """Hinged overlap (m) of disc sets: a (..., Da, 2), ra (...), b (..., Db, 2), rb (...) -> (...),
     the largest over disc pairs of max(ra + rb + buffer - distance, 0).
 
-    That is the hinge at the closest pair (the hinge falls as the distance grows), so the square root
-    and the hinge are taken once per row, not per disc pair.
+    That is the hinge at the closest pair (the hinge falls as the distance grows): the closest pair is
+    found without gradient, and only its distance is differentiated, a graph 1/(Da·Db) the size.
     """
-    diff = a[..., :, None, :] - b[..., None, :, :]  # (..., Da, Db, 2)
-    closest = (diff * diff).sum(-1).flatten(-2).amin(-1)  # (...) squared distance of the closest pair
+    batch = torch.broadcast_shapes(a.shape[:-2], b.shape[:-2])
+    a, b = a.expand(*batch, *a.shape[-2:]), b.expand(*batch, *b.shape[-2:])
+    with torch.no_grad():
+        dx = a[..., :, None, 0] - b[..., None, :, 0]  # (..., Da, Db); x and y apart: a sum over a
+        dy = a[..., :, None, 1] - b[..., None, :, 1]  # trailing axis of 2 is a slow reduction
+        pair = (dx * dx + dy * dy).flatten(-2).argmin(-1)  # (...) the closest pair, Da·Db flattened
+    n_b = b.shape[-2]
+    a_disc = a.gather(-2, (pair // n_b)[..., None, None].expand(*batch, 1, 2))[..., 0, :]  # (..., 2)
+    b_disc = b.gather(-2, (pair % n_b)[..., None, None].expand(*batch, 1, 2))[..., 0, :]
+    d = a_disc - b_disc
+    closest = d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1]  # (...) squared distance of the closest pair
     return torch.relu(ra + rb + buffer_m - torch.sqrt(closest + 1e-6))
 
 
