@@ -33,11 +33,9 @@ def _penetration(a: Tensor, ra: Tensor, b: Tensor, rb: Tensor, buffer_m: float) 
     """
     batch = torch.broadcast_shapes(a.shape[:-2], b.shape[:-2])
     a, b = a.expand(*batch, *a.shape[-2:]), b.expand(*batch, *b.shape[-2:])
-    with torch.no_grad():
-        dx = a[..., :, None, 0] - b[..., None, :, 0]  # (..., Da, Db); x and y apart: a sum over a
-        dy = a[..., :, None, 1] - b[..., None, :, 1]  # trailing axis of 2 is a slow reduction
-        pair = (dx * dx + dy * dy).flatten(-2).argmin(-1)  # (...) the closest pair, Da·Db flattened
-    n_b = b.shape[-2]
+    n_a, n_b = a.shape[-2], b.shape[-2]
+    with torch.no_grad():  # the closest pair of each row, Da·Db flattened: (...)
+        pair = torch.cdist(a.reshape(-1, n_a, 2), b.reshape(-1, n_b, 2)).flatten(1).argmin(-1).view(batch)
     a_disc = a.gather(-2, (pair // n_b)[..., None, None].expand(*batch, 1, 2))[..., 0, :]  # (..., 2)
     b_disc = b.gather(-2, (pair % n_b)[..., None, None].expand(*batch, 1, 2))[..., 0, :]
     d = a_disc - b_disc

@@ -123,7 +123,8 @@ class GatedSpatialAttention(nn.Module):
         heads, se = self.heads, edges.shape[0]
         r = s // se  # samples per edge row
         h = self.norm(x)
-        q = self.q(h).view(s, t, a, heads, self.head_dim) / math.sqrt(self.head_dim)  # (S, T, A, h, dh)
+        scale = 1 / math.sqrt(self.head_dim)  # on the weights: cheaper than on the queries
+        q = F.linear(h, self.q.weight * scale, self.q.bias * scale).view(s, t, a, heads, self.head_dim)
         k, v = self.kv(h).view(s, t, a, 2, heads, self.head_dim).unbind(dim=3)
         # the (S, T, h, A, A) tensors dominate for many agents: written once, then updated in place
         logits = q.permute(0, 1, 3, 2, 4) @ k.permute(0, 1, 3, 4, 2)  # (S, T, h, A_i, A_j)
@@ -142,8 +143,10 @@ class GatedSpatialAttention(nn.Module):
         edge_msg = edge_msg.reshape(s, t, a, heads, -1)
         msg = msg + torch.einsum("stihe,hed->stihd", edge_msg, self.value_edge)
         msg = self.out(msg.reshape(s, t, a, d))
-        g = torch.sigmoid(self.gate(torch.cat([h, msg], dim=-1)))
-        return g * msg + (1 - g) * x
+        # the gate W[h, m] as W_h h + W_m m: no concatenated copy
+        gate_w = self.gate.weight
+        g = torch.sigmoid(F.linear(h, gate_w[:, :d], self.gate.bias) + F.linear(msg, gate_w[:, d:]))
+        return torch.lerp(x, msg, g)  # g·m + (1 − g)·x
 
 
 SMALL_SOFTMAX = 16  # below this many keys, PyTorch's CPU softmax kernel is the slow one
