@@ -8,7 +8,9 @@ from pathlib import Path
 import pytest
 import torch
 
+from ctgpp.bench.report import paired_difference, scenario_table
 from ctgpp.bench.scaling import tiled_batch
+from ctgpp.bench.scenarios import EpisodeTiming, PresetResult
 from ctgpp.cli.main import main
 from ctgpp.data.batch import collate
 from ctgpp.data.windows import build_window
@@ -38,11 +40,13 @@ def test_tiled_copies_beyond_the_social_radius_predict_like_the_original(scene_0
 
 def test_bench_times_a_guided_scenario_and_the_curves(tmp_path: Path) -> None:
     out = tmp_path / "bench"
-    argv = ["bench", "--presets", "fast", "--episodes", "1", "--agents", "4,8", "--scenes", "1,2"]
+    argv = ["bench", "--presets", "fast", "--episodes", "1", "--seeds", "0,3"]
+    argv += ["--agents", "4,8", "--scenes", "1,2"]
     assert main([*argv, "--repeats", "1", "--out", str(out)]) == 0
     report = json.loads((out / "bench.json").read_text())
     (fast,) = report["scenarios"]
-    (episode,) = fast["episodes"]
+    episode, again = fast["episodes"]  # the one start, once per seed
+    assert (episode["seed"], again["seed"]) == (0, 3) and episode["start_s"] == again["start_s"]
     steps = preset("fast").sampling.steps
     assert episode["seconds"] > 0 and episode["denoiser_calls"] == 20 * steps  # 20 re-plans × DDIM steps
     assert 0.0 <= episode["fail"] <= 1.0 and fast["peak_rss_mib"] > 0
@@ -53,7 +57,23 @@ def test_bench_times_a_guided_scenario_and_the_curves(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize(
-    "argv", [["--presets", "warp"], ["--agents", "8,x"], ["--rule", "fly"], ["--episodes", "-1"]]
+    "argv",
+    [["--presets", "warp"], ["--agents", "8,x"], ["--rule", "fly"], ["--episodes", "-1"], ["--seeds", "-1"]],
 )
 def test_bench_mistakes_exit_2(argv: list[str], tmp_path: Path) -> None:
     assert main(["bench", *argv, "--out", str(tmp_path)]) == 2
+
+
+def _episode(start_s: float, seed: int, fail: float, real: float) -> EpisodeTiming:
+    return EpisodeTiming("scene-0103", start_s, seed, 12, 1.0, 100, fail, 0.0, real, 0.2)
+
+
+def test_quality_differences_are_paired_episode_by_episode() -> None:
+    """By hand: fail differences +0.1, +0.3 on the shared episodes (the unshared one left out)."""
+    paper = PresetResult("paper", "", [_episode(3.0, 0, 0.1, 0.4), _episode(4.0, 0, 0.2, 0.4)], 1.0, 1)
+    episodes = [_episode(3.0, 0, 0.2, 0.5), _episode(4.0, 0, 0.5, 0.5), _episode(5.0, 0, 0.9, 0.5)]
+    fast = PresetResult("fast", "", episodes, 1.0, 1)
+    diff, se = paired_difference(fast, paper, "fail")
+    assert diff == pytest.approx(0.2) and se == pytest.approx(0.1)  # s.d. 0.1414 / sqrt(2)
+    table = scenario_table([paper, fast])
+    assert "+0.200 ± 0.100" in table and "+25 %" in table  # real 0.5 against 0.4

@@ -21,22 +21,50 @@ def _f(value: float, digits: int = 3) -> str:
 
 
 def scenario_table(results: Sequence[PresetResult]) -> str:
-    """Seconds per 10-s scenario, speed-up over the paper's preset (same episodes), memory, quality."""
+    """Seconds per 10-s scenario, speed-up over the paper's preset (same episodes), memory, quality,
+    and the quality differences from the paper's preset paired episode by episode."""
     reference = next((r for r in results if r.preset == REFERENCE_PRESET), None)
     head = (
         "| preset | sampler | episodes | median s / scenario | mean s | × faster than paper | "
-        "denoiser calls / s | peak MiB | fail | rule violation | real | rel real |"
+        "denoiser calls / s | peak MiB | fail | rule violation | real | rel real | "
+        "fail − paper (± s.e.) | real vs paper |"
     )
-    lines = [head, "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    lines = [head, "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in results:
         mean_s = r.mean("seconds")
-        speedup = reference.mean("seconds") / mean_s if reference is not None else math.nan
+        speedup, fail_diff, real_ratio = math.nan, "-", "-"
+        if reference is not None:
+            speedup = reference.mean("seconds") / mean_s
+            if r is not reference:
+                diff, se = paired_difference(r, reference, "fail")
+                fail_diff = f"{diff:+.3f} ± {se:.3f}"
+                real_ratio = f"{100 * (r.mean('real') / reference.mean('real') - 1):+.0f} %"
         lines.append(
             f"| {r.preset} | {r.description} | {len(r.episodes)} | {r.median_seconds:.2f} | {mean_s:.2f} | "
             f"{_f(speedup, 1)} | {r.calls_per_second:.1f} | {r.peak_rss_mib:.0f} | {_f(r.mean('fail'))} | "
-            f"{_f(r.mean('rule_violation'))} | {_f(r.mean('real'))} | {_f(r.mean('rel_real'))} |"
+            f"{_f(r.mean('rule_violation'))} | {_f(r.mean('real'))} | {_f(r.mean('rel_real'))} | "
+            f"{fail_diff} | {real_ratio} |"
         )
     return "\n".join(lines) + "\n"
+
+
+def paired_difference(result: PresetResult, reference: PresetResult, metric: str) -> tuple[float, float]:
+    """Mean and standard error of ``metric`` of ``result`` minus ``reference`` over the episodes both
+    ran (same scene, start and seed; NaN values left out). NaN when none; s.e. 0 for one."""
+    ref = {(e.scene, e.start_s, e.seed): getattr(e, metric) for e in reference.episodes}
+    diffs = [
+        getattr(e, metric) - ref[key]
+        for e in result.episodes
+        for key in [(e.scene, e.start_s, e.seed)]
+        if key in ref and not math.isnan(getattr(e, metric)) and not math.isnan(ref[key])
+    ]
+    if not diffs:
+        return math.nan, math.nan
+    mean = sum(diffs) / len(diffs)
+    if len(diffs) == 1:
+        return mean, 0.0
+    var = sum((d - mean) ** 2 for d in diffs) / (len(diffs) - 1)
+    return mean, math.sqrt(var / len(diffs))
 
 
 def agent_table(curve: Sequence[CallTiming]) -> str:

@@ -38,6 +38,7 @@ class EpisodeTiming:
 
     scene: str
     start_s: float
+    seed: int
     vehicles: int
     seconds: float
     denoiser_calls: int
@@ -77,10 +78,9 @@ class BenchJob:
 
     preset: str
     data_dir: Path | None
-    episodes: tuple[tuple[str, float], ...]
+    episodes: tuple[tuple[str, float, int], ...]  # (scene, start s, sampling seed)
     rule: str
     checkpoint: Path | None
-    seed: int
     threads: int
     progress: bool
 
@@ -93,7 +93,7 @@ def time_preset(job: BenchJob) -> PresetResult:
     factory = PolicyFactory(job.checkpoint, chosen.sampling, chosen.guidance)
     results = []
     scenes: dict[str, Scene] = {}
-    for scene_id, start_s in tqdm(job.episodes, desc=job.preset, unit="ep", disable=not job.progress):
+    for scene_id, start_s, seed in tqdm(job.episodes, desc=job.preset, unit="ep", disable=not job.progress):
         if scene_id not in scenes:  # once per scene, untimed: its drivable-area distance field
             scenes[scene_id] = catalog.load(scene_id)
             _ = scenes[scene_id].drivable.sdf_m
@@ -102,7 +102,7 @@ def time_preset(job: BenchJob) -> PresetResult:
         loss = None if spec is None else spec.loss
         policy = DiffusionPolicy(factory.model, chosen.sampling, loss, chosen.guidance)
         began = time.perf_counter()
-        rollout = simulate(scene, policy, start_s, seed=job.seed)
+        rollout = simulate(scene, policy, start_s, seed=seed)
         seconds = time.perf_counter() - began
         metrics = compute_metrics(rollout, ("fail", "real", "rel_real"))
         fail = metrics["fail"] if spec is None else spec.fail(rollout)
@@ -110,7 +110,7 @@ def time_preset(job: BenchJob) -> PresetResult:
         vehicles = int(rollout.controlled.sum())
         results.append(
             EpisodeTiming(
-                scene_id, start_s, vehicles, seconds, policy.denoiser_calls, fail, violation,
+                scene_id, start_s, seed, vehicles, seconds, policy.denoiser_calls, fail, violation,
                 metrics["real"], metrics["rel_real"],
             )
         )

@@ -37,8 +37,12 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--split", default="mini_val", help="episodes of this split (default: mini_val)")
     p.add_argument("--scene", default=None, help="only this scene of the split")
     p.add_argument("--spacing", type=float, default=2.0, metavar="SEC", help="seconds between episode starts")
-    p.add_argument("--episodes", type=int, default=6, help="episodes per preset, spread over the scenes")
-    p.add_argument("--seed", type=int, default=0, help="sampling seed of every episode")
+    p.add_argument(
+        "--episodes", type=int, default=6, help="episode starts per preset, spread over the scenes"
+    )
+    p.add_argument(
+        "--seeds", default="0", help="comma-separated sampling seeds: each episode runs once per seed"
+    )
     p.add_argument("--threads", type=int, default=torch.get_num_threads(), help="torch CPU threads")
     p.add_argument(
         "--agents", default="8,16,32,64,128", help="agent counts of the per-call curve ('' to skip)"
@@ -51,13 +55,13 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(run=run_bench)
 
 
-def _ints(text: str, what: str) -> list[int]:
+def _ints(text: str, what: str, minimum: int = 1) -> list[int]:
     try:
         values = [int(v) for v in text.split(",") if v.strip()]
     except ValueError as err:
         raise ValueError(f"{what} must be comma-separated integers, got {text!r}") from err
-    if any(v < 1 for v in values):
-        raise ValueError(f"{what} must be positive, got {text!r}")
+    if any(v < minimum for v in values):
+        raise ValueError(f"{what} must be integers ≥ {minimum}, got {text!r}")
     return values
 
 
@@ -84,23 +88,26 @@ def run_bench(args: argparse.Namespace) -> int:
     if args.episodes < 0 or args.repeats < 1 or args.threads < 1 or args.spacing <= 0:
         raise ValueError("--episodes must be ≥ 0, --repeats and --threads ≥ 1, --spacing positive")
     agents, sizes = _ints(args.agents, "--agents"), _ints(args.scenes, "--scenes")
+    seeds = _ints(args.seeds, "--seeds", minimum=0)
+    if not seeds:
+        raise ValueError("--seeds needs at least one seed")
     catalog = open_catalog(args)
     torch.set_num_threads(args.threads)
     report: dict[str, object] = {"threads": args.threads, "rule": args.rule, "split": args.split}
     text = [f"# ctgpp bench\n\n{args.threads} torch threads; rule {args.rule}; split {args.split}.\n"]
 
     if args.episodes and names:
-        planned = plan_episodes(catalog, args.split, ["bench"], [args.seed], args.spacing, [args.rule])
+        planned = plan_episodes(catalog, args.split, ["bench"], [0], args.spacing, [args.rule])
         if args.scene is not None:
             scene_id = catalog.entry(args.scene).id
             planned = [e for e in planned if e.scene == scene_id]
         chosen = _spread(planned, args.episodes)
         if not chosen:
             raise ValueError(f"no episode of split {args.split!r} qualifies for rule {args.rule!r}")
-        pairs = tuple((e.scene, e.start_s) for e in chosen)
+        runs = tuple((e.scene, e.start_s, seed) for seed in seeds for e in chosen)  # seed-major
         results: list[PresetResult] = []
         for name in names:
-            job = BenchJob(name, args.data, pairs, args.rule, args.checkpoint, args.seed, args.threads, True)
+            job = BenchJob(name, args.data, runs, args.rule, args.checkpoint, args.threads, True)
             results.append(time_preset_in_child(job))
         report["scenarios"] = [asdict(r) for r in results]
         text += ["## Guided 10-s closed-loop scenarios\n", scenario_table(results)]
