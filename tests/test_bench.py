@@ -14,8 +14,10 @@ from ctgpp.bench.scenarios import EpisodeTiming, PresetResult
 from ctgpp.cli.main import main
 from ctgpp.data.batch import collate
 from ctgpp.data.windows import build_window
+from ctgpp.diffusion.guided import GuidanceConfig
 from ctgpp.model import Denoiser, ModelConfig
 from ctgpp.scene.types import Scene
+from ctgpp.sim.diffusion_policy import SamplingConfig
 from ctgpp.sim.presets import preset
 
 TINY = ModelConfig(d_model=32, heads=2, blocks=1, edge_dim=8, lane_hidden=16)
@@ -77,3 +79,29 @@ def test_quality_differences_are_paired_episode_by_episode() -> None:
     assert diff == pytest.approx(0.2) and se == pytest.approx(0.1)  # s.d. 0.1414 / sqrt(2)
     table = scenario_table([paper, fast])
     assert "+0.200 ± 0.100" in table and "+25 %" in table  # real 0.5 against 0.4
+
+
+@pytest.mark.parametrize(
+    ("name", "sampling", "guidance"),
+    [
+        ("ddim5-n2-w3", SamplingConfig("ddim", 5, 2), GuidanceConfig(3, 0.3)),  # the fast preset
+        ("ddpm-n5", SamplingConfig("ddpm", 100, 5), GuidanceConfig(1, 0.3)),  # the paper preset
+        ("ddim10", SamplingConfig("ddim", 10, 4), GuidanceConfig(1, 0.3)),
+        ("ddim4-w2-lr0.5-from80", SamplingConfig("ddim", 4, 4), GuidanceConfig(2, 0.5, 80)),
+    ],
+)
+def test_spelled_out_presets(name: str, sampling: SamplingConfig, guidance: GuidanceConfig) -> None:
+    chosen = preset(name)
+    assert (chosen.sampling, chosen.guidance) == (sampling, guidance)
+    if name in ("ddim5-n2-w3", "ddpm-n5"):
+        named = preset("fast" if name.startswith("ddim") else "paper")
+        assert (named.sampling, named.guidance) == (sampling, guidance)
+
+
+@pytest.mark.parametrize(
+    "name",
+    ["warp", "ddim", "ddim0", "ddim5-n0", "ddim5-n2-n3", "ddim5-x2", "ddim5-w-1"],
+)
+def test_unknown_presets_are_clear_errors(name: str) -> None:
+    with pytest.raises(ValueError, match="sampler preset"):
+        preset(name)

@@ -21,7 +21,7 @@ from ctgpp.io.atomic import write_text_atomic
 from ctgpp.scene.vehicles import controlled_vehicles
 from ctgpp.sim.closed_loop import episode_starts, start_step
 from ctgpp.sim.factory import PolicyFactory
-from ctgpp.sim.presets import PRESETS, preset
+from ctgpp.sim.presets import PRESETS, SPELLING, preset
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
@@ -29,7 +29,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--presets",
         default="paper,fast",
-        help=f"comma-separated sampler presets, timed side by side: {', '.join(PRESETS)}",
+        help=f"comma-separated sampler presets, timed side by side: {', '.join(PRESETS)} or {SPELLING}",
     )
     p.add_argument(
         "--rule", default="no_collision", help=f"guidance rule: {', '.join(evaluation_rules())}, none"

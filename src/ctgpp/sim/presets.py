@@ -1,16 +1,26 @@
-"""Named sampler presets: how many denoising steps, samples and guidance steps a plan costs.
+"""Sampler presets: how many denoising steps, samples and guidance steps a plan costs.
 
-``paper`` is the paper's configuration (DDPM over all K = 100 steps, guidance at every step with one
-Adam step of lr 0.3, N = 5 samples: DESIGN.md, Guided sampling). ``fast`` is the default of
-``simulate`` and ``evaluate``, chosen from ``ctgpp bench`` measurements (BENCHMARKS.md, Speed).
+Two are named: ``paper``, the paper's configuration (DDPM over all K = 100 steps, guidance at every
+step with one Adam step of lr 0.3, N = 5 samples: DESIGN.md, Guided sampling), and ``fast``, the
+default of ``simulate`` and ``evaluate``, chosen from ``ctgpp bench`` measurements (BENCHMARKS.md,
+Speed). Any other configuration is spelled out in its name, so that a candidate can be timed beside
+them: ``ddim<steps>`` or ``ddpm`` (every step), then optionally ``-n<samples>`` (default 4),
+``-w<Adam steps per denoising step>`` (default 1), ``-lr<learning rate>`` (default 0.3) and
+``-from<k>`` (guide only at diffusion steps k ≤ this; default every step). ``ddim5-n2-w3`` is
+``fast``; ``ddpm-n5`` is ``paper``.
 """
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 
 from ctgpp.diffusion.guided import GuidanceConfig
 from ctgpp.sim.diffusion_policy import SamplingConfig
+
+SPELLING = "ddim<steps>|ddpm[-n<samples>][-w<adam steps>][-lr<rate>][-from<k>]"
+_NAME = re.compile(r"(?:ddim(?P<steps>\d+)|ddpm)(?P<options>(?:-(?:n\d+|w\d+|lr\d*\.?\d+|from\d+))*)")
+_OPTION = re.compile(r"-(n|w|lr|from)(\d*\.?\d+)")
 
 
 @dataclass(frozen=True)
@@ -19,18 +29,6 @@ class SamplerPreset:
     sampling: SamplingConfig
     guidance: GuidanceConfig
     description: str
-
-
-def _ddim(steps: int, samples: int) -> SamplerPreset:
-    """A DDIM candidate guided as the paper (1 Adam step of lr 0.3 at every step): ``ddim{steps}``,
-    with ``-n{samples}`` unless N = 4."""
-    name = f"ddim{steps}" + ("" if samples == 4 else f"-n{samples}")
-    return SamplerPreset(
-        name,
-        SamplingConfig("ddim", steps, samples),
-        GuidanceConfig(inner_steps=1, lr=0.3),
-        f"DDIM {steps} steps, guided at every step, N = {samples}",
-    )
 
 
 PRESETS: dict[str, SamplerPreset] = {
@@ -42,7 +40,6 @@ PRESETS: dict[str, SamplerPreset] = {
             GuidanceConfig(inner_steps=1, lr=0.3),
             "DDPM, K = 100 steps, guided at every step, N = 5 (the paper)",
         ),
-        *(_ddim(steps, n) for steps, n in ((10, 4), (5, 4), (5, 3), (5, 2), (3, 4), (3, 2))),
         SamplerPreset(
             "fast",
             SamplingConfig(),  # the defaults: DDIM 5 steps, N = 2
@@ -54,7 +51,24 @@ PRESETS: dict[str, SamplerPreset] = {
 
 
 def preset(name: str) -> SamplerPreset:
-    """The preset called ``name`` (a clear error listing the known ones otherwise)."""
-    if name not in PRESETS:
-        raise ValueError(f"unknown sampler preset {name!r}; known: {', '.join(PRESETS)}")
-    return PRESETS[name]
+    """The preset called ``name``: a named one, or the configuration its name spells out (module
+    docstring); a clear error otherwise."""
+    if name in PRESETS:
+        return PRESETS[name]
+    match = _NAME.fullmatch(name)
+    if match is None:
+        raise ValueError(f"unknown sampler preset {name!r}: use {', '.join(PRESETS)} or {SPELLING}")
+    options = dict(_OPTION.findall(match["options"]))
+    if len(_OPTION.findall(match["options"])) != len(options):
+        raise ValueError(f"sampler preset {name!r} gives an option twice")
+    samples, adam_steps = int(options.get("n", 4)), int(options.get("w", 1))
+    lr, guide_from = float(options.get("lr", 0.3)), options.get("from")
+    steps = None if match["steps"] is None else int(match["steps"])
+    if samples < 1 or steps == 0:
+        raise ValueError(f"sampler preset {name!r} needs at least one sample and one step")
+    sampling = SamplingConfig("ddpm" if steps is None else "ddim", steps or 100, samples)
+    guidance = GuidanceConfig(adam_steps, lr, None if guide_from is None else int(guide_from))
+    sampler = "DDPM, every step" if steps is None else f"DDIM {steps} steps"
+    where = "at every step" if guide_from is None else f"at steps k ≤ {guide_from}"
+    adam = f"{adam_steps} Adam step{'' if adam_steps == 1 else 's'} of lr {lr:g}"
+    return SamplerPreset(name, sampling, guidance, f"{sampler}, N = {samples}, {adam} {where}")
