@@ -156,8 +156,9 @@ def softmax_last(logits: Tensor) -> Tensor:
     """Softmax over the last dimension, equal to ``torch.softmax(logits, -1)`` up to round-off.
 
     With fewer than 16 keys (a scene of 8 or 12 vehicles) PyTorch's CPU softmax kernel takes ~20 ns per
-    element, 5× its cost at 16 keys; five elementwise passes (max, subtract, exp, sum, divide) are then
-    ~3× faster (BENCHMARKS.md, Speed). They work in place, so autograd keeps ``torch.softmax``.
+    element, ~9× its cost per element at 16 keys; five elementwise passes (max, subtract, exp, sum,
+    divide) are then ~3× faster (BENCHMARKS.md, Speed). They work in place, so autograd keeps
+    ``torch.softmax``.
     """
     if logits.shape[-1] >= SMALL_SOFTMAX or logits.requires_grad:
         return torch.softmax(logits, dim=-1)
