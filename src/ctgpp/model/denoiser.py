@@ -57,9 +57,9 @@ class DenoiserContext:
         ``edges`` and ``spatial_mask``, the largest, keep their S rows: the spatial attention shares
         each scene's among its samples.
         """
-        shared = ("edges", "spatial_mask", "map_keys")
+        kept = ("edges", "spatial_mask", "map_keys")  # the first two shared; map_keys tensor by tensor
         expanded = {
-            f.name: repeat_samples(getattr(self, f.name), n) for f in fields(self) if f.name not in shared
+            f.name: repeat_samples(getattr(self, f.name), n) for f in fields(self) if f.name not in kept
         }
         map_keys = tuple(keys.map(lambda value: repeat_samples(value, n)) for keys in self.map_keys)
         return DenoiserContext(
