@@ -97,6 +97,7 @@ def run_bench(args: argparse.Namespace) -> int:
     text = [f"# ctgpp bench\n\n{args.threads} torch threads; rule {args.rule}; split {args.split}.\n"]
 
     if args.episodes and names:
+        # the episode starts (scene, start) once; each runs once per seed below
         planned = plan_episodes(catalog, args.split, ["bench"], [0], args.spacing, [args.rule])
         if args.scene is not None:
             scene_id = catalog.entry(args.scene).id

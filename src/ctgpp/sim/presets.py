@@ -58,8 +58,9 @@ def preset(name: str) -> SamplerPreset:
     match = _NAME.fullmatch(name)
     if match is None:
         raise ValueError(f"unknown sampler preset {name!r}: use {', '.join(PRESETS)} or {SPELLING}")
-    options = dict(_OPTION.findall(match["options"]))
-    if len(_OPTION.findall(match["options"])) != len(options):
+    given = _OPTION.findall(match["options"])
+    options = dict(given)
+    if len(given) != len(options):
         raise ValueError(f"sampler preset {name!r} gives an option twice")
     samples, adam_steps = int(options.get("n", 4)), int(options.get("w", 1))
     lr, guide_from = float(options.get("lr", 0.3)), options.get("from")
