@@ -151,30 +151,50 @@ def test_make_loss_errors() -> None:
         make_loss("collision", vehicle_a=0, vehicle_b=99)(torch.zeros(2, 1, 3, 6), None)
 
 
-@pytest.mark.parametrize("buffer_m", [0.2, 5.0, 20.0])
-def test_no_collision_over_near_pairs_equals_all_pairs(
-    buffer_m: float, batch: GuidanceBatch, x: torch.Tensor
-) -> None:
-    """Skipping the far vehicle and obstacle pairs is exact: the sums over all pairs are the same."""
+def _dense_no_collision(x: torch.Tensor, batch: GuidanceBatch, buffer_m: float, decay: float) -> torch.Tensor:
+    """The no-collision cost by its definition, over every disc pair of every vehicle pair and every
+    vehicle–replayed pair at every sample and step: (N,)."""
     from ctgpp.guidance.rules_common import disc_centres, disc_layout, time_weights, world_states
-    from ctgpp.guidance.rules_interaction import _penetration
 
-    loss = make_loss("no_collision", buffer_m=buffer_m)
+    def hinge(a, ra, b, rb):  # discs (..., D, 2), radii (...) -> the largest hinged overlap (...)
+        d = torch.sqrt(((a[..., :, None, :] - b[..., None, :, :]) ** 2).sum(-1) + 1e-6)  # (..., D, D)
+        return torch.relu((ra + rb + buffer_m)[..., None, None] - d).flatten(-2).amax(-1)
+
+    n_t = x.shape[2]
     pos, yaw = world_states(x, batch)
     offsets, radius = disc_layout(batch.extent.to(x))
     discs = disc_centres(pos, yaw, offsets[:, None, None])  # (B, N, T, D, 2)
-    ra, rb = radius[:, None, None, None], radius[None, :, None, None]
-    pen = _penetration(discs[:, None], ra, discs[None], rb, buffer_m)  # (B, B, N, T)
-    pen = pen * (1 - torch.eye(x.shape[0]))[..., None, None]  # without self pairs
-    w = time_weights(x.shape[2], loss.decay, x)
-    want = 0.5 * (pen * w).sum((0, 1, 3))
-    n_t = x.shape[2]  # every vehicle against every replayed agent
-    o_off, o_rad = disc_layout(batch.obstacles_extent)
-    o_discs = disc_centres(batch.obstacles_xy[:, :n_t], batch.obstacles_yaw[:, :n_t], o_off[:, None])
-    o_pen = _penetration(discs[:, None], ra, o_discs[None, :, None], o_rad[None, :, None, None], buffer_m)
-    want = want + (o_pen * batch.obstacles_valid[None, :, None, :n_t] * w).sum((0, 1, 3))  # (B, O, N, T)
+    ra = radius[:, None, None, None]
+    pen = hinge(discs[:, None], ra, discs[None], radius[None, :, None, None])
+    pen = pen * (1 - torch.eye(x.shape[0], dtype=x.dtype))[..., None, None]  # (B, B, N, T) without self pairs
+    w = time_weights(n_t, decay, x)
+    cost = 0.5 * (pen * w).sum((0, 1, 3))
+    o_off, o_rad = disc_layout(batch.obstacles_extent.to(x))
+    o_xy, o_yaw = batch.obstacles_xy[:, :n_t].to(x), batch.obstacles_yaw[:, :n_t].to(x)
+    o_discs = disc_centres(o_xy, o_yaw, o_off[:, None])
+    o_pen = hinge(discs[:, None], ra, o_discs[None, :, None], o_rad[None, :, None, None])
+    return cost + (o_pen * batch.obstacles_valid[None, :, None, :n_t] * w).sum((0, 1, 3))  # (B, O, N, T)
+
+
+@pytest.mark.parametrize("buffer_m", [0.2, 5.0, 20.0])
+def test_no_collision_over_near_contacts_equals_all_pairs(
+    buffer_m: float, batch: GuidanceBatch, x: torch.Tensor
+) -> None:
+    """Evaluating only the near contacts is exact: values and gradients equal the sums over all disc
+    pairs of all vehicle and replayed pairs at every sample and step, on the logged futures and on
+    futures scattered by metres."""
     assert batch.num_obstacles > 0
-    torch.testing.assert_close(loss(x, batch), want)
+    gen = torch.Generator().manual_seed(3)
+    scatter = torch.randn(x.shape, generator=gen) * torch.tensor([2.0, 2.0, 0.0, 0.3, 0.0, 0.0])
+    for moved in (x, x + scatter):  # in float64: the two sum in different orders
+        point = moved.double().requires_grad_()
+        got = make_loss("no_collision", buffer_m=buffer_m)(point, batch)
+        want = _dense_no_collision(point, batch, buffer_m, 0.95)
+        assert (want > 0).all()
+        torch.testing.assert_close(got, want)
+        grad_got, grad_want = (torch.autograd.grad(c.sum(), point)[0] for c in (got, want))
+        assert grad_want.abs().sum() > 0
+        torch.testing.assert_close(grad_got, grad_want)
 
 
 def test_no_collision_keeps_the_replayed_discs_of_one_batch_only(
@@ -190,21 +210,21 @@ def test_no_collision_keeps_the_replayed_discs_of_one_batch_only(
     torch.testing.assert_close(loss(x, batch), first)
 
 
-def test_penetration_is_the_deepest_disc_pair_overlap() -> None:
+def test_closest_overlap_is_the_deepest_disc_pair_overlap() -> None:
     """By hand: discs 1.5 m apart with radii 1 and 1 and a 0.2 m buffer overlap by 0.7 m; and on random
     disc sets the hinge at the closest pair equals the largest hinge over all pairs, gradients too."""
-    from ctgpp.guidance.rules_interaction import _penetration
+    from ctgpp.guidance.rules_interaction import _closest_overlap
 
     a = torch.tensor([[[0.0, 0.0], [10.0, 0.0]]])  # (1, 2 discs, 2)
     b = torch.tensor([[[1.5, 0.0], [30.0, 0.0]]])
-    pen = _penetration(a, torch.tensor([1.0]), b, torch.tensor([1.0]), 0.2)
+    pen = _closest_overlap(a, torch.tensor([1.0]), b, torch.tensor([1.0]), 0.2)
     torch.testing.assert_close(pen, torch.tensor([0.7]), atol=1e-5, rtol=0)
     gen = torch.Generator().manual_seed(5)
     a = (3 * torch.randn(40, 3, 2, generator=gen)).requires_grad_()
     b, ra, rb = 3 * torch.randn(40, 3, 2, generator=gen), torch.rand(40) + 0.5, torch.rand(40) + 0.5
     d = torch.sqrt(((a[:, :, None] - b[:, None]) ** 2).sum(-1) + 1e-6)  # (40, 3, 3)
     want = torch.relu((ra + rb + 0.2)[:, None, None] - d).flatten(1).max(-1).values
-    got = _penetration(a, ra, b, rb, 0.2)
+    got = _closest_overlap(a, ra, b, rb, 0.2)
     torch.testing.assert_close(got, want)
     assert (want > 0).any() and (want == 0).any()
     torch.testing.assert_close(torch.autograd.grad(got.sum(), a)[0], torch.autograd.grad(want.sum(), a)[0])

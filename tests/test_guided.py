@@ -3,6 +3,7 @@ the rules' losses compared with the unguided sample from the same seed, on real 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -128,6 +129,30 @@ def test_guidance_steps_are_those_of_torch_adam() -> None:
     for config in (GuidanceConfig(3, 0.3), GuidanceConfig(7, 0.05), GuidanceConfig(1, 1.0)):
         want = with_torch_adam(mean, 0.4, config)
         torch.testing.assert_close(guide_mean(mean, objective, 0.4, config), want)
+
+
+def test_a_loss_that_stops_depending_on_x_leaves_adams_momentum_on() -> None:
+    """A loss with no graph (nothing near any more, say) is a zero gradient: after a first step, Adam's
+    momentum moves on exactly as with a loss that is connected to x but flat; from the start, nothing
+    moves at all."""
+    mean = torch.randn(2, 3, 4, 2, generator=torch.Generator().manual_seed(1))
+
+    def after_one_step(connected: bool) -> Callable[[Tensor], Tensor]:
+        calls = []
+
+        def objective(x: Tensor) -> Tensor:
+            calls.append(1)
+            if len(calls) == 1:
+                return ((x - 1.0) ** 2).sum()
+            return x.sum() * 0.0 if connected else torch.zeros(())
+
+        return objective
+
+    config = GuidanceConfig(4, 0.1)
+    flat = guide_mean(mean, after_one_step(True), 1.0, config)
+    assert not torch.allclose(flat, guide_mean(mean, after_one_step(True), 1.0, GuidanceConfig(1, 0.1)))
+    torch.testing.assert_close(guide_mean(mean, after_one_step(False), 1.0, config), flat)
+    assert torch.equal(guide_mean(mean, lambda x: torch.zeros(()), 1.0, config), mean)
 
 
 def test_each_step_moves_the_mean_by_at_most_its_radius() -> None:

@@ -79,9 +79,12 @@ def guide_mean(mean: Tensor, objective: Objective, radius: float, config: Guidan
         point = (base + delta).requires_grad_()
         with torch.enable_grad():
             loss = objective(point).sum()
-        if not loss.requires_grad:  # nothing near to avoid, say: the loss does not depend on x here
+        if loss.requires_grad:
+            (grad,) = torch.autograd.grad(loss, point)
+        elif step == 1:  # the loss does not depend on x here (nothing near to avoid, say): no move at all
             break
-        (grad,) = torch.autograd.grad(loss, point)
+        else:  # no longer depends on x: a zero gradient, and Adam's momentum carries on
+            grad = torch.zeros_like(base)
         grad = torch.nan_to_num(grad, nan=0.0, posinf=0.0, neginf=0.0)
         m.mul_(ADAM_BETAS[0]).add_(grad, alpha=1 - ADAM_BETAS[0])
         v.mul_(ADAM_BETAS[1]).addcmul_(grad, grad, value=1 - ADAM_BETAS[1])

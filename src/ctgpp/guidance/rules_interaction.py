@@ -12,6 +12,7 @@ from typing import Any, ClassVar
 import torch
 from torch import Tensor
 
+from ctgpp.geometry import local_to_world
 from ctgpp.guidance.base import register_loss
 from ctgpp.guidance.context import GuidanceBatch
 from ctgpp.guidance.rules_common import (
@@ -24,23 +25,12 @@ from ctgpp.guidance.rules_common import (
 )
 
 
-def _penetration(a: Tensor, ra: Tensor, b: Tensor, rb: Tensor, buffer_m: float) -> Tensor:
-    """Hinged overlap (m) of disc sets: a (..., Da, 2), ra (...), b (..., Db, 2), rb (...) -> (...),
-    the largest over disc pairs of max(ra + rb + buffer - distance, 0).
-
-    That is the hinge at the closest pair (the hinge falls as the distance grows): the closest pair is
-    found without gradient, and only its distance is differentiated, a graph 1/(Da·Db) the size.
-    """
-    batch = torch.broadcast_shapes(a.shape[:-2], b.shape[:-2])
-    a, b = a.expand(*batch, *a.shape[-2:]), b.expand(*batch, *b.shape[-2:])
-    n_a, n_b = a.shape[-2], b.shape[-2]
-    with torch.no_grad():  # the closest pair of each row, Da·Db flattened: (...)
-        pair = torch.cdist(a.reshape(-1, n_a, 2), b.reshape(-1, n_b, 2)).flatten(1).argmin(-1).view(batch)
-    a_disc = a.gather(-2, (pair // n_b)[..., None, None].expand(*batch, 1, 2))[..., 0, :]  # (..., 2)
-    b_disc = b.gather(-2, (pair % n_b)[..., None, None].expand(*batch, 1, 2))[..., 0, :]
-    d = a_disc - b_disc
-    closest = d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1]  # (...) squared distance of the closest pair
-    return torch.relu(ra + rb + buffer_m - torch.sqrt(closest + 1e-6))
+def _closest_overlap(a: Tensor, ra: Tensor, b: Tensor, rb: Tensor, buffer_m: float) -> Tensor:
+    """Hinged overlap (m) of disc sets a (K, Da, 2), radii ra (K,), and b (K, Db, 2), rb (K,) -> (K,):
+    max(ra + rb + buffer − distance, 0) at the closest disc pair, the largest over all pairs (the hinge
+    falls as the distance grows)."""
+    d2 = ((a[:, :, None] - b[:, None]) ** 2).sum(-1).flatten(1).amin(-1)  # (K,) closest pair, squared
+    return torch.relu(ra + rb + buffer_m - torch.sqrt(d2 + 1e-6))
 
 
 @register_loss("no_collision")
@@ -48,7 +38,12 @@ class NoCollision(Rule):
     """No vehicle collides with another vehicle or with a replayed agent (pedestrians, cyclists,
     static objects, vehicles not controlled): each box is covered by 3 discs along its length; the
     cost is the overlap (m) of the closest disc pair plus ``buffer_m``, hinged at zero, weighted by
-    ``decay``**t over the horizon (normalized), summed over vehicles and obstacles."""
+    ``decay``**t over the horizon (normalized), summed over vehicles and obstacles.
+
+    Only the (pair, sample, step) contacts whose centres are near enough for the hinge to be
+    non-zero are evaluated (found without gradient): the others add zero and no gradient, and in a
+    plausible scene they are nearly all of them.
+    """
 
     couples_agents: ClassVar[bool] = True
     param_doc = {
@@ -60,71 +55,105 @@ class NoCollision(Rule):
         super().__init__()
         self.buffer_m = float(buffer_m)
         self.decay = float(decay)
-        self._replayed_of: tuple[GuidanceBatch, int, torch.dtype, _Replayed] | None = None
+        self._layout_of: tuple[GuidanceBatch, int, torch.dtype, _Layout] | None = None
 
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         n, n_t = x.shape[1], x.shape[2]
-        pos, yaw = world_states(x, data_batch)  # (B, N, T, 2), (B, N, T)
-        offsets, radius = disc_layout(data_batch.extent.to(x))  # (B, D), (B,)
-        discs = disc_centres(pos, yaw, offsets[:, None, None])  # (B, N, T, D, 2)
-        lo, hi = _boxes(discs, radius)
-        # the pairs that may touch (boxes over the horizon): vehicle i < j, vehicle vi and replayed oi
-        i, j = torch.nonzero(torch.triu(_overlap(lo, hi, lo, hi, self.buffer_m), diagonal=1), as_tuple=True)
-        replayed = self._replayed(data_batch, n_t, x)
-        vi, oi = torch.nonzero(_overlap(lo, hi, replayed.lo, replayed.hi, self.buffer_m), as_tuple=True)
-        if len(i) + len(vi) == 0:  # nothing near: the cost is 0 whatever x
+        lay = self._layout(data_batch, n_t, x)
+        with torch.no_grad():
+            pos, _ = world_states(x, data_batch)  # (B, N, T, 2) centres
+            (a_v, b_v, n_v, t_v), (a_o, o_o, n_o, t_o) = self._contacts(pos, lay)
+        kv, ko = len(a_v), len(a_o)
+        if kv + ko == 0:  # nothing near: the cost is 0 whatever x
             return x.new_zeros(n)
-        # one penetration over both kinds of pairs: (P, N, T) with P = vehicle pairs + replayed pairs
-        pen = _penetration(
-            torch.cat([discs[i], discs[vi]]),
-            torch.cat([radius[i], radius[vi]])[:, None, None],
-            torch.cat([discs[j], replayed.discs[oi, None].expand(-1, n, -1, -1, -1)]),
-            torch.cat([radius[j], replayed.radius[oi]])[:, None, None],
-            self.buffer_m,
-        )
-        pen = pen * torch.cat([x.new_ones(len(i), n_t), replayed.valid[oi]])[:, None]  # replayed: when logged
+        # the vehicles' rows of every contact in one gather: the a sides (a_v, a_o) first, then b_v
+        a_all = torch.cat([a_v, a_o, b_v])
+        n_all, t_all = torch.cat([n_v, n_o, n_v]), torch.cat([t_v, t_o, t_v])
+        rows = x[a_all, n_all, t_all]  # (K, 6)
+        pose = data_batch.pose.to(x)[a_all]  # (K, 3)
+        xy = local_to_world(rows[:, :2], pose[:, :2], pose[:, 2])
+        discs = disc_centres(xy, rows[:, 3] + pose[:, 2], lay.offsets[a_all])  # (K, D, 2)
+        near = kv + ko  # contacts; the vehicle sides a are discs[:near]
+        side_b = torch.cat([discs[near:], lay.replayed.discs[o_o, t_o]])  # (near, D, 2)
+        radius_b = torch.cat([lay.radius[b_v], lay.replayed.radius[o_o]])
+        pen = _closest_overlap(discs[:near], lay.radius[a_all[:near]], side_b, radius_b, self.buffer_m)
+        weight = lay.time_weights[torch.cat([t_v, t_o])]
         if agt_mask is not None:
             m = agt_mask.to(x)
-            pen = pen * torch.cat([torch.maximum(m[i], m[j]), m[vi]])[:, None, None]
-        return (pen * time_weights(n_t, self.decay, x)).sum((0, 2))  # (N,): each pair once
+            weight = weight * torch.cat([torch.maximum(m[a_v], m[b_v]), m[a_o]])
+        return x.new_zeros(n).index_add(0, torch.cat([n_v, n_o]), pen * weight)  # (N,): each pair once
 
-    def _replayed(self, data_batch: GuidanceBatch, n_t: int, like: Tensor) -> _Replayed:
-        """The replayed agents' discs over the horizon, kept while the same batch is guided (every
-        denoising and Adam step of one plan)."""
-        cached = self._replayed_of
+    def _contacts(self, pos: Tensor, lay: _Layout) -> tuple[tuple[Tensor, ...], tuple[Tensor, ...]]:
+        """The contacts that may overlap: vehicle pairs a < b (a, b, n, t) and vehicle–replayed pairs
+        (a, o, n, t), each a tuple of (K,) long tensors. Pairs are first narrowed by boxes over the
+        horizon, then each sample and step by centre distance against the reach of both."""
+        buffer = self.buffer_m + 1e-3  # a hair more: round-off never drops a touching contact
+        lo, hi = _boxes(pos, lay.reach)
+        i, j = torch.nonzero(torch.triu(_overlap(lo, hi, lo, hi, buffer), diagonal=1), as_tuple=True)
+        reach = (lay.reach[i] + lay.reach[j] + buffer)[:, None, None]
+        p, n_v, t_v = torch.nonzero(((pos[i] - pos[j]) ** 2).sum(-1) < reach**2, as_tuple=True)
+        rep = lay.replayed
+        vi, oi = torch.nonzero(_overlap(lo, hi, rep.lo, rep.hi, buffer), as_tuple=True)
+        reach = (lay.reach[vi] + rep.reach[oi] + buffer)[:, None, None]
+        close = ((pos[vi] - rep.xy[oi][:, None]) ** 2).sum(-1) < reach**2  # (P, N, T)
+        q, n_o, t_o = torch.nonzero(close & rep.valid[oi][:, None], as_tuple=True)
+        return (i[p], j[p], n_v, t_v), (vi[q], oi[q], n_o, t_o)
+
+    def _layout(self, data_batch: GuidanceBatch, n_t: int, like: Tensor) -> _Layout:
+        """The discs of the vehicles and of the replayed agents over the horizon, kept while the same
+        batch is guided (every denoising and Adam step of one plan)."""
+        cached = self._layout_of
         if cached is not None and cached[0] is data_batch and cached[1:3] == (n_t, like.dtype):
             return cached[3]
-        offsets, radius = disc_layout(data_batch.obstacles_extent.to(like))  # (O, D), (O,)
+        offsets, radius = disc_layout(data_batch.extent.to(like))  # (B, D), (B,)
+        o_offsets, o_radius = disc_layout(data_batch.obstacles_extent.to(like))  # (O, D), (O,)
         xy, yaw = data_batch.obstacles_xy[:, :n_t].to(like), data_batch.obstacles_yaw[:, :n_t].to(like)
-        discs = disc_centres(xy, yaw, offsets[:, None])  # (O, T, D, 2)
         valid = data_batch.obstacles_valid[:, :n_t].to(like.device)
-        lo, hi = _boxes(discs, radius, valid)
-        replayed = _Replayed(discs, radius, valid.to(like.dtype), lo, hi)
-        self._replayed_of = (data_batch, n_t, like.dtype, replayed)
-        return replayed
+        o_reach = o_offsets.amax(-1) + o_radius
+        lo, hi = _boxes(xy, o_reach, valid)
+        replayed = _Replayed(disc_centres(xy, yaw, o_offsets[:, None]), o_radius, o_reach, xy, valid, lo, hi)
+        weights = time_weights(n_t, self.decay, like)
+        lay = _Layout(offsets, radius, offsets.amax(-1) + radius, weights, replayed)
+        self._layout_of = (data_batch, n_t, like.dtype, lay)
+        return lay
 
 
 @dataclass(frozen=True)
 class _Replayed:
-    """Replayed agents over a horizon of T steps: discs (O, T, D, 2), radius (O,), valid (O, T) as 0/1,
-    and their boxes lo, hi (O, 2) (:func:`_boxes`; empty for an agent never valid)."""
+    """Replayed agents over a horizon of T steps: discs (O, T, D, 2), radius (O,), reach (O,) the
+    radius plus the farthest disc's offset, xy (O, T, 2) centres, valid (O, T) bool, and the boxes
+    lo, hi (O, 2) their reach covers (:func:`_boxes`; empty for an agent never valid)."""
 
     discs: Tensor
     radius: Tensor
+    reach: Tensor
+    xy: Tensor
     valid: Tensor
     lo: Tensor
     hi: Tensor
 
 
-def _boxes(discs: Tensor, radius: Tensor, valid: Tensor | None = None) -> tuple[Tensor, Tensor]:
-    """Axis-aligned boxes (lo, hi), each (B, 2) m, covering every disc of each of B agents over all
-    samples and steps: discs (B, ..., D, 2), radius (B,), valid (B, T) or None (steps an invalid
-    agent is not at are left out; an agent never valid gets an empty box)."""
+@dataclass(frozen=True)
+class _Layout:
+    """What stays fixed while one batch is guided: the vehicles' disc offsets (B, D), radius (B,) and
+    reach (B,) (radius plus farthest offset), the time weights (T,) and the replayed agents."""
+
+    offsets: Tensor
+    radius: Tensor
+    reach: Tensor
+    time_weights: Tensor
+    replayed: _Replayed
+
+
+def _boxes(xy: Tensor, reach: Tensor, valid: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """Axis-aligned boxes (lo, hi), each (B, 2) m, covering the discs of each of B agents at centres
+    xy (B, ..., 2) within ``reach`` (B,) over all samples and steps; valid (B, T) or None (steps an
+    invalid agent is not at are left out; an agent never valid gets an empty box)."""
     with torch.no_grad():
-        r = radius.reshape(-1, *[1] * (discs.ndim - 1))
-        lo, hi = discs - r, discs + r
+        r = reach.reshape(-1, *[1] * (xy.ndim - 1))
+        lo, hi = xy - r, xy + r
         if valid is not None:
-            keep = valid.reshape(*valid.shape, *[1] * (discs.ndim - valid.ndim))
+            keep = valid.reshape(*valid.shape, *[1] * (xy.ndim - valid.ndim))
             lo = torch.where(keep, lo, torch.full_like(lo, float("inf")))
             hi = torch.where(keep, hi, torch.full_like(hi, float("-inf")))
         return lo.flatten(1, -2).amin(1), hi.flatten(1, -2).amax(1)
