@@ -4,6 +4,7 @@ the rules' losses compared with the unguided sample from the same seed, on real 
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -213,6 +214,29 @@ def test_guided_plans_on_the_untrained_model(scene_0103: Scene) -> None:
     unguided = DiffusionPolicy(model, sampling).sample_plans(observation(scene_0103))
     assert unguided.loss is None and (unguided.chosen == 0).all()
     assert float(loss(samples.trajectories, None).mean()) < float(loss(unguided.trajectories, None).mean())
+
+
+def test_held_vehicles_stand_still_and_cost_no_sampling(scene_0103: Scene) -> None:
+    """Vehicles the simulator holds are not sampled: every sample has them at rest (zero actions, zero
+    trajectory, their rows still in the guidance loss), and the moving vehicles get exactly the plans
+    of sampling them alone with the same seed."""
+    obs = observation(scene_0103)
+    speed = scene_0103.agents.speed[obs.controlled, STEP]
+    held = obs.controlled[speed < 0.5]
+    moves = speed >= 0.5
+    assert 0 < len(held) < len(obs.controlled)
+    model, sampling, loss = make_model(), SamplingConfig("ddim", 4, 3), TargetSpeedOnX(2.0)
+    policy = DiffusionPolicy(model, sampling, loss)
+    samples = policy.sample_plans(replace(obs, held=held))
+    assert samples.actions.shape == (3, len(obs.controlled), 52, 2)
+    assert (samples.actions[:, ~moves] == 0).all() and (samples.trajectories[~moves] == 0).all()
+    assert samples.loss is not None
+    torch.testing.assert_close(samples.loss[~moves], torch.full((int((~moves).sum()), 3), 4.0))
+    alone = policy.sample_plans(replace(observation(scene_0103), controlled=obs.controlled[moves]))
+    torch.testing.assert_close(samples.actions[:, moves], alone.actions)
+    assert samples.chosen[moves].tolist() == alone.chosen.tolist()
+    nothing = policy.sample_plans(replace(obs, held=obs.controlled))
+    assert (nothing.actions == 0).all() and nothing.trajectories.shape == (len(obs.controlled), 3, 52, 6)
 
 
 def test_coupled_loss_keeps_one_sample_for_the_scene(scene_0103: Scene) -> None:

@@ -10,7 +10,7 @@ from ctgpp.metrics import compute_metrics
 from ctgpp.scene.types import Scene
 from ctgpp.sim.closed_loop import EpisodeError, episode_starts, simulate
 from ctgpp.sim.export import write_rollout
-from ctgpp.sim.policy import ConstantVelocityPolicy, ReplayPolicy
+from ctgpp.sim.policy import ConstantVelocityPolicy, Observation, Plan, ReplayPolicy
 
 
 def test_replay_reproduces_the_log_exactly(scene_0103: Scene) -> None:
@@ -42,6 +42,35 @@ def test_constant_velocity_keeps_speed_and_heading(scene_0103: Scene) -> None:
     np.testing.assert_array_equal(
         r.sim.xy[others][r.log.valid[others]], r.log.xy[others][r.log.valid[others]]
     )
+
+
+class Recording:
+    """A policy that records what it is told to hold, and plans like constant velocity."""
+
+    name = "recording"
+
+    def __init__(self, hold_stationary: bool) -> None:
+        self.hold_stationary = hold_stationary
+        self.held: list[np.ndarray] = []
+        self.inner = ConstantVelocityPolicy()
+
+    def plan(self, obs: Observation) -> Plan:
+        self.held.append(obs.held.copy())
+        return self.inner.plan(obs)
+
+
+@pytest.mark.parametrize("hold", [True, False])
+def test_the_policy_is_told_which_vehicles_are_held(scene_0103: Scene, hold: bool) -> None:
+    """Every re-plan names the vehicles stationary at the start as held (none when the policy does
+    not hold them), so that a policy need not plan them."""
+    policy = Recording(hold)
+    r = simulate(scene_0103, policy, 4.0)
+    c = np.flatnonzero(r.controlled)
+    speed0 = r.sim.speed[c, r.current]
+    want = c[speed0 < 0.5] if hold else c[:0]
+    assert len(policy.held) == 20 and len(c[speed0 < 0.5]) > 0
+    for held in policy.held:
+        np.testing.assert_array_equal(np.sort(held), np.sort(want))
 
 
 def test_episode_bounds(scene_0103: Scene) -> None:

@@ -84,7 +84,7 @@ def simulate(
     n_replans = -(-config.duration_steps // config.replan_every)
     for k in range(n_replans):
         step = step0 + k * config.replan_every
-        obs = Observation(scene, tracks, step, controlled, config.horizon_steps, rng)
+        obs = Observation(scene, tracks, step, controlled, config.horizon_steps, rng, held=still)
         plan = policy.plan(obs)
         n = min(config.replan_every, step0 + config.duration_steps - step)
         exe = slice(step + 1, step + 1 + n)

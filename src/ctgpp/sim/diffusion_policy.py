@@ -47,10 +47,11 @@ class SamplingConfig:
 class PlanSamples:
     """The N joint samples of one re-plan.
 
-    actions: (N, V, F, 2) acceleration m/s², yaw rate rad/s (clipped to the bounds). current: (V, 4)
-    current states (0, 0, v, 0) in each vehicle's frame. trajectories: (V, N, F, 6) the guidance
-    contract's x. loss: the guidance loss of each sample, (V, N) or (N), None when unguided.
-    chosen: (V,) the sample each vehicle executes (filtration; all 0 when unguided).
+    actions: (N, V, F, 2) acceleration m/s², yaw rate rad/s (clipped to the bounds; zero for held
+    vehicles). current: (V, 4) current states (0, 0, v, 0) in each vehicle's frame (v = 0 when held).
+    trajectories: (V, N, F, 6) the guidance contract's x. loss: the guidance loss of each sample,
+    (V, N) or (N), None when unguided. chosen: (V,) the sample each vehicle executes (filtration; all
+    0 when unguided).
     """
 
     actions: Tensor
@@ -107,22 +108,30 @@ class DiffusionPolicy:
     def sample_plans(self, obs: Observation) -> PlanSamples:
         """Sample N joint futures (guided when the policy has a loss) and choose one per vehicle.
 
-        The denoiser runs in inference mode (its outputs cloned back to normal tensors, which the
-        guidance steps may use: autograd refuses inference tensors); only the guidance steps enable
-        gradients.
+        Only the vehicles that move are sampled: those the simulator holds (``obs.held``) stand still
+        in every sample, and the guidance loss sees them so, in their rows of x. The denoiser runs in
+        inference mode (its outputs cloned back to normal tensors, which the guidance steps may use:
+        autograd refuses inference tensors); only the guidance steps enable gradients.
         """
-        model = self.denoiser_for(obs)
+        moves = ~np.isin(obs.controlled, obs.held)  # (V,)
+        planned = replace(obs, controlled=obs.controlled[moves], held=obs.held[:0])
+        model = self.denoiser_for(planned)
         cfg = model.config
-        windows = WindowConfig(
-            cfg.history_steps, cfg.future_steps, max_agents=len(obs.controlled), with_future=False
-        )
+        n, v, f = self.sampling.num_samples, len(obs.controlled), cfg.future_steps
+        current = torch.zeros(v, 4)  # (V, 4): (0, 0, v, 0) in each vehicle's frame; held ones at rest
+        actions = torch.zeros(n, v, f, 2)
+        if not moves.any():  # every vehicle is held: nothing to sample
+            traj = action_trajectories(actions, current, cfg.dt_s)
+            return PlanSamples(actions, current, traj, None, torch.zeros(v, dtype=torch.long))
+        rows = torch.from_numpy(np.flatnonzero(moves))  # the moving vehicles' rows among the V
+        windows = WindowConfig(cfg.history_steps, f, max_agents=len(rows), with_future=False)
         seen = replace(obs.scene, agents=obs.tracks)  # the simulated past, never the logged future
-        window = build_window(seen, obs.step, windows, agent_index=obs.controlled)
-        n, v = self.sampling.num_samples, window.num_agents
-        batch = collate([window])  # (1, V, ...): the N samples share one scene
-        context = model.encode_context(batch).expand(n)  # encoded once, (N, V, ...) views
+        window = build_window(seen, obs.step, windows, agent_index=planned.controlled)
+        batch = collate([window])  # (1, M, ...): the N samples share one scene
+        context = model.encode_context(batch).expand(n)  # encoded once, (N, M, ...) views
         gen = torch.Generator().manual_seed(int(obs.rng.integers(2**31)))
-        current = batch.hist[0, :, -1]  # (V, 4)
+        moving = batch.hist[0, :, -1]  # (M, 4) current states of the sampled vehicles
+        current[rows] = moving
         normalizer = model.normalizer
 
         def denoise(x: Tensor, k: int) -> Tensor:
@@ -131,17 +140,21 @@ class DiffusionPolicy:
                 out = model(x, torch.full((n,), k, dtype=torch.long), batch, context)
             return out.clone()  # a normal tensor again, which the guidance steps may differentiate around
 
+        def every_vehicle(traj: Tensor) -> Tensor:  # (M, N, F, 6) -> (V, N, F, 6), held rows at rest
+            if len(rows) == v:
+                return traj
+            return traj.new_zeros(v, *traj.shape[1:]).index_copy(0, rows, traj)
+
         objective = None
         if self.guidance is not None:
-            loss_fn, data_batch = self.guidance, build_guidance_batch(obs, cfg.future_steps)
+            loss_fn, data_batch = self.guidance, build_guidance_batch(obs, f)
 
-            def objective(x: Tensor) -> Tensor:  # normalized actions (N, V, F, 2) -> loss
-                traj = action_trajectories(normalizer.denormalize_actions(x), current, cfg.dt_s)
-                return loss_fn(traj, data_batch)
+            def objective(x: Tensor) -> Tensor:  # normalized actions (N, M, F, 2) -> loss
+                traj = action_trajectories(normalizer.denormalize_actions(x), moving, cfg.dt_s)
+                return loss_fn(every_vehicle(traj), data_batch)
 
-        shape = (n, v, cfg.future_steps, 2)
-        x0 = guided_sample(denoise, shape, self.sampler, objective, self.guidance_config, gen)
-        actions = clip_actions(normalizer.denormalize_actions(x0))  # (N, V, F, 2)
+        x0 = guided_sample(denoise, (n, len(rows), f, 2), self.sampler, objective, self.guidance_config, gen)
+        actions[:, rows] = clip_actions(normalizer.denormalize_actions(x0))  # (N, V, F, 2)
         traj = action_trajectories(actions, current, cfg.dt_s)  # (V, N, F, 6)
         if objective is None:
             return PlanSamples(actions, current, traj, None, torch.zeros(v, dtype=torch.long))

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
@@ -16,7 +16,10 @@ class Observation:
 
     tracks: every agent over the whole (padded) scene time; controlled vehicles are valid only up
     to ``step`` (their simulated past), other agents hold the log. controlled: (V,) agent indices in
-    displayed order. horizon_steps: how many future steps to plan.
+    displayed order. horizon_steps: how many future steps to plan. held: the controlled vehicles the
+    simulator keeps still whatever is planned for them (stationary at the start, with a policy that
+    ``hold_stationary``), agent indices: a policy may plan them as standing still and spend nothing on
+    them.
     """
 
     scene: Scene
@@ -25,6 +28,7 @@ class Observation:
     controlled: np.ndarray
     horizon_steps: int
     rng: np.random.Generator
+    held: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
 
 @dataclass(frozen=True, eq=False)
