@@ -22,14 +22,15 @@ def _f(value: float, digits: int = 3) -> str:
 
 def scenario_table(results: Sequence[PresetResult]) -> str:
     """Seconds per 10-s scenario, speed-up over the paper's preset (same episodes), memory, quality,
-    and the quality differences from the paper's preset paired episode by episode."""
+    and the quality differences from the paper's preset paired episode by episode. Vehicles: the mean
+    count per episode, and in brackets of those moving at the start (sampled; the others held)."""
     reference = next((r for r in results if r.preset == REFERENCE_PRESET), None)
     head = (
-        "| preset | sampler | episodes | median s / scenario | mean s | × faster than paper | "
-        "denoiser calls / s | peak MiB | fail | rule violation | real | rel real | "
+        "| preset | sampler | episodes | vehicles (moving) | median s / scenario | mean s | "
+        "× faster than paper | denoiser calls / s | peak MiB | fail | rule violation | real | rel real | "
         "fail − paper (± s.e.) | real vs paper |"
     )
-    lines = [head, "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    lines = [head, "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in results:
         mean_s = r.mean("seconds")
         speedup, fail_diff, real_ratio = math.nan, "-", "-"
@@ -39,11 +40,12 @@ def scenario_table(results: Sequence[PresetResult]) -> str:
                 diff, se = paired_difference(r, reference, "fail")
                 fail_diff = f"{diff:+.3f} ± {se:.3f}"
                 real_ratio = f"{100 * (r.mean('real') / reference.mean('real') - 1):+.0f} %"
+        vehicles = f"{r.mean('vehicles'):.1f} ({r.mean('moving'):.1f})"
         lines.append(
-            f"| {r.preset} | {r.description} | {len(r.episodes)} | {r.median_seconds:.2f} | {mean_s:.2f} | "
-            f"{_f(speedup, 1)} | {r.calls_per_second:.1f} | {r.peak_rss_mib:.0f} | {_f(r.mean('fail'))} | "
-            f"{_f(r.mean('rule_violation'))} | {_f(r.mean('real'))} | {_f(r.mean('rel_real'))} | "
-            f"{fail_diff} | {real_ratio} |"
+            f"| {r.preset} | {r.description} | {len(r.episodes)} | {vehicles} | {r.median_seconds:.2f} | "
+            f"{mean_s:.2f} | {_f(speedup, 1)} | {r.calls_per_second:.1f} | {r.peak_rss_mib:.0f} | "
+            f"{_f(r.mean('fail'))} | {_f(r.mean('rule_violation'))} | {_f(r.mean('real'))} | "
+            f"{_f(r.mean('rel_real'))} | {fail_diff} | {real_ratio} |"
         )
     return "\n".join(lines) + "\n"
 

@@ -26,7 +26,7 @@ from ctgpp.data.catalog import Catalog
 from ctgpp.eval.runner import episode_rule
 from ctgpp.metrics import compute_metrics
 from ctgpp.scene.types import Scene
-from ctgpp.sim.closed_loop import simulate
+from ctgpp.sim.closed_loop import STATIONARY_SPEED_MPS, simulate
 from ctgpp.sim.diffusion_policy import DiffusionPolicy
 from ctgpp.sim.factory import PolicyFactory
 from ctgpp.sim.presets import preset
@@ -34,12 +34,14 @@ from ctgpp.sim.presets import preset
 
 @dataclass(frozen=True)
 class EpisodeTiming:
-    """One closed-loop episode: wall seconds for the whole 10-s scenario and its metrics."""
+    """One closed-loop episode: wall seconds for the whole 10-s scenario and its metrics. vehicles: all
+    controlled; moving: those moving at the start, the ones sampled (the others are held still)."""
 
     scene: str
     start_s: float
     seed: int
     vehicles: int
+    moving: int
     seconds: float
     denoiser_calls: int
     fail: float
@@ -107,11 +109,12 @@ def time_preset(job: BenchJob) -> PresetResult:
         metrics = compute_metrics(rollout, ("fail", "real", "rel_real"))
         fail = metrics["fail"] if spec is None else spec.fail(rollout)
         violation = math.nan if spec is None else spec.violation(rollout)
-        vehicles = int(rollout.controlled.sum())
+        controlled = rollout.controlled.nonzero()[0]
+        moving = int((rollout.sim.speed[controlled, rollout.current] >= STATIONARY_SPEED_MPS).sum())
         results.append(
             EpisodeTiming(
-                scene_id, start_s, seed, vehicles, seconds, policy.denoiser_calls, fail, violation,
-                metrics["real"], metrics["rel_real"],
+                scene_id, start_s, seed, len(controlled), moving, seconds, policy.denoiser_calls, fail,
+                violation, metrics["real"], metrics["rel_real"],
             )
         )
     peak_kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux
