@@ -84,7 +84,7 @@ def test_quality_differences_are_paired_episode_by_episode() -> None:
 @pytest.mark.parametrize(
     ("name", "sampling", "guidance"),
     [
-        ("ddim5-n2-w2-lr0.45", SamplingConfig("ddim", 5, 2), GuidanceConfig(2, 0.45)),  # the fast preset
+        ("ddim5-n2-lr0.9", SamplingConfig("ddim", 5, 2), GuidanceConfig(1, 0.9)),  # the fast preset
         ("ddpm-n5", SamplingConfig("ddpm", 100, 5), GuidanceConfig(1, 0.3)),  # the paper preset
         ("ddim10", SamplingConfig("ddim", 10, 4), GuidanceConfig(1, 0.3)),
         ("ddim4-w2-lr0.5-from80", SamplingConfig("ddim", 4, 4), GuidanceConfig(2, 0.5, 80)),
@@ -93,7 +93,7 @@ def test_quality_differences_are_paired_episode_by_episode() -> None:
 def test_spelled_out_presets(name: str, sampling: SamplingConfig, guidance: GuidanceConfig) -> None:
     chosen = preset(name)
     assert (chosen.sampling, chosen.guidance) == (sampling, guidance)
-    if name in ("ddim5-n2-w2-lr0.45", "ddpm-n5"):
+    if name in ("ddim5-n2-lr0.9", "ddpm-n5"):
         named = preset("fast" if name.startswith("ddim") else "paper")
         assert (named.sampling, named.guidance) == (sampling, guidance)
 

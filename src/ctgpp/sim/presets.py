@@ -6,8 +6,8 @@ default of ``simulate`` and ``evaluate``, chosen from ``ctgpp bench`` measuremen
 Speed). Any other configuration is spelled out in its name, so that a candidate can be timed beside
 them: ``ddim<steps>`` or ``ddpm`` (every step), then optionally ``-n<samples>`` (default 4),
 ``-w<Adam steps per denoising step>`` (default 1), ``-lr<learning rate>`` (default 0.3) and
-``-from<k>`` (guide only at diffusion steps k ≤ this; default every step). ``ddim5-n2-w2-lr0.45``
-is ``fast``; ``ddpm-n5`` is ``paper``.
+``-from<k>`` (guide only at diffusion steps k ≤ this; default every step). ``ddim5-n2-lr0.9`` is
+``fast``; ``ddpm-n5`` is ``paper``.
 """
 
 from __future__ import annotations
@@ -43,8 +43,8 @@ PRESETS: dict[str, SamplerPreset] = {
         SamplerPreset(
             "fast",
             SamplingConfig(),  # the defaults: DDIM 5 steps, N = 2
-            GuidanceConfig(),  # the default: 2 Adam steps of lr 0.45 at every denoising step
-            "the default: DDIM 5 steps, guided at every step with 2 Adam steps of lr 0.45, N = 2",
+            GuidanceConfig(),  # the default: 1 Adam step of lr 0.9 at every denoising step
+            "the default: DDIM 5 steps, guided at every step with 1 Adam step of lr 0.9, N = 2",
         ),
     )
 }
