@@ -42,11 +42,15 @@ def test_tiled_copies_beyond_the_social_radius_predict_like_the_original(scene_0
 
 def test_bench_times_a_guided_scenario_and_the_curves(tmp_path: Path) -> None:
     out = tmp_path / "bench"
-    argv = ["bench", "--presets", "fast", "--episodes", "1", "--seeds", "0,3"]
+    argv = ["bench", "--presets", "fast,ddim2-n1", "--episodes", "1", "--seeds", "0,3"]
     argv += ["--agents", "4,8", "--scenes", "1,2"]
     assert main([*argv, "--repeats", "1", "--out", str(out)]) == 0
     report = json.loads((out / "bench.json").read_text())
-    (fast,) = report["scenarios"]
+    fast, cheap = report["scenarios"]  # each in its own process, the same episodes interleaved
+    assert cheap["preset"] == "ddim2-n1" and cheap["peak_rss_mib"] > 0
+    assert [(e["start_s"], e["seed"]) for e in cheap["episodes"]] == [
+        (e["start_s"], e["seed"]) for e in fast["episodes"]
+    ]
     episode, again = fast["episodes"]  # the one start, once per seed
     assert (episode["seed"], again["seed"]) == (0, 3) and episode["start_s"] == again["start_s"]
     steps = preset("fast").sampling.steps

@@ -1,4 +1,5 @@
-"""Whole guided closed-loop scenarios timed per sampler preset, each preset in a fresh process.
+"""Whole guided closed-loop scenarios timed per sampler preset, each preset in a fresh process, the
+presets interleaved episode by episode (:func:`time_presets`).
 
 A fresh process per preset gives each its own peak memory (the process's maximum resident set) and
 keeps one preset's caches from flattering the next. Each scene is loaded once per preset and its
@@ -15,6 +16,7 @@ import multiprocessing
 import resource
 import statistics
 import time
+from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -76,33 +78,36 @@ class PresetResult:
 
 @dataclass(frozen=True)
 class BenchJob:
-    """What a child process needs to time one preset (plain values: it crosses a process boundary)."""
+    """What a worker process needs to time one preset (plain values: it crosses a process boundary)."""
 
     preset: str
     data_dir: Path | None
-    episodes: tuple[tuple[str, float, int], ...]  # (scene, start s, sampling seed)
     rule: str
     checkpoint: Path | None
     threads: int
-    progress: bool
 
 
-def time_preset(job: BenchJob) -> PresetResult:
-    """Run ``job``'s episodes with its preset in this process and time each whole scenario."""
-    torch.set_num_threads(job.threads)
-    chosen = preset(job.preset)
-    catalog = Catalog.open(job.data_dir)
-    factory = PolicyFactory(job.checkpoint, chosen.sampling, chosen.guidance)
-    results = []
-    scenes: dict[str, Scene] = {}
-    for scene_id, start_s, seed in tqdm(job.episodes, desc=job.preset, unit="ep", disable=not job.progress):
-        if scene_id not in scenes:  # once per scene, untimed: its drivable-area distance field
-            scenes[scene_id] = catalog.load(scene_id)
-            _ = scenes[scene_id].drivable.sdf_m
-        scene = scenes[scene_id]
-        spec = episode_rule(scene, start_s, job.rule)
+class _Worker:
+    """One preset's state inside its worker process: the policy factory and the scenes loaded so far."""
+
+    def __init__(self, job: BenchJob) -> None:
+        torch.set_num_threads(job.threads)
+        self.job = job
+        self.chosen = preset(job.preset)
+        self.catalog = Catalog.open(job.data_dir)
+        self.factory = PolicyFactory(job.checkpoint, self.chosen.sampling, self.chosen.guidance)
+        self.scenes: dict[str, Scene] = {}
+
+    def episode(self, scene_id: str, start_s: float, seed: int) -> EpisodeTiming:
+        """Simulate and time one whole scenario; the scene is loaded and its drivable-area distance
+        field built before the clock starts (once per scene, as ``evaluate`` keeps them)."""
+        if scene_id not in self.scenes:
+            self.scenes[scene_id] = self.catalog.load(scene_id)
+            _ = self.scenes[scene_id].drivable.sdf_m
+        scene = self.scenes[scene_id]
+        spec = episode_rule(scene, start_s, self.job.rule)
         loss = None if spec is None else spec.loss
-        policy = DiffusionPolicy(factory.model, chosen.sampling, loss, chosen.guidance)
+        policy = DiffusionPolicy(self.factory.model, self.chosen.sampling, loss, self.chosen.guidance)
         began = time.perf_counter()
         rollout = simulate(scene, policy, start_s, seed=seed)
         seconds = time.perf_counter() - began
@@ -111,17 +116,60 @@ def time_preset(job: BenchJob) -> PresetResult:
         violation = math.nan if spec is None else spec.violation(rollout)
         controlled = rollout.controlled.nonzero()[0]
         moving = int((rollout.sim.speed[controlled, rollout.current] >= STATIONARY_SPEED_MPS).sum())
-        results.append(
-            EpisodeTiming(
-                scene_id, start_s, seed, len(controlled), moving, seconds, policy.denoiser_calls, fail,
-                violation, metrics["real"], metrics["rel_real"],
-            )
+        return EpisodeTiming(
+            scene_id, start_s, seed, len(controlled), moving, seconds, policy.denoiser_calls, fail,
+            violation, metrics["real"], metrics["rel_real"],
         )
-    peak_kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux
-    return PresetResult(job.preset, chosen.description, results, peak_kib / 1024, torch.get_num_threads())
 
 
-def time_preset_in_child(job: BenchJob) -> PresetResult:
-    """:func:`time_preset` in a fresh (spawned) process, so its peak memory is its own."""
-    with ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn")) as pool:
-        return pool.submit(time_preset, job).result()
+_WORKER: _Worker | None = None  # the preset of this worker process
+
+
+def _start_worker(job: BenchJob) -> str:
+    global _WORKER
+    _WORKER = _Worker(job)
+    return _WORKER.chosen.description
+
+
+def _time_episode(scene_id: str, start_s: float, seed: int) -> EpisodeTiming:
+    if _WORKER is None:
+        raise RuntimeError("the bench worker was not started")
+    return _WORKER.episode(scene_id, start_s, seed)
+
+
+def _peak_memory() -> tuple[float, int]:
+    """This process's peak resident memory (MiB) and torch threads."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, torch.get_num_threads()  # KiB on Linux
+
+
+def time_presets(
+    jobs: Sequence[BenchJob], episodes: Sequence[tuple[str, float, int]], progress: bool = True
+) -> list[PresetResult]:
+    """Time every preset of ``jobs`` on the same ``episodes`` (scene, start s, sampling seed).
+
+    Each preset runs in its own fresh (spawned) worker process, so its peak memory is its own, and
+    the episodes are interleaved: the first episode with every preset, then the second, and so on,
+    one process working at a time. The host's speed drifts over minutes (other tenants), so timing
+    one preset after another would put the drift into their ratio; interleaved, it falls on all alike.
+    """
+    spawn = multiprocessing.get_context("spawn")
+    pools = [ProcessPoolExecutor(max_workers=1, mp_context=spawn) for _ in jobs]
+    try:
+        started = [pool.submit(_start_worker, job) for pool, job in zip(pools, jobs, strict=True)]
+        descriptions = [future.result() for future in started]
+        timings: list[list[EpisodeTiming]] = [[] for _ in jobs]
+        bar = tqdm(total=len(episodes) * len(jobs), desc="scenarios", unit="ep", disable=not progress)
+        with bar:
+            for episode in episodes:
+                for pool, job, done in zip(pools, jobs, timings, strict=True):
+                    bar.set_postfix_str(job.preset)
+                    done.append(pool.submit(_time_episode, *episode).result())
+                    bar.update()
+        peaks = [pool.submit(_peak_memory).result() for pool in pools]
+    finally:
+        for pool in pools:
+            pool.shutdown()
+    return [
+        PresetResult(job.preset, description, done, peak, threads)
+        for job, description, done, (peak, threads) in zip(jobs, descriptions, timings, peaks, strict=True)
+    ]

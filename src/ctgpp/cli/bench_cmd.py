@@ -11,7 +11,7 @@ import torch
 
 from ctgpp.bench.report import agent_table, batching_table, plot_agent_curve, scenario_table
 from ctgpp.bench.scaling import agent_curve, scene_batching
-from ctgpp.bench.scenarios import BenchJob, PresetResult, time_preset_in_child
+from ctgpp.bench.scenarios import BenchJob, time_presets
 from ctgpp.cli.common import add_data_arg, open_catalog
 from ctgpp.data.catalog import Catalog
 from ctgpp.data.windows import SceneWindow, WindowConfig, build_window
@@ -106,10 +106,8 @@ def run_bench(args: argparse.Namespace) -> int:
         if not chosen:
             raise ValueError(f"no episode of split {args.split!r} qualifies for rule {args.rule!r}")
         runs = tuple((e.scene, e.start_s, seed) for seed in seeds for e in chosen)  # seed-major
-        results: list[PresetResult] = []
-        for name in names:
-            job = BenchJob(name, args.data, runs, args.rule, args.checkpoint, args.threads, True)
-            results.append(time_preset_in_child(job))
+        jobs = [BenchJob(name, args.data, args.rule, args.checkpoint, args.threads) for name in names]
+        results = time_presets(jobs, runs)
         report["scenarios"] = [asdict(r) for r in results]
         text += ["## Guided 10-s closed-loop scenarios\n", scenario_table(results)]
 
