@@ -45,7 +45,7 @@ from ctgpp.train.loop import TrainConfig, train
 TINY_CTG = CTGConfig(unet_width=8, cond_dim=16, map_channels=8, raster_pixels=32)
 TINY_BITS = BITSConfig(hidden=32, map_channels=8, raster_pixels=32)
 TRAIN = TrainConfig(30, batch_scenes=2, lr=2e-3, stride=10, val_every=15, val_windows=4, max_agents=12)
-SAMPLING = SamplingConfig("ddim", 3, 2)
+SAMPLING = SamplingConfig.evenly("ddim", 3, 2)
 
 
 @pytest.fixture(scope="module", autouse=True)

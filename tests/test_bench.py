@@ -88,23 +88,24 @@ def test_quality_differences_are_paired_episode_by_episode() -> None:
 @pytest.mark.parametrize(
     ("name", "sampling", "guidance"),
     [
-        ("ddim5-n2-lr0.9", SamplingConfig("ddim", 5, 2), GuidanceConfig(1, 0.9)),  # the fast preset
-        ("ddpm-n5", SamplingConfig("ddpm", 100, 5), GuidanceConfig(1, 0.3)),  # the paper preset
-        ("ddim10", SamplingConfig("ddim", 10, 4), GuidanceConfig(1, 0.3)),
-        ("ddim4-w2-lr0.5-from80", SamplingConfig("ddim", 4, 4), GuidanceConfig(2, 0.5, 80)),
+        ("ddim@99.75.40.0-n2-lr0.9", SamplingConfig("ddim", 4, 2, (99, 75, 40, 0)), GuidanceConfig(1, 0.9)),
+        ("ddim5-n2-lr0.9", SamplingConfig.evenly("ddim", 5, 2), GuidanceConfig(1, 0.9)),
+        ("ddpm-n5", SamplingConfig.evenly("ddpm", 100, 5), GuidanceConfig(1, 0.3)),  # the paper preset
+        ("ddim10", SamplingConfig.evenly("ddim", 10, 4), GuidanceConfig(1, 0.3)),
+        ("ddim4-w2-lr0.5-from80", SamplingConfig.evenly("ddim", 4, 4), GuidanceConfig(2, 0.5, 80)),
     ],
 )
 def test_spelled_out_presets(name: str, sampling: SamplingConfig, guidance: GuidanceConfig) -> None:
     chosen = preset(name)
     assert (chosen.sampling, chosen.guidance) == (sampling, guidance)
-    if name in ("ddim5-n2-lr0.9", "ddpm-n5"):
+    if name in ("ddim@99.75.40.0-n2-lr0.9", "ddpm-n5"):  # the fast and the paper preset
         named = preset("fast" if name.startswith("ddim") else "paper")
         assert (named.sampling, named.guidance) == (sampling, guidance)
 
 
 @pytest.mark.parametrize(
     "name",
-    ["warp", "ddim", "ddim0", "ddim5-n0", "ddim5-n2-n3", "ddim5-x2", "ddim5-w-1"],
+    ["warp", "ddim", "ddim0", "ddim5-n0", "ddim5-n2-n3", "ddim5-x2", "ddim5-w-1", "ddim@99"],
 )
 def test_unknown_presets_are_clear_errors(name: str) -> None:
     with pytest.raises(ValueError, match="sampler preset"):

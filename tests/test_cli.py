@@ -54,6 +54,8 @@ def test_show_draws_the_numbered_picture(tmp_path: Path) -> None:
         (["simulate", "--scene", "scene-9999", "--out", "{tmp}/x"], "no scene 'scene-9999'"),
         (["simulate", "--scene", "0103", "--start", "1.0", "--out", "{tmp}/x"], "outside 3.0-"),
         (["simulate", "--data", "{tmp}/missing"], "does not exist"),
+        (["simulate", "--scene", "0103", "--steps", "0", "--out", "{tmp}/x"], "must be positive"),
+        (["bench", "--presets", "ddim@90.40.0", "--out", "{tmp}/x"], "must fall strictly from 99"),
         (["scenes", "--split", "nope"], "no scenes in split 'nope'"),
         (["data", "convert", "{tmp}/missing", "{tmp}/out"], "does not exist"),
         (

@@ -149,3 +149,39 @@ class TestDDIM(SamplerContract):
             self.make().prev_mean_std(torch.zeros(2), torch.zeros(2), 98)
         with pytest.raises(ValueError):
             DDIMSampler(CosineSchedule(), num_steps=0)
+
+
+class TestDDIMGrid(SamplerContract):
+    """DDIM over given timesteps (the default sampler's 99, 75, 40, 0)."""
+
+    def make(self) -> Sampler:
+        return DDIMSampler(CosineSchedule(), num_steps=4, timesteps=(99, 75, 40, 0))
+
+    def test_visits_the_given_steps_with_the_ddim_update(self) -> None:
+        sampler = self.make()
+        assert sampler.timesteps == [99, 75, 40, 0]
+        abar = sampler.schedule.alphas_cumprod
+        x0, x_k = torch.randn(5, dtype=torch.float64), torch.randn(5, dtype=torch.float64)
+        mean, _ = sampler.prev_mean_std(x0, x_k, 75)  # 75 -> 40 by hand: x_40 = √ᾱ40 x0 + √(1 − ᾱ40) ε
+        eps = (x_k - abar[75].sqrt() * x0) / (1 - abar[75]).sqrt()
+        assert torch.allclose(mean, abar[40].sqrt() * x0 + (1 - abar[40]).sqrt() * eps)
+        with pytest.raises(ValueError):
+            sampler.prev_mean_std(x0, x_k, 66)  # a step of the evenly spread grid, not of this one
+
+    def test_the_even_grid_given_is_the_default_grid(self) -> None:
+        sched = CosineSchedule()
+        even = DDIMSampler(sched, num_steps=4)
+        given = DDIMSampler(sched, num_steps=4, timesteps=even.timesteps)
+        runs = [
+            sample(lambda x, k: 0.5 * x, (3, 2), s, torch.Generator().manual_seed(3))
+            for s in (even, given)
+        ]
+        assert torch.equal(runs[0], runs[1])
+
+    @pytest.mark.parametrize(
+        "grid",
+        [(99, 75, 40), (98, 75, 40, 0), (99, 40, 75, 0), (99, 75, 75, 0), (99, 75, 40, -1), (120, 75, 40, 0)],
+    )
+    def test_rejects_grids_that_are_not_a_falling_path_from_noise(self, grid: tuple[int, ...]) -> None:
+        with pytest.raises(ValueError, match="timesteps"):
+            DDIMSampler(CosineSchedule(), num_steps=4, timesteps=grid)

@@ -139,7 +139,7 @@ def test_turn_sets_a_stopped_vehicle_going(batch: GuidanceBatch) -> None:
 )
 def test_a_guided_sample_lowers_the_query_loss(scene_0103: Scene, name: str, params: dict) -> None:
     model = make_model(PriorDenoiser)
-    sampling = SamplingConfig("ddim", 5, 2)
+    sampling = SamplingConfig.evenly("ddim", 5, 2)
     unguided = losses(DiffusionPolicy(model, sampling), make_loss(name, **params), scene_0103)
     guided = losses(DiffusionPolicy(model, sampling, make_loss(name, **params)), make_loss(name, **params),
                     scene_0103)

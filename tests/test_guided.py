@@ -200,7 +200,7 @@ def test_action_trajectories_follow_the_contract() -> None:
 
 
 def test_guided_plans_on_the_untrained_model(scene_0103: Scene) -> None:
-    model, sampling = make_model(), SamplingConfig("ddim", 5, 3)
+    model, sampling = make_model(), SamplingConfig.evenly("ddim", 5, 3)
     loss = TargetSpeedOnX(2.0)
     policy = DiffusionPolicy(model, sampling, loss)
     obs = observation(scene_0103)
@@ -225,7 +225,7 @@ def test_held_vehicles_stand_still_and_cost_no_sampling(scene_0103: Scene) -> No
     held = obs.controlled[speed < 0.5]
     moves = speed >= 0.5
     assert 0 < len(held) < len(obs.controlled)
-    model, sampling, loss = make_model(), SamplingConfig("ddim", 4, 3), TargetSpeedOnX(2.0)
+    model, sampling, loss = make_model(), SamplingConfig.evenly("ddim", 4, 3), TargetSpeedOnX(2.0)
     policy = DiffusionPolicy(model, sampling, loss)
     samples = policy.sample_plans(replace(obs, held=held))
     assert samples.actions.shape == (3, len(obs.controlled), 52, 2)
@@ -243,9 +243,8 @@ def test_coupled_loss_keeps_one_sample_for_the_scene(scene_0103: Scene) -> None:
     ctrl = controlled_vehicles(scene_0103, STEP)
     follower, leader = select_pair(scene_0103, STEP, ctrl, 36.0)
     loss = make_loss("keep_distance", follower=follower, leader=leader, min_m=40.0, max_m=50.0)
-    samples = DiffusionPolicy(make_model(PriorDenoiser), SamplingConfig("ddim", 4, 3), loss).sample_plans(
-        observation(scene_0103)
-    )
+    policy = DiffusionPolicy(make_model(PriorDenoiser), SamplingConfig.evenly("ddim", 4, 3), loss)
+    samples = policy.sample_plans(observation(scene_0103))
     assert samples.loss is not None and samples.loss.shape == (3,)
     assert samples.chosen.tolist() == [int(samples.loss.argmin())] * len(ctrl)
 
@@ -277,16 +276,16 @@ def rule_params(scene: Scene, name: str) -> dict[str, Any]:
 @pytest.mark.parametrize(
     ("name", "sampling"),
     [
-        ("speed_limit", SamplingConfig("ddim", 10, 2)),
-        ("speed_limit", SamplingConfig("ddpm", 10, 2)),
-        ("target_speed", SamplingConfig("ddim", 10, 2)),
-        ("no_offroad", SamplingConfig("ddim", 10, 2)),
-        ("goal_waypoint", SamplingConfig("ddpm", 10, 2)),
-        ("keep_distance", SamplingConfig("ddpm", 10, 2)),
-        ("collision", SamplingConfig("ddpm", 10, 2)),
-        ("no_collision", SamplingConfig("ddpm", 10, 2)),
-        ("stop_region", SamplingConfig("ddpm", 10, 2)),
-        ("acceleration_limit", SamplingConfig("ddim", 10, 2)),
+        ("speed_limit", SamplingConfig.evenly("ddim", 10, 2)),
+        ("speed_limit", SamplingConfig.evenly("ddpm", 10, 2)),
+        ("target_speed", SamplingConfig.evenly("ddim", 10, 2)),
+        ("no_offroad", SamplingConfig.evenly("ddim", 10, 2)),
+        ("goal_waypoint", SamplingConfig.evenly("ddpm", 10, 2)),
+        ("keep_distance", SamplingConfig.evenly("ddpm", 10, 2)),
+        ("collision", SamplingConfig.evenly("ddpm", 10, 2)),
+        ("no_collision", SamplingConfig.evenly("ddpm", 10, 2)),
+        ("stop_region", SamplingConfig.evenly("ddpm", 10, 2)),
+        ("acceleration_limit", SamplingConfig.evenly("ddim", 10, 2)),
     ],
 )
 def test_a_guided_sample_lowers_the_rule_loss(scene_0103: Scene, name: str, sampling: SamplingConfig) -> None:

@@ -58,7 +58,7 @@ def test_training_resumes_where_it_stopped(
 
 def test_loaded_checkpoint_samples_the_same_plans(scene_0103: Scene, trained: tuple[Path, dict]) -> None:
     out, _ = trained
-    sampling = SamplingConfig("ddim", 5, 3)
+    sampling = SamplingConfig.evenly("ddim", 5, 3)
     a = simulate(scene_0103, DiffusionPolicy(load_checkpoint(out)[0], sampling), 3.0, seed=7)
     b = simulate(scene_0103, DiffusionPolicy.from_checkpoint(out, sampling), 3.0, seed=7)
     np.testing.assert_array_equal(a.sim.xy, b.sim.xy)
@@ -69,7 +69,7 @@ def test_loaded_checkpoint_samples_the_same_plans(scene_0103: Scene, trained: tu
 def test_policy_never_sees_the_logged_future(scene_0103: Scene, trained: tuple[Path, dict]) -> None:
     """Scrambling the log after the current step changes nothing in the plan."""
     out, _ = trained
-    policy = DiffusionPolicy.from_checkpoint(out, SamplingConfig("ddim", 3, 2))
+    policy = DiffusionPolicy.from_checkpoint(out, SamplingConfig.evenly("ddim", 3, 2))
     step = 40
     controlled = np.array([0, 1, 2, 3])
     a = scene_0103.agents
@@ -110,7 +110,7 @@ def test_the_shipped_checkpoint_loads_and_plans() -> None:
     model, config, record = load_checkpoint(default_checkpoint())
     assert record["steps"] >= 1000 and record["final_val_loss"] < 1.5
     obs = initial_observation(Catalog.open().load("scene-0103"), 3.0)
-    plan = make_policy("ctgpp", sampling=SamplingConfig("ddim", 5, 2)).plan(obs)
+    plan = make_policy("ctgpp", sampling=SamplingConfig.evenly("ddim", 5, 2)).plan(obs)
     assert plan.states.shape == (len(obs.controlled), 52, 4) and np.isfinite(plan.states).all()
     # Moving vehicles keep moving forward: the model learned more than noise.
     moving = obs.tracks.speed[obs.controlled, obs.step] > 3.0

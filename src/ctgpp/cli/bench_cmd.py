@@ -15,6 +15,7 @@ from ctgpp.bench.scenarios import BenchJob, time_presets
 from ctgpp.cli.common import add_data_arg, open_catalog
 from ctgpp.data.catalog import Catalog
 from ctgpp.data.windows import SceneWindow, WindowConfig, build_window
+from ctgpp.diffusion import CosineSchedule
 from ctgpp.eval.rule_setup import evaluation_rules
 from ctgpp.eval.runner import NO_RULE, Episode, plan_episodes
 from ctgpp.io.atomic import write_text_atomic
@@ -81,8 +82,10 @@ def _spread(episodes: list[Episode], count: int) -> list[Episode]:
 
 def run_bench(args: argparse.Namespace) -> int:
     names = [n.strip() for n in args.presets.split(",") if n.strip()]
+    model = PolicyFactory(args.checkpoint).model
+    schedule = CosineSchedule(model.config.diffusion_steps, model.config.cosine_s)
     for name in names:
-        preset(name)  # a clear error for an unknown name before any work
+        preset(name).sampling.make(schedule)  # a clear error for an unknown name or grid before any work
     if args.rule not in [NO_RULE, *evaluation_rules()]:
         raise ValueError(f"unknown rule {args.rule!r}; known: {', '.join(evaluation_rules())}, none")
     if args.episodes < 0 or args.repeats < 1 or args.threads < 1 or args.spacing <= 0:
@@ -112,7 +115,6 @@ def run_bench(args: argparse.Namespace) -> int:
         text += ["## Guided 10-s closed-loop scenarios\n", scenario_table(results)]
 
     if agents or sizes:
-        model = PolicyFactory(args.checkpoint).model
         busiest = _busiest_windows(catalog, args.split)
         samples = preset("fast").sampling.num_samples
         if agents:

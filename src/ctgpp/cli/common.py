@@ -35,7 +35,12 @@ def add_model_args(parser: argparse.ArgumentParser) -> None:
         default=SamplingConfig.sampler,
         help="diffusion sampler (ddpm: all K steps, as in the paper)",
     )
-    parser.add_argument("--steps", type=int, default=SamplingConfig.steps, help="DDIM steps")
+    parser.add_argument(
+        "--steps",
+        type=int,
+        default=None,
+        help="DDIM steps, spread evenly (default: the 4 steps k = 99, 75, 40, 0 of the fast preset)",
+    )
     parser.add_argument(
         "--samples", type=int, default=SamplingConfig.num_samples, help="samples per plan (N)"
     )
@@ -55,9 +60,11 @@ def add_guidance_args(parser: argparse.ArgumentParser) -> None:
 
 
 def sampling_config(args: argparse.Namespace) -> SamplingConfig:
-    if args.steps < 1 or args.samples < 1:
+    if (args.steps is not None and args.steps < 1) or args.samples < 1:
         raise ValueError("--steps and --samples must be positive")
-    return SamplingConfig(args.sampler, args.steps, args.samples)
+    if args.steps is None:
+        return SamplingConfig(args.sampler, num_samples=args.samples)
+    return SamplingConfig.evenly(args.sampler, args.steps, args.samples)
 
 
 def open_catalog(args: argparse.Namespace) -> Catalog:

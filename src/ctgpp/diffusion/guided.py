@@ -35,7 +35,7 @@ class GuidanceConfig:
     """Algorithm 2's settings: ``inner_steps`` (W) Adam steps of learning rate ``lr`` per denoising step.
 
     The paper's reference is W = 1 at each of K = 100 DDPM steps; the default, W = 1 of lr 0.9, goes
-    with the default 5-step DDIM sampler, chosen by ``ctgpp bench`` (BENCHMARKS.md, Speed): at so few
+    with the default 4-step DDIM sampler, chosen by ``ctgpp bench`` (BENCHMARKS.md, Speed): at so few
     steps the clip radius, not the learning rate, bounds each move.
 
     guide_from_step: guide only at diffusion steps k ≤ this value (None: at every step, as the paper).

@@ -22,24 +22,38 @@ from ctgpp.model.checkpoint import load_checkpoint
 from ctgpp.model.denoiser import Denoiser
 from ctgpp.sim.policy import Observation, Plan
 
+DEFAULT_TIMESTEPS = (99, 75, 40, 0)  # the fast preset's DDIM grid (BENCHMARKS.md, Choosing the default)
+
 
 @dataclass(frozen=True)
 class SamplingConfig:
     """How plans are sampled: ``sampler`` "ddim" with ``steps`` steps or "ddpm" (all K steps), N samples.
 
-    The defaults (DDIM 5 steps, N = 2) are the ``fast`` preset chosen by ``ctgpp bench``
-    (BENCHMARKS.md, Speed); the paper's configuration is the ``paper`` preset (DDPM, N = 5).
+    ``timesteps`` are the DDIM steps visited (``steps`` of them, from K − 1 down); None spreads them
+    evenly. The defaults (DDIM at k = 99, 75, 40, 0, N = 2) are the ``fast`` preset chosen by ``ctgpp
+    bench`` (BENCHMARKS.md, Speed): these 4 steps, denser where the noise is high, sample as well as 5
+    evenly spread ones. The paper's configuration is the ``paper`` preset (DDPM, N = 5).
     """
 
     sampler: str = "ddim"
-    steps: int = 5
+    steps: int = len(DEFAULT_TIMESTEPS)
     num_samples: int = 2
+    timesteps: tuple[int, ...] | None = DEFAULT_TIMESTEPS
+
+    def __post_init__(self) -> None:  # checked against the schedule by make()
+        grid = None if self.timesteps is None or self.sampler != "ddim" else tuple(map(int, self.timesteps))
+        object.__setattr__(self, "timesteps", grid)
+
+    @classmethod
+    def evenly(cls, sampler: str, steps: int, num_samples: int) -> SamplingConfig:
+        """``steps`` DDIM steps spread evenly over K − 1 … 0 (or DDPM over all K), N = ``num_samples``."""
+        return cls(sampler, steps, num_samples, None)
 
     def make(self, schedule: CosineSchedule) -> Sampler:
         if self.sampler == "ddpm":
             return DDPMSampler(schedule)
         if self.sampler == "ddim":
-            return DDIMSampler(schedule, self.steps)
+            return DDIMSampler(schedule, self.steps, timesteps=self.timesteps)
         raise ValueError(f"unknown sampler {self.sampler!r} (ddim or ddpm)")
 
 

@@ -4,10 +4,11 @@ Two are named: ``paper``, the paper's configuration (DDPM over all K = 100 steps
 step with one Adam step of lr 0.3, N = 5 samples: DESIGN.md, Guided sampling), and ``fast``, the
 default of ``simulate`` and ``evaluate``, chosen from ``ctgpp bench`` measurements (BENCHMARKS.md,
 Speed). Any other configuration is spelled out in its name, so that a candidate can be timed beside
-them: ``ddim<steps>`` or ``ddpm`` (every step), then optionally ``-n<samples>`` (default 4),
-``-w<Adam steps per denoising step>`` (default 1), ``-lr<learning rate>`` (default 0.3) and
-``-from<k>`` (guide only at diffusion steps k ≤ this; default every step). ``ddim5-n2-lr0.9`` is
-``fast``; ``ddpm-n5`` is ``paper``.
+them: ``ddim<steps>`` (evenly spread), ``ddim@<k>.<k>...`` (the DDIM steps visited, from K − 1 down)
+or ``ddpm`` (every step), then optionally ``-n<samples>`` (default 4), ``-w<Adam steps per denoising
+step>`` (default 1), ``-lr<learning rate>`` (default 0.3) and ``-from<k>`` (guide only at diffusion
+steps k ≤ this; default every step). ``ddim@99.75.40.0-n2-lr0.9`` is ``fast``; ``ddpm-n5`` is
+``paper``.
 """
 
 from __future__ import annotations
@@ -18,8 +19,11 @@ from dataclasses import dataclass
 from ctgpp.diffusion.guided import GuidanceConfig
 from ctgpp.sim.diffusion_policy import SamplingConfig
 
-SPELLING = "ddim<steps>|ddpm[-n<samples>][-w<adam steps>][-lr<rate>][-from<k>]"
-_NAME = re.compile(r"(?:ddim(?P<steps>\d+)|ddpm)(?P<options>(?:-(?:n\d+|w\d+|lr\d*\.?\d+|from\d+))*)")
+SPELLING = "ddim<steps>|ddim@<k>.<k>...|ddpm[-n<samples>][-w<adam steps>][-lr<rate>][-from<k>]"
+_NAME = re.compile(
+    r"(?:ddim(?P<steps>\d+)|ddim@(?P<grid>\d+(?:\.\d+)+)|ddpm)"
+    r"(?P<options>(?:-(?:n\d+|w\d+|lr\d*\.?\d+|from\d+))*)"
+)
 _OPTION = re.compile(r"-(n|w|lr|from)(\d*\.?\d+)")
 
 
@@ -36,15 +40,16 @@ PRESETS: dict[str, SamplerPreset] = {
     for p in (
         SamplerPreset(
             "paper",
-            SamplingConfig("ddpm", 100, 5),
+            SamplingConfig.evenly("ddpm", 100, 5),
             GuidanceConfig(inner_steps=1, lr=0.3),
             "DDPM, K = 100 steps, guided at every step, N = 5 (the paper)",
         ),
         SamplerPreset(
             "fast",
-            SamplingConfig(),  # the defaults: DDIM 5 steps, N = 2
+            SamplingConfig(),  # the defaults: DDIM at k = 99, 75, 40, 0, N = 2
             GuidanceConfig(),  # the default: 1 Adam step of lr 0.9 at every denoising step
-            "the default: DDIM 5 steps, guided at every step with 1 Adam step of lr 0.9, N = 2",
+            "the default: DDIM 4 steps (k = 99, 75, 40, 0), guided at every step with 1 Adam step of "
+            "lr 0.9, N = 2",
         ),
     )
 }
@@ -64,12 +69,15 @@ def preset(name: str) -> SamplerPreset:
         raise ValueError(f"sampler preset {name!r} gives an option twice")
     samples, adam_steps = int(options.get("n", 4)), int(options.get("w", 1))
     lr, guide_from = float(options.get("lr", 0.3)), options.get("from")
-    steps = None if match["steps"] is None else int(match["steps"])
+    grid = None if match["grid"] is None else tuple(int(k) for k in match["grid"].split("."))
+    steps = len(grid) if grid is not None else None if match["steps"] is None else int(match["steps"])
     if samples < 1 or steps == 0:
         raise ValueError(f"sampler preset {name!r} needs at least one sample and one step")
-    sampling = SamplingConfig("ddpm" if steps is None else "ddim", steps or 100, samples)
+    sampling = SamplingConfig("ddpm" if steps is None else "ddim", steps or 100, samples, grid)
     guidance = GuidanceConfig(adam_steps, lr, None if guide_from is None else int(guide_from))
     sampler = "DDPM, every step" if steps is None else f"DDIM {steps} steps"
+    if grid is not None:
+        sampler += f" (k = {', '.join(map(str, grid))})"
     where = "at every step" if guide_from is None else f"at steps k ≤ {guide_from}"
     adam = f"{adam_steps} Adam step{'' if adam_steps == 1 else 's'} of lr {lr:g}"
     return SamplerPreset(name, sampling, guidance, f"{sampler}, N = {samples}, {adam} {where}")
