@@ -173,7 +173,7 @@ class DiffusionPolicy:
         traj = action_trajectories(actions, current, cfg.dt_s)  # (V, N, F, 6)
         if objective is None:
             return PlanSamples(actions, current, traj, None, torch.zeros(v, dtype=torch.long))
-        loss = objective(x0)
+        loss = loss_fn(traj, data_batch)  # objective(x0), on the trajectories just rolled out
         chosen = filtration(loss, bool(self.guidance.couples_agents), v)
         return PlanSamples(actions, current, traj, loss, chosen)
 
