@@ -69,8 +69,12 @@ def preset(name: str) -> SamplerPreset:
         raise ValueError(f"sampler preset {name!r} gives an option twice")
     samples, adam_steps = int(options.get("n", 4)), int(options.get("w", 1))
     lr, guide_from = float(options.get("lr", 0.3)), options.get("from")
-    grid = None if match["grid"] is None else tuple(int(k) for k in match["grid"].split("."))
-    steps = len(grid) if grid is not None else None if match["steps"] is None else int(match["steps"])
+    grid, steps = None, None  # None steps: DDPM
+    if match["grid"] is not None:
+        grid = tuple(int(k) for k in match["grid"].split("."))
+        steps = len(grid)
+    elif match["steps"] is not None:
+        steps = int(match["steps"])
     if samples < 1 or steps == 0:
         raise ValueError(f"sampler preset {name!r} needs at least one sample and one step")
     sampling = SamplingConfig("ddpm" if steps is None else "ddim", steps or 100, samples, grid)
