@@ -17,7 +17,6 @@ from ctgpp.diffusion.guided import (
     GuidanceConfig,
     action_trajectories,
     clip_radii,
-    filtration,
     guide_mean,
     guided_sample,
 )
@@ -180,15 +179,6 @@ def test_each_step_moves_the_mean_by_at_most_its_radius() -> None:
         assert change.max() >= radii[k] - 1e-6  # the huge lr saturates the clip
 
 
-def test_filtration_picks_the_argmin() -> None:
-    per_vehicle = torch.tensor([[3.0, 1.0, 2.0], [0.5, 4.0, 0.1]])  # (B=2, N=3)
-    assert filtration(per_vehicle, False, 2).tolist() == [1, 2]
-    assert filtration(per_vehicle, True, 2).tolist() == [2, 2]  # totals 3.5, 5.0, 2.1
-    assert filtration(torch.tensor([2.0, float("nan"), 1.0]), False, 4).tolist() == [2] * 4
-    with pytest.raises(ValueError, match="vehicle rows"):
-        filtration(per_vehicle, False, 3)
-
-
 def test_action_trajectories_follow_the_contract() -> None:
     actions = torch.zeros(2, 3, 10, 2)
     actions[..., 0] = 1.0  # 1 m/s² for 1 s
@@ -239,14 +229,27 @@ def test_held_vehicles_stand_still_and_cost_no_sampling(scene_0103: Scene) -> No
     assert (nothing.actions == 0).all() and nothing.trajectories.shape == (len(obs.controlled), 3, 52, 6)
 
 
-def test_coupled_loss_keeps_one_sample_for_the_scene(scene_0103: Scene) -> None:
+def test_coupled_loss_keeps_one_sample_for_the_scene_or_composes_a_better_one(scene_0103: Scene) -> None:
+    """The paper's filtration (compose off) keeps the best sample for the whole scene; the default
+    composes, from the same samples, a plan whose loss is lower: the two vehicles of the rule from
+    other samples, every other vehicle (the rule does not see it) from the scene-level choice."""
     ctrl = controlled_vehicles(scene_0103, STEP)
     follower, leader = select_pair(scene_0103, STEP, ctrl, 36.0)
     loss = make_loss("keep_distance", follower=follower, leader=leader, min_m=40.0, max_m=50.0)
-    policy = DiffusionPolicy(make_model(PriorDenoiser), SamplingConfig.evenly("ddim", 4, 3), loss)
-    samples = policy.sample_plans(observation(scene_0103))
+    sampling, model = SamplingConfig.evenly("ddim", 4, 3), make_model(PriorDenoiser)
+    paper = DiffusionPolicy(model, sampling, loss, GuidanceConfig(compose=False))
+    samples = paper.sample_plans(observation(scene_0103, seed=1))
     assert samples.loss is not None and samples.loss.shape == (3,)
-    assert samples.chosen.tolist() == [int(samples.loss.argmin())] * len(ctrl)
+    scene_level = int(samples.loss.argmin())
+    assert samples.chosen.tolist() == [scene_level] * len(ctrl)
+    composed = DiffusionPolicy(model, sampling, loss).sample_plans(observation(scene_0103, seed=1))
+    torch.testing.assert_close(composed.trajectories, samples.trajectories, rtol=0, atol=0)
+    batch = build_guidance_batch(observation(scene_0103), 52)
+    plan = composed.trajectories[torch.arange(len(ctrl)), composed.chosen][:, None]  # (V, 1, F, 6)
+    assert float(loss(plan, batch)) < float(samples.loss.min()) - 0.1
+    others = [i for i in range(len(ctrl)) if i not in (follower, leader)]
+    assert composed.chosen[others].tolist() == [scene_level] * len(others)
+    assert composed.chosen[[follower, leader]].tolist() != [scene_level] * 2
 
 
 def rule_params(scene: Scene, name: str) -> dict[str, Any]:

@@ -57,6 +57,19 @@ def add_guidance_args(parser: argparse.ArgumentParser) -> None:
         default=GuidanceConfig.inner_steps,
         help="guidance steps per denoising step",
     )
+    parser.add_argument(
+        "--filtration",
+        choices=["compose", "scene"],
+        default="compose" if GuidanceConfig.compose else "scene",
+        help="for a rule that couples vehicles: compose the plan vehicle by vehicle from the N samples "
+        "(default) or keep one sample for the whole scene (the paper)",
+    )
+
+
+def guidance_config(args: argparse.Namespace) -> GuidanceConfig:
+    if args.guide_steps < 0 or args.guide_lr <= 0:
+        raise ValueError("--guide-steps must be ≥ 0 and --guide-lr positive")
+    return GuidanceConfig(args.guide_steps, args.guide_lr, compose=args.filtration == "compose")
 
 
 def sampling_config(args: argparse.Namespace) -> SamplingConfig:

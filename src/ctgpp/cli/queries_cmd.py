@@ -6,8 +6,14 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ctgpp.cli.common import add_data_arg, add_guidance_args, add_model_args, open_catalog, sampling_config
-from ctgpp.diffusion.guided import GuidanceConfig
+from ctgpp.cli.common import (
+    add_data_arg,
+    add_guidance_args,
+    add_model_args,
+    guidance_config,
+    open_catalog,
+    sampling_config,
+)
 from ctgpp.eval.queries import default_cases, load_cases, markdown_table, run_query_cases
 from ctgpp.io.atomic import write_text_atomic
 from ctgpp.sim.factory import PolicyFactory
@@ -43,10 +49,8 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
 def run_evaluate_queries(args: argparse.Namespace) -> int:
     if args.seeds < 1:
         raise ValueError("--seeds must be at least 1")
-    if args.guide_steps < 0 or args.guide_lr <= 0:
-        raise ValueError("--guide-steps must be ≥ 0 and --guide-lr positive")
+    guide = guidance_config(args)
     cases = load_cases(default_cases() if args.cases is None else args.cases)
-    guide = GuidanceConfig(inner_steps=args.guide_steps, lr=args.guide_lr)
     factory = PolicyFactory(args.checkpoint, sampling_config(args), guide)
     results = args.out / "queries.csv"
     records = run_query_cases(open_catalog(args), cases, factory, results, range(args.seeds))

@@ -10,9 +10,15 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from ctgpp.cli.common import add_data_arg, add_guidance_args, add_model_args, open_catalog, sampling_config
+from ctgpp.cli.common import (
+    add_data_arg,
+    add_guidance_args,
+    add_model_args,
+    guidance_config,
+    open_catalog,
+    sampling_config,
+)
 from ctgpp.cli.rules_cmd import RULE_SYNTAX, parse_rule_arg
-from ctgpp.diffusion.guided import GuidanceConfig
 from ctgpp.eval.rule_setup import RuleSpec, custom_rule
 from ctgpp.guidance import CompositeLoss
 from ctgpp.io.atomic import write_text_atomic
@@ -84,6 +90,7 @@ def run_simulate(args: argparse.Namespace) -> int:
     scene = open_catalog(args).load(args.scene)
     start = episode_bounds(scene)[0] if args.start is None else args.start
     step0 = start_step(scene, start)  # a bad --start is reported before any work starts
+    guide = guidance_config(args)  # a bad --guide-steps is reported before any work starts
     specs = _rules(args, scene, step0)
     losses = [s.loss for s in specs]
     query = None
@@ -98,7 +105,6 @@ def run_simulate(args: argparse.Namespace) -> int:
     loss = None
     if losses:
         loss = losses[0] if len(losses) == 1 else CompositeLoss([(item, 1.0) for item in losses])
-    guide = GuidanceConfig(inner_steps=args.guide_steps, lr=args.guide_lr)
     policy = make_policy(args.policy, args.checkpoint, sampling_config(args), loss, guide)
     if losses and args.policy != "ctgpp":
         print(f"policy {args.policy} is not guided: the rules and the query are only measured")
@@ -154,8 +160,6 @@ def run_simulate(args: argparse.Namespace) -> int:
 
 def _rules(args: argparse.Namespace, scene: Scene, step: int) -> list[RuleSpec]:
     """The --rule arguments as rules checked on the episode (ValueError with a clear message)."""
-    if args.guide_steps < 0 or args.guide_lr <= 0:
-        raise ValueError("--guide-steps must be ≥ 0 and --guide-lr positive")
     controlled = controlled_vehicles(scene, step)
     specs = []
     for text in args.rule:

@@ -1,4 +1,4 @@
-"""Guided sampling (paper §3.4, Algorithm 2) and filtration among the N samples.
+"""Guided sampling (paper §3.4, Algorithm 2); filtration among the N samples is in :mod:`.filtration`.
 
 At every denoising step k the sampler's posterior mean μ of x_{k−1} is moved by W inner Adam steps
 on the guidance loss J, evaluated on the dynamics rollout of μ taken as clean actions; the total
@@ -39,11 +39,17 @@ class GuidanceConfig:
     steps the clip radius, not the learning rate, bounds each move.
 
     guide_from_step: guide only at diffusion steps k ≤ this value (None: at every step, as the paper).
+
+    compose: for a loss that couples vehicles, filtration composes the plan vehicle by vehicle from
+    the N samples (:func:`ctgpp.diffusion.filtration.compose`, the default: at N = 2 it closes most
+    of the fast sampler's gap in collisions to the paper's configuration, BENCHMARKS.md); False
+    keeps one sample for the whole scene, as the paper.
     """
 
     inner_steps: int = 1
     lr: float = 0.9
     guide_from_step: int | None = None
+    compose: bool = True
 
     def __post_init__(self) -> None:
         if self.inner_steps < 0 or self.lr <= 0:
@@ -133,19 +139,3 @@ def action_trajectories(actions: Tensor, current: Tensor, dt_s: float) -> Tensor
     states = rollout(current[None].to(acts.dtype), acts, dt_s)  # (N, V, F, 4)
     x = torch.cat([states, acts], dim=-1)  # (N, V, F, 6)
     return x.transpose(0, 1)  # (N, V, F, 6) -> (V, N, F, 6)
-
-
-def filtration(loss: Tensor, couples_agents: bool, num_vehicles: int) -> Tensor:
-    """Which sample each vehicle keeps (paper §3.4): (V,) long indices into the N samples.
-
-    loss (B, N) per vehicle and sample, or (N) per sample. One index for the whole scene — the
-    argmin of the per-sample total — when the loss couples vehicles or has no vehicle axis; else the
-    argmin over N per vehicle. NaN losses never win.
-    """
-    loss = torch.nan_to_num(loss.detach(), nan=float("inf"))
-    if loss.ndim == 1 or couples_agents:
-        total = loss if loss.ndim == 1 else loss.sum(dim=0)  # (N,)
-        return torch.full((num_vehicles,), int(torch.argmin(total)), dtype=torch.long)
-    if loss.shape[0] != num_vehicles:
-        raise ValueError(f"loss has {loss.shape[0]} vehicle rows, expected {num_vehicles}")
-    return torch.argmin(loss, dim=1)  # (B, N) -> (B,)

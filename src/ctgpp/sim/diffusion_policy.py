@@ -13,7 +13,8 @@ from torch import Tensor
 from ctgpp.data.batch import collate
 from ctgpp.data.windows import WindowConfig, build_window
 from ctgpp.diffusion import CosineSchedule, DDIMSampler, DDPMSampler, Sampler
-from ctgpp.diffusion.guided import GuidanceConfig, action_trajectories, filtration, guided_sample
+from ctgpp.diffusion.filtration import compose, filtration
+from ctgpp.diffusion.guided import GuidanceConfig, action_trajectories, guided_sample
 from ctgpp.dynamics import clip_actions, rollout
 from ctgpp.geometry import local_to_world
 from ctgpp.guidance.base import GuidanceLoss
@@ -65,8 +66,9 @@ class PlanSamples:
     actions: (N, V, F, 2) acceleration m/s², yaw rate rad/s (clipped to the bounds; zero for held
     vehicles). current: (V, 4) current states (0, 0, v, 0) in each vehicle's frame (v = 0 when held).
     trajectories: (V, N, F, 6) the guidance contract's x. loss: the guidance loss of each sample,
-    (V, N) or (N), None when unguided. chosen: (V,) the sample each vehicle executes (filtration; all
-    0 when unguided).
+    (V, N) or (N), None when unguided. chosen: (V,) the sample each vehicle executes (filtration,
+    composed vehicle by vehicle for a coupled loss unless the guidance config says otherwise; all 0
+    when unguided).
     """
 
     actions: Tensor
@@ -80,8 +82,9 @@ class DiffusionPolicy:
     """Samples N joint futures of all controlled vehicles from the scene-level denoiser.
 
     Unguided, every sample is a plausible future and the first is executed. With a ``guidance``
-    loss, sampling follows Algorithm 2 (``guidance_config``) and filtration picks, per vehicle or for
-    the whole scene when the loss couples vehicles, the sample with the lowest loss.
+    loss, sampling follows Algorithm 2 (``guidance_config``) and filtration picks per vehicle the
+    sample with the lowest loss; when the loss couples vehicles, the paper keeps one sample for the
+    whole scene, the default composes the plan vehicle by vehicle (``GuidanceConfig.compose``).
     """
 
     name = "ctgpp"
@@ -174,7 +177,10 @@ class DiffusionPolicy:
         if objective is None:
             return PlanSamples(actions, current, traj, None, torch.zeros(v, dtype=torch.long))
         loss = loss_fn(traj, data_batch)  # objective(x0), on the trajectories just rolled out
-        chosen = filtration(loss, bool(self.guidance.couples_agents), v)
+        coupled = bool(self.guidance.couples_agents) or loss.ndim == 1
+        chosen = filtration(loss, coupled, v)
+        if coupled and self.guidance_config.compose:
+            chosen = compose(traj, lambda scenes: loss_fn(scenes, data_batch), chosen)
         return PlanSamples(actions, current, traj, loss, chosen)
 
     def sample_actions(self, obs: Observation) -> tuple[np.ndarray, np.ndarray]:
