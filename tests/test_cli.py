@@ -67,6 +67,7 @@ def test_show_draws_the_numbered_picture(tmp_path: Path) -> None:
         (["evaluate", "--methods", "constvel", "--split", "{tmp}/missing:heldout", "--out", "{tmp}/x"],
          "does not exist"),
         (["evaluate", "--methods", "constvel", "--split", "nope", "--out", "{tmp}/x"], "no scenes in split"),
+        (["evaluate", "--methods", "constvel", "--guide-lr", "0", "--out", "{tmp}/x"], "--guide-lr positive"),
     ],
 )
 def test_user_mistakes_get_one_clear_line_and_exit_2(
@@ -130,3 +131,15 @@ def test_convert_refuses_a_malicious_pickle_and_reports_it(
     assert "shutil.rmtree" in out and "failed" in out
     assert (tmp_path / "victim").is_dir()  # nothing ran
     assert not (tmp_path / "out" / "index.json").exists()
+
+
+@pytest.mark.parametrize("command", ["simulate", "evaluate", "evaluate-queries"])
+def test_filtration_flag_reaches_the_guidance_config(command: str) -> None:
+    """--filtration scene is the paper's one sample per scene; the default composes plans."""
+    from ctgpp.cli.common import guidance_config
+    from ctgpp.cli.main import build_parser
+
+    parser = build_parser()
+    assert guidance_config(parser.parse_args([command])).compose
+    chosen = guidance_config(parser.parse_args([command, "--filtration", "scene", "--guide-lr", "0.3"]))
+    assert (chosen.compose, chosen.lr) == (False, 0.3)

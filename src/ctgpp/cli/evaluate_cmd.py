@@ -6,7 +6,14 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ctgpp.cli.common import add_data_arg, add_model_args, sampling_config, split_spec
+from ctgpp.cli.common import (
+    add_data_arg,
+    add_guidance_args,
+    add_model_args,
+    guidance_config,
+    sampling_config,
+    split_spec,
+)
 from ctgpp.eval.realism_plot import plot_realism, read_histograms
 from ctgpp.eval.rule_setup import evaluation_rules
 from ctgpp.eval.runner import NO_RULE, EvalSet, plan_sets, run_episodes
@@ -29,6 +36,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         f"{', '.join(evaluation_rules())}",
     )
     add_model_args(p)
+    add_guidance_args(p)
     p.add_argument(
         "--checkpoint-of",
         action="append",
@@ -99,7 +107,9 @@ def run_evaluate(args: argparse.Namespace) -> int:
     if args.seeds < 1 or args.spacing <= 0 or args.workers < 1:
         raise ValueError("--seeds and --workers must be at least 1 and --spacing positive")
     factory = PolicyFactory(
-        sampling=sampling_config(args), checkpoints=checkpoints_of(args.checkpoint_of, args.checkpoint)
+        sampling=sampling_config(args),
+        guidance_config=guidance_config(args),
+        checkpoints=checkpoints_of(args.checkpoint_of, args.checkpoint),
     )
     factory.check(methods)  # a missing checkpoint fails now, not in the middle of the run
     sets = evaluation_sets(args.split, args.data)
