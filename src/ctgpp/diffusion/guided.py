@@ -41,9 +41,9 @@ class GuidanceConfig:
     guide_from_step: guide only at diffusion steps k ≤ this value (None: at every step, as the paper).
 
     compose: for a loss that couples vehicles, filtration composes the plan vehicle by vehicle from
-    the N samples (:func:`ctgpp.diffusion.filtration.compose`, the default: at N = 2 it closes most
-    of the fast sampler's gap in collisions to the paper's configuration, BENCHMARKS.md); False
-    keeps one sample for the whole scene, as the paper.
+    the N samples (:func:`ctgpp.diffusion.filtration.compose`; the default: with the fast sampler,
+    −0.013 ± 0.006 of fail under no collision over 126 episodes, BENCHMARKS.md); False keeps one
+    sample for the whole scene, as the paper.
     """
 
     inner_steps: int = 1
