@@ -27,11 +27,12 @@ from ctgpp.scene.types import Scene
 
 TINY = ModelConfig(d_model=32, heads=2, blocks=1, edge_dim=8, lane_hidden=16)
 AGENT_AXIS_FIELDS = ("agent_mask", "pose", "extent", "hist", "hist_valid", "fut", "fut_valid", "fut_actions")
+MAP_FIELDS = ("lanes", "lanes_valid", "drivable")
 
 
 @pytest.fixture(scope="module")
 def batch(scene_0103: Scene) -> SceneBatch:
-    return collate([build_window(scene_0103, 60)])
+    return collate([build_window(scene_0103, 60, TINY.window_config(max_agents=64))])
 
 
 def make_model(config: ModelConfig = TINY, seed: int = 0) -> Denoiser:
@@ -54,14 +55,17 @@ def transformed(batch: SceneBatch, angle: float, shift: tuple[float, float]) -> 
     """The same scene rotated by ``angle`` about the origin and shifted: only world poses change."""
     c, s = math.cos(angle), math.sin(angle)
     rot = torch.tensor([[c, -s], [s, c]])
-    xy = batch.pose[..., :2] @ rot.T + torch.tensor(shift)
-    return dataclasses.replace(batch, pose=torch.cat([xy, batch.pose[..., 2:] + angle], dim=-1))
+
+    def move(pose: Tensor) -> Tensor:
+        return torch.cat([pose[..., :2] @ rot.T + torch.tensor(shift), pose[..., 2:] + angle], dim=-1)
+
+    return dataclasses.replace(batch, pose=move(batch.pose), ctx_pose=move(batch.ctx_pose))
 
 
 def with_extra_agent(batch: SceneBatch, values: dict[str, torch.Tensor]) -> SceneBatch:
     """``batch`` with one more agent appended, its per-agent tensors taken from ``values``."""
     fields = {n: torch.cat([getattr(batch, n), values[n][:, None]], dim=1) for n in AGENT_AXIS_FIELDS}
-    for n in ("lanes", "lanes_valid"):
+    for n in MAP_FIELDS:
         fields[n] = torch.cat([getattr(batch, n), values[n][:, None]], dim=1)
     return dataclasses.replace(batch, **fields)
 
@@ -93,7 +97,7 @@ def test_padded_agents_with_garbage_do_not_affect_real_agents(batch: SceneBatch)
         n: (torch.rand(getattr(batch, n)[:, 0].shape, generator=gen) > 0.5)
         if getattr(batch, n).dtype == torch.bool
         else torch.randn(getattr(batch, n)[:, 0].shape, generator=gen) * 1e3
-        for n in (*AGENT_AXIS_FIELDS, "lanes", "lanes_valid")
+        for n in (*AGENT_AXIS_FIELDS, *MAP_FIELDS)
     }
     garbage["agent_mask"] = torch.zeros(batch.num_scenes, dtype=torch.bool)
     garbage["hist"][..., 0, 0] = float("nan")
@@ -110,7 +114,7 @@ def test_agent_beyond_the_social_radius_does_not_affect_others(batch: SceneBatch
     """A copy of agent 0 moved 2 km away is invisible to the others; 4 m to the side it is not."""
 
     def copy_of_agent0(offset: tuple[float, float]) -> SceneBatch:
-        values = {n: getattr(batch, n)[:, 0].clone() for n in (*AGENT_AXIS_FIELDS, "lanes", "lanes_valid")}
+        values = {n: getattr(batch, n)[:, 0].clone() for n in (*AGENT_AXIS_FIELDS, *MAP_FIELDS)}
         values["pose"][:, :2] += torch.tensor(offset)
         return with_extra_agent(batch, values)
 
@@ -133,7 +137,9 @@ def test_no_edge_variant_differs_from_the_edge_model(batch: SceneBatch) -> None:
 
 
 def test_fully_masked_rows_give_finite_outputs_and_gradients(scene_0103: Scene) -> None:
-    batch = collate([build_window(scene_0103, 60), build_window(scene_0103, 150)])  # different agent counts
+    windows = TINY.window_config(max_agents=64)
+    # two windows with different agent counts
+    batch = collate([build_window(scene_0103, 60, windows), build_window(scene_0103, 150, windows)])
     assert not batch.agent_mask.all()
     lanes_valid = batch.lanes_valid.clone()
     lanes_valid[0, 0] = False  # an agent with no lanes at all
@@ -190,7 +196,7 @@ def test_config_round_trip_and_unknown_keys() -> None:
 
 
 def test_a_few_adam_steps_lower_the_training_loss(batch: SceneBatch) -> None:
-    fields = (*AGENT_AXIS_FIELDS, "lanes", "lanes_valid")
+    fields = (*AGENT_AXIS_FIELDS, *MAP_FIELDS)
     batch = dataclasses.replace(batch, **{n: getattr(batch, n)[:, :8] for n in fields})  # 8 agents: fast
     torch.manual_seed(0)
     model = Denoiser(TINY)
@@ -216,7 +222,7 @@ def test_a_few_adam_steps_lower_the_training_loss(batch: SceneBatch) -> None:
 
 
 def test_context_encoded_once_and_expanded_matches_a_repeated_batch(scene_0103: Scene) -> None:
-    window = build_window(scene_0103, 40)
+    window = build_window(scene_0103, 40, TINY.window_config(max_agents=64))
     model = make_model()
     x = torch.randn(3, window.num_agents, 52, 2, generator=torch.Generator().manual_seed(3))
     k = torch.tensor([5, 50, 90])
@@ -227,14 +233,16 @@ def test_context_encoded_once_and_expanded_matches_a_repeated_batch(scene_0103: 
 
 
 def reference_spatial_attention(
-    layer: GatedSpatialAttention, x: Tensor, edges: Tensor, mask: Tensor
+    layer: GatedSpatialAttention, x: Tensor, edges: Tensor, mask: Tensor, context: Tensor | None = None
 ) -> Tensor:
-    """The paper's edge-aware attention written out pair by pair with einsum (edges (S, T, A, A, E))."""
+    """The paper's edge-aware attention written out pair by pair with einsum (edges (S, T, A, K, E)),
+    over the agents' own keys and then the context tokens (S, T, C, d), if any."""
     s, t, a, d = x.shape
     h = layer.norm(x)
     q = layer.q(h).view(s, t, a, layer.heads, layer.head_dim)
-    k, v = layer.kv(h).view(s, t, a, 2, layer.heads, layer.head_dim).unbind(dim=3)
-    key = k[:, :, None] + torch.einsum("hde,stije->stijhd", layer.key_edge, edges)  # (S, T, A_i, A_j, h, dh)
+    keys = h if context is None else torch.cat([h, layer.norm(context)], dim=2)  # (S, T, K, d)
+    k, v = layer.kv(keys).view(s, t, keys.shape[2], 2, layer.heads, layer.head_dim).unbind(dim=3)
+    key = k[:, :, None] + torch.einsum("hde,stije->stijhd", layer.key_edge, edges)  # (S, T, A_i, K_j, h, dh)
     value = v[:, :, None] + torch.einsum("hed,stije->stijhd", layer.value_edge, edges)
     logits = torch.einsum("stihd,stijhd->stijh", q, key) / math.sqrt(layer.head_dim)
     weights = torch.softmax(logits.masked_fill(~mask[..., None], float("-inf")), dim=3)
@@ -244,25 +252,28 @@ def reference_spatial_attention(
 
 
 @pytest.mark.parametrize("shared", [False, True])
-def test_spatial_attention_matches_the_pairwise_formula(shared: bool) -> None:
+@pytest.mark.parametrize("n_context", [0, 4])
+def test_spatial_attention_matches_the_pairwise_formula(shared: bool, n_context: int) -> None:
     torch.manual_seed(0)
     layer = GatedSpatialAttention(16, 4, 8)
     s, t, a = 3, 5, 6
     x = torch.randn(s, t, a, 16)
-    edges = torch.randn(1 if shared else s, t, a, a, 8)
-    mask = (torch.rand(edges.shape[:-1]) < 0.5) | torch.eye(a, dtype=torch.bool)
+    rows = 1 if shared else s
+    edges = torch.randn(rows, t, a, a + n_context, 8)
+    mask = (torch.rand(edges.shape[:-1]) < 0.5) | torch.eye(a, a + n_context, dtype=torch.bool)
+    context = torch.randn(rows, t, n_context, 16)
     with torch.no_grad():
-        fast = layer(x, edges, mask)
+        fast = layer(x, edges, mask, layer.context_keys(context) if n_context else None)
         edges_s, mask_s = edges.expand(s, -1, -1, -1, -1), mask.expand(s, -1, -1, -1)
-        slow = reference_spatial_attention(layer, x, edges_s, mask_s)
+        slow = reference_spatial_attention(layer, x, edges_s, mask_s, context.expand(s, -1, -1, -1))
     torch.testing.assert_close(fast, slow, rtol=1e-5, atol=1e-5)
 
 
 def test_last_block_on_future_tokens_only_is_exact(scene_0103: Scene) -> None:
     """The last block skips the history tokens' outputs: the prediction equals running every block on
     all tokens and reading out the future ones."""
-    batch = collate([build_window(scene_0103, 40)])
     model = make_model(ModelConfig(blocks=2))
+    batch = collate([build_window(scene_0103, 40, model.config.window_config(max_agents=64))])
     x = torch.randn(1, batch.agent_mask.shape[1], 52, 2, generator=torch.Generator().manual_seed(8))
     k = torch.tensor([30])
     ctx = model.encode_context(batch)
@@ -272,7 +283,7 @@ def test_last_block_on_future_tokens_only_is_exact(scene_0103: Scene) -> None:
         handle = model.blocks[0].register_forward_hook(lambda _m, _i, out: spy.append(out))
         model(x, k, batch, ctx)
         handle.remove()
-        whole = model.blocks[1](spy[0], ctx, ctx.map_keys[1])  # every token of the last block
+        whole = model.blocks[1](spy[0], ctx, ctx.map_keys[1], ctx.context_keys[1])  # every token
         want = model.out(model.out_norm(whole[:, :, model.config.history_steps :]))
     assert whole.shape[2] == 83 and got.shape[2] == 52
     torch.testing.assert_close(got, want * batch.agent_mask[..., None, None])
@@ -307,7 +318,8 @@ def test_softmax_last_equals_torch_softmax_with_masked_keys(keys: int) -> None:
 
 
 def test_context_of_several_scenes_expands_scene_major(scene_0103: Scene) -> None:
-    windows = [build_window(scene_0103, 40), build_window(scene_0103, 90)]
+    config = TINY.window_config(max_agents=64)
+    windows = [build_window(scene_0103, 40, config), build_window(scene_0103, 90, config)]
     model = make_model()
     a = max(w.num_agents for w in windows)
     x = torch.randn(4, a, 52, 2, generator=torch.Generator().manual_seed(4))

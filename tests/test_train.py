@@ -11,6 +11,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
+from safetensors.torch import load_file
 
 from ctgpp.model.checkpoint import load_checkpoint
 from ctgpp.model.config import ModelConfig
@@ -51,9 +53,18 @@ def test_training_resumes_where_it_stopped(
     for name in ("model.safetensors", "config.json", "train_state.safetensors", "train_state.json"):
         (resumed / name).write_bytes((out / name).read_bytes())
     cfg = TrainConfig(60, batch_scenes=2, lr=1e-3, stride=10, val_every=20, val_windows=4, max_agents=16)
+    (resumed / ".model.x1y2.tmp.safetensors").write_bytes(b"")  # what a kill during a write leaves
     again = train([scene_0103], [scene_0103], TINY, cfg, resumed, progress=False)
     assert [h["step"] for h in again["history"]] == [20, 40, 60]
     assert again["history"][:2] == record["history"] and again["rank"] == 0
+    assert not list(resumed.glob(".*.tmp*"))
+    # exactly where an uninterrupted run goes: the same losses and the same weights
+    whole = train([scene_0103], [scene_0103], TINY, cfg, tmp_path / "whole", progress=False)
+    assert whole["history"] == again["history"]
+    want, got = (load_file(str(d / "train_state.safetensors")) for d in (tmp_path / "whole", resumed))
+    assert want.keys() == got.keys()
+    for name, tensor in want.items():
+        assert torch.equal(tensor, got[name]), name
 
 
 def test_loaded_checkpoint_samples_the_same_plans(scene_0103: Scene, trained: tuple[Path, dict]) -> None:

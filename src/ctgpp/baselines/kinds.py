@@ -66,7 +66,9 @@ KINDS: dict[str, ModelKind] = {
         ModelConfig,
         Denoiser,
         training_loss,
-        lambda scenes, windows, stride, _config: WindowDataset(scenes, windows, stride=stride),
+        lambda scenes, windows, stride, config: WindowDataset(
+            scenes, config.window_config(windows.max_agents), stride=stride
+        ),
         collate,
         _diffusion_schedule,
     ),

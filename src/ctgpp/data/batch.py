@@ -19,6 +19,10 @@ class SceneBatch:
 
     agent_mask: (S, A) bool, True for real agents. pose: (S, A, 3) world x, y, yaw relative to
     ``origin`` (S, 2) (the first agent's position; float64 world metres), so float32 keeps precision.
+    drivable: (S, A, G, G). The C context agents (:class:`~ctgpp.data.context.ContextAgents`), padded
+    to at least one: ctx_mask (S, C) bool; ctx_role, ctx_type (S, C) int64; ctx_pose (S, C, 3)
+    relative to ``origin`` like ``pose``; ctx_extent (S, C, 2); ctx_states (S, C, H+F, 4);
+    ctx_valid (S, C, H+F).
     """
 
     agent_mask: Tensor
@@ -32,6 +36,14 @@ class SceneBatch:
     fut_actions: Tensor
     lanes: Tensor
     lanes_valid: Tensor
+    drivable: Tensor
+    ctx_mask: Tensor
+    ctx_role: Tensor
+    ctx_type: Tensor
+    ctx_pose: Tensor
+    ctx_extent: Tensor
+    ctx_states: Tensor
+    ctx_valid: Tensor
 
     def to(self, device: torch.device | str) -> SceneBatch:
         """A copy on ``device`` (the origin stays float64)."""
@@ -46,7 +58,10 @@ class SceneBatch:
         return int(self.agent_mask.shape[1])
 
 
-_PADDED = ("extent", "hist", "hist_valid", "fut", "fut_valid", "fut_actions", "lanes", "lanes_valid")
+_PADDED = (
+    "extent", "hist", "hist_valid", "fut", "fut_valid", "fut_actions", "lanes", "lanes_valid", "drivable",
+)
+_CONTEXT = ("role", "type", "extent", "states", "valid")
 
 
 def collate(windows: list[SceneWindow]) -> SceneBatch:
@@ -63,10 +78,25 @@ def collate(windows: list[SceneWindow]) -> SceneBatch:
     mask = np.stack([pad(np.ones(w.num_agents, dtype=bool)) for w in windows])
     pose[~mask] = 0.0
     tensors = {name: torch.from_numpy(np.stack([pad(getattr(w, name)) for w in windows])) for name in _PADDED}
+    n_ctx = max(max(w.context.num_agents for w in windows), 1)
+
+    def pad_ctx(x: np.ndarray) -> np.ndarray:
+        return np.pad(x, [(0, n_ctx - x.shape[0])] + [(0, 0)] * (x.ndim - 1))
+
+    ctx_mask = np.stack([pad_ctx(np.ones(w.context.num_agents, dtype=bool)) for w in windows])  # (S, C)
+    ctx_pose = np.stack([pad_ctx(w.context.pose) for w in windows])  # (S, C, 3)
+    ctx_pose[..., :2] -= origin[:, None]
+    ctx_pose[~ctx_mask] = 0.0
+    for name in _CONTEXT:
+        stacked = np.stack([pad_ctx(getattr(w.context, name)) for w in windows])  # (S, C, ...)
+        tensors[f"ctx_{name}"] = torch.from_numpy(stacked)
+    tensors["ctx_role"], tensors["ctx_type"] = tensors["ctx_role"].long(), tensors["ctx_type"].long()
     return SceneBatch(
         agent_mask=torch.from_numpy(mask),
         origin=torch.from_numpy(origin),
         pose=torch.from_numpy(pose.astype(np.float32)),
+        ctx_mask=torch.from_numpy(ctx_mask),
+        ctx_pose=torch.from_numpy(ctx_pose.astype(np.float32)),
         **{k: v.float() if v.dtype == torch.float64 else v for k, v in tensors.items()},
     )
 

@@ -1,22 +1,29 @@
 """Agent-centric scene windows: what the model sees of a scene at one time step (DESIGN.md, Data).
 
-A window holds the vehicles present at the current step (the controlled ones, in displayed order),
-their 3 s history and 5.2 s future, each in its own frame (origin at its current position, x along
-its current heading), the actions that reproduce the logged future through the unicycle, and each
-vehicle's nearest lanes as resampled polylines in its frame.
+A window holds the vehicles it samples (in displayed order), their 3 s history and 5.2 s future,
+each in its own frame (origin at its current position, x along its current heading), the actions
+that reproduce the logged future through the unicycle, each vehicle's map (lanes as resampled
+polylines in its frame, and with a :class:`~ctgpp.data.map_inputs.MapConfig` the drivable area
+around it), and the agents it is conditioned on (:mod:`ctgpp.data.context`): held vehicles and
+replayed agents with their known futures.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
+from ctgpp.data.context import ContextAgents, ContextConfig, select_context, training_roles
 from ctgpp.dynamics import inverse
 from ctgpp.geometry import world_to_local, wrap_angle
 from ctgpp.scene.types import Scene
 from ctgpp.scene.vehicles import controlled_vehicles
+
+if TYPE_CHECKING:
+    from ctgpp.data.map_inputs import MapConfig
 
 
 @dataclass(frozen=True)
@@ -25,6 +32,10 @@ class WindowConfig:
 
     with_future: False leaves the logged future out (zeros, invalid): what a policy at inference
     must not see anyway, and its inverse dynamics cost time at every re-plan.
+    context: which agents condition the window (None: none; every vehicle present is sampled, as the
+    models trained before the context existed and the baselines expect). map: the driving map of
+    :mod:`ctgpp.data.map_inputs` (lanes ahead and the drivable grid); None keeps the nearest lanes
+    (``max_lanes`` × ``lane_points`` within ``lane_radius_m``) and no grid.
     """
 
     history_steps: int = 31
@@ -34,6 +45,8 @@ class WindowConfig:
     lane_points: int = 20
     lane_radius_m: float = 60.0
     with_future: bool = True
+    context: ContextConfig | None = None
+    map: MapConfig | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -46,7 +59,8 @@ class SceneWindow:
     whose unicycle rollout from the current state reproduces ``fut``. pose: (A, 3) world x, y, yaw
     at the current step. extent: (A, 2) length, width m. lanes: (A, L, P, 4) lane points (x, y,
     cos, sin of the lane direction) in the vehicle's frame, lanes_valid: (A, L, P).
-    agent_index: (A,) index into ``scene.agents``.
+    agent_index: (A,) index into ``scene.agents``. drivable: (A, G, G) the drivable grid around each
+    vehicle in its frame ((A, 0, 0) without a map config). context: the conditioning agents.
     """
 
     scene_id: str
@@ -61,6 +75,8 @@ class SceneWindow:
     fut_actions: np.ndarray
     lanes: np.ndarray
     lanes_valid: np.ndarray
+    drivable: np.ndarray
+    context: ContextAgents
 
     @property
     def num_agents(self) -> int:
@@ -72,10 +88,22 @@ def build_window(
     step: int,
     config: WindowConfig = WindowConfig(),
     agent_index: np.ndarray | None = None,
+    held: np.ndarray | None = None,
 ) -> SceneWindow:
-    """The window of ``scene`` at ``step`` for ``agent_index`` (default: its controlled vehicles)."""
+    """The window of ``scene`` at ``step`` sampling ``agent_index``, with ``held`` vehicles standing
+    still in its context.
+
+    Without ``agent_index``: with a context config the roles of a training window
+    (:func:`~ctgpp.data.context.training_roles`), without one every vehicle present.
+    """
     a = scene.agents
-    idx = controlled_vehicles(scene, step) if agent_index is None else np.asarray(agent_index)
+    held = np.zeros(0, dtype=np.int64) if held is None else np.asarray(held)
+    if agent_index is not None:
+        idx = np.asarray(agent_index)
+    elif config.context is not None:
+        idx, held = training_roles(scene, step, config.max_agents, config.context)
+    else:
+        idx = controlled_vehicles(scene, step)
     idx = idx[: config.max_agents]
     pose = np.concatenate([a.xy[idx, step], a.yaw[idx, step][:, None]], axis=-1)  # (A, 3)
     hist_t = np.arange(step - config.history_steps + 1, step + 1)
@@ -89,7 +117,18 @@ def build_window(
     else:
         fut, fut_valid = np.zeros((len(idx), len(fut_t), 4)), np.zeros((len(idx), len(fut_t)), dtype=bool)
         actions = np.zeros((len(idx), len(fut_t), 2))
-    lanes, lanes_valid = _agent_lanes(scene, pose, config)
+    if config.map is None:
+        lanes, lanes_valid = _agent_lanes(scene, pose, config)
+        drivable = np.zeros((len(idx), 0, 0), dtype=np.float32)
+    else:
+        from ctgpp.data.map_inputs import agent_lanes, drivable_grid
+
+        lanes, lanes_valid = agent_lanes(scene, pose, config.map)
+        drivable = drivable_grid(scene, pose, config.map)
+    ctx_config = config.context if config.context is not None else ContextConfig(max_context=0)
+    context = select_context(
+        scene, step, idx, held, config.history_steps, config.future_steps, ctx_config
+    )
     return SceneWindow(
         scene_id=scene.id,
         step=step,
@@ -103,6 +142,8 @@ def build_window(
         fut_actions=actions.astype(np.float32),
         lanes=lanes,
         lanes_valid=lanes_valid,
+        drivable=drivable,
+        context=context,
     )
 
 

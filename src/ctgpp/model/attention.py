@@ -113,10 +113,18 @@ class GatedSpatialAttention(nn.Module):
         self.gate = nn.Linear(2 * d_model, d_model)
         self.dropout = nn.Dropout(dropout)
 
-    def forward(self, x: Tensor, edges: Tensor, mask: Tensor) -> Tensor:
-        """x (S, T, A, d) residual stream; edges (Se, T, A, A, E) embedded e_ij for query i, key j;
-        mask (Se, T, A, A) bool, True where i may attend to j, the diagonal always True. Se is S, or
-        1 when the S rows are samples of one scene sharing its edges (never copied S times).
+    def context_keys(self, tokens: Tensor) -> Tensor:
+        """Keys and values (S, T, C, 2, h, dh) of context tokens (S, T, C, d): agents whose future
+        is known attend to nobody here, so theirs are computed once per batch, not per denoising step."""
+        s, t, c, _ = tokens.shape
+        return self.kv(self.norm(tokens)).view(s, t, c, 2, self.heads, self.head_dim)
+
+    def forward(self, x: Tensor, edges: Tensor, mask: Tensor, context: Tensor | None = None) -> Tensor:
+        """x (S, T, A, d) residual stream; edges (Se, T, A, K, E) embedded e_ij for query i, key j;
+        mask (Se, T, A, K) bool, True where i may attend to j, the diagonal always True; context
+        (Se, T, C, 2, h, dh) the keys and values of C context agents (:meth:`context_keys`), the keys
+        after the A agents' own (K = A + C; K = A without context). Se is S, or 1 when the S rows are
+        samples of one scene sharing its edges and context (never copied S times).
         Returns the updated (S, T, A, d).
         """
         s, t, a, d = x.shape
@@ -126,19 +134,27 @@ class GatedSpatialAttention(nn.Module):
         scale = 1 / math.sqrt(self.head_dim)  # on the weights: cheaper than on the queries
         q = F.linear(h, self.q.weight * scale, self.q.bias * scale).view(s, t, a, heads, self.head_dim)
         k, v = self.kv(h).view(s, t, a, 2, heads, self.head_dim).unbind(dim=3)
-        # the (S, T, h, A, A) tensors dominate for many agents: written once, then updated in place
-        logits = q.permute(0, 1, 3, 2, 4) @ k.permute(0, 1, 3, 4, 2)  # (S, T, h, A_i, A_j)
+        if context is not None and context.shape[2] > 0:
+            c = context.shape[2]
+            shared = context[:, None].expand(se, r, *context.shape[1:]).reshape(s, t, c, 2, heads, -1)
+            k = torch.cat([k, shared[:, :, :, 0]], dim=2)  # (S, T, K, h, dh)
+            v = torch.cat([v, shared[:, :, :, 1]], dim=2)
+        n_keys = k.shape[2]
+        # the (S, T, h, A, K) tensors dominate for many agents: written once, then updated in place
+        logits = q.permute(0, 1, 3, 2, 4) @ k.permute(0, 1, 3, 4, 2)  # (S, T, h, A_i, K_j)
         q_edge = torch.einsum("stihd,hde->stihe", q, self.key_edge)  # (S, T, A, h, E)
         # (Se, T, A, r*h, E): E stays innermost, so this copy is cheap (E outside made it 10× dearer)
         q_edge = q_edge.view(se, r, t, a, heads, -1).permute(0, 2, 3, 1, 4, 5)
         q_edge = q_edge.reshape(se, t, a, r * heads, -1)
-        edge_logits = q_edge @ edges.transpose(-1, -2)  # (Se, T, A_i, r*h, A_j)
-        edge_logits = edge_logits.view(se, t, a, r, heads, a).permute(0, 3, 1, 4, 2, 5)  # (Se, r, T, h, A, A)
-        logits.view(se, r, t, heads, a, a).add_(edge_logits)
-        logits.view(se, r, t, heads, a, a).masked_fill_(~mask[:, None, :, None], float("-inf"))
-        weights = self.dropout(softmax_last(logits))  # (S, T, h, A_i, A_j)
+        edge_logits = q_edge @ edges.transpose(-1, -2)  # (Se, T, A_i, r*h, K_j)
+        # -> (Se, r, T, h, A, K)
+        edge_logits = edge_logits.view(se, t, a, r, heads, n_keys).permute(0, 3, 1, 4, 2, 5)
+        logits.view(se, r, t, heads, a, n_keys).add_(edge_logits)
+        logits.view(se, r, t, heads, a, n_keys).masked_fill_(~mask[:, None, :, None], float("-inf"))
+        weights = self.dropout(softmax_last(logits))  # (S, T, h, A_i, K_j)
         msg = (weights @ v.permute(0, 1, 3, 2, 4)).permute(0, 1, 3, 2, 4)  # (S, T, A, h, dh)
-        w = weights.view(se, r, t, heads, a, a).permute(0, 2, 4, 1, 3, 5).reshape(se, t, a, r * heads, a)
+        w = weights.view(se, r, t, heads, a, n_keys).permute(0, 2, 4, 1, 3, 5)  # (Se, T, A, r, h, K)
+        w = w.reshape(se, t, a, r * heads, n_keys)
         edge_msg = (w @ edges).view(se, t, a, r, heads, -1).permute(0, 3, 1, 2, 4, 5)  # (Se, r, T, A, h, E)
         edge_msg = edge_msg.reshape(s, t, a, heads, -1)
         msg = msg + torch.einsum("stihe,hed->stihd", edge_msg, self.value_edge)

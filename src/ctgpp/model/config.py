@@ -9,7 +9,13 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+from ctgpp.data.context import ContextConfig
+from ctgpp.data.windows import WindowConfig
+
+if TYPE_CHECKING:
+    from ctgpp.data.map_inputs import MapConfig
 
 # Per-channel mean and standard deviation of the training targets in each vehicle's own frame, measured
 # once on nuScenes v1.0-mini mini_train (8 scenes, windows from ctgpp.data.windows.build_window at every
@@ -30,6 +36,10 @@ class ModelConfig:
     scene_centric: True is the ``scene_centric`` ablation: every input is expressed in one shared
     frame, world-aligned at the batch origin (``SceneBatch.origin``), instead of each agent's own frame,
     so the model is no longer invariant to rotating the scene.
+    context: the agents each window is conditioned on (held vehicles, replayed agents: DESIGN.md,
+    Model); None for checkpoints from before the context existed, which see the sampled vehicles only.
+    map: the driving map (:class:`~ctgpp.data.map_inputs.MapConfig`: lanes ahead, drivable grid);
+    None for the nearest lanes of the first checkpoints.
     """
 
     d_model: int = 64
@@ -51,6 +61,9 @@ class ModelConfig:
     action_std: tuple[float, ...] = ACTION_STD
     state_mean: tuple[float, ...] = STATE_MEAN
     state_std: tuple[float, ...] = STATE_STD
+    context: ContextConfig | None = ContextConfig()
+    map: MapConfig | None = None
+    grid_patch: int = 4
 
     def __post_init__(self) -> None:
         if self.d_model % self.heads != 0:
@@ -69,15 +82,41 @@ class ModelConfig:
         """History plus future steps: the temporal length of every agent's token sequence."""
         return self.history_steps + self.future_steps
 
+    def window_config(self, max_agents: int, with_future: bool = True) -> WindowConfig:
+        """The windows this model reads: its history and future lengths, context and map."""
+        return WindowConfig(
+            self.history_steps,
+            self.future_steps,
+            max_agents=max_agents,
+            with_future=with_future,
+            context=self.context,
+            map=self.map,
+        )
+
     def to_dict(self) -> dict[str, Any]:
-        """A JSON-ready dict (tuples become lists)."""
+        """A JSON-ready dict (tuples become lists, nested configs dicts)."""
         return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self).items()}
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> ModelConfig:
-        """Inverse of :meth:`to_dict`; unknown keys are an error (a typo must not pass silently)."""
+        """Inverse of :meth:`to_dict`; unknown keys are an error (a typo must not pass silently).
+
+        A config written before a field existed gets that field's legacy value (``LEGACY``), not
+        today's default: the checkpoint keeps meaning what it was trained as.
+        """
         known = {f.name for f in dataclasses.fields(cls)}
         unknown = sorted(set(data) - known)
         if unknown:
             raise ValueError(f"unknown ModelConfig keys: {', '.join(unknown)}")
-        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in data.items()})
+        data = {**LEGACY, **data}
+        values = {k: tuple(v) if isinstance(v, list) else v for k, v in data.items()}
+        if values["context"] is not None:
+            values["context"] = ContextConfig(**values["context"])
+        if values["map"] is not None:
+            from ctgpp.data.map_inputs import MapConfig  # the map module is only needed for such models
+
+            values["map"] = MapConfig(**values["map"])
+        return cls(**values)
+
+
+LEGACY: dict[str, Any] = {"context": None, "map": None}  # fields added after the first checkpoints

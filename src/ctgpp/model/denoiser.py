@@ -1,9 +1,10 @@
 """The CTG++ scene-level spatio-temporal transformer denoiser (paper §3.3, appendix B).
 
-Every agent has H + F tokens (history states, then noisy future actions with their unicycle
-rollout). A block is temporal attention (per agent over time) → edge-aware gated spatial attention
-(per time step over agents) → map attention (per token over its agent's lane tokens) → FFN, with
-pre-norm residuals. The network predicts the clean normalized actions (x0-prediction).
+Every sampled agent has H + F tokens (history states, then noisy future actions with their
+unicycle rollout). A block is temporal attention (per agent over time) → edge-aware gated spatial
+attention (per time step over agents, and over the context agents whose futures are known: held
+vehicles, replayed agents) → map attention (per token over its agent's lane and drivable-area tokens)
+→ FFN, with pre-norm residuals. The network predicts the clean normalized actions (x0-prediction).
 """
 
 from __future__ import annotations
@@ -17,7 +18,9 @@ from ctgpp.data.batch import SceneBatch
 from ctgpp.dynamics import clip_actions, rollout
 from ctgpp.model.attention import FoldedKeys, GatedSpatialAttention, MaskedAttention
 from ctgpp.model.config import ModelConfig
+from ctgpp.model.context_encoder import AgentEmbedding, ContextEncoder
 from ctgpp.model.embeddings import RowFFN, StepEmbedding, TimeEmbedding
+from ctgpp.model.grid_encoder import GridEncoder
 from ctgpp.model.inputs import AgentInputs, edge_features, prepare_inputs
 from ctgpp.model.lane_encoder import LaneEncoder
 from ctgpp.model.normalization import Normalizer
@@ -38,7 +41,10 @@ class DenoiserContext:
     agent_mask (S, A); current (S, A, 4) current states in the input frame; hist_tokens (S, A, H, d);
     token_valid (S, A, H+F); edges (S or 1, H+F, A, A, E) embedded e_ij; spatial_mask (S or 1, H+F, A, A);
     map_keys: per block, each agent's L lane tokens folded into that block's map attention
-    (:class:`FoldedKeys` with leading dimensions (S, A)).
+    (:class:`FoldedKeys` with leading dimensions (S, A)). agent_tokens (S, A, 1, d): the agent
+    embedding added to every future token (None for models without context). context_keys: per
+    block, the context agents' keys and values (S or 1, T, C, 2, h, dh) of its spatial attention
+    (None without context).
     """
 
     agent_mask: Tensor
@@ -48,22 +54,30 @@ class DenoiserContext:
     edges: Tensor
     spatial_mask: Tensor
     map_keys: tuple[FoldedKeys, ...]
+    agent_tokens: Tensor | None = None
+    context_keys: tuple[Tensor, ...] | None = None
 
     def expand(self, n: int) -> DenoiserContext:
         """The context of S scenes for ``n`` samples each: (S, ...) -> (S*n, ...), scene-major rows
         (the n samples of scene 0, then of scene 1, ...); views when S is 1.
 
         Encoding once and expanding saves n − 1 encodings of the same scene (history, edges, lanes).
-        ``edges`` and ``spatial_mask``, the largest, keep their S rows: the spatial attention shares
-        each scene's among its samples.
+        ``edges``, ``spatial_mask`` and ``context_keys``, the largest, keep their S rows: the spatial
+        attention shares each scene's among its samples.
         """
-        kept = ("edges", "spatial_mask", "map_keys")  # the first two shared; map_keys tensor by tensor
+        kept = ("edges", "spatial_mask", "map_keys", "agent_tokens", "context_keys")
         expanded = {
             f.name: repeat_samples(getattr(self, f.name), n) for f in fields(self) if f.name not in kept
         }
         map_keys = tuple(keys.map(lambda value: repeat_samples(value, n)) for keys in self.map_keys)
+        agent = None if self.agent_tokens is None else repeat_samples(self.agent_tokens, n)
         return DenoiserContext(
-            **expanded, edges=self.edges, spatial_mask=self.spatial_mask, map_keys=map_keys
+            **expanded,
+            edges=self.edges,
+            spatial_mask=self.spatial_mask,
+            map_keys=map_keys,
+            agent_tokens=agent,
+            context_keys=self.context_keys,
         )
 
 
@@ -81,10 +95,18 @@ class Block(nn.Module):
             nn.Linear(d, config.ffn_mult * d), nn.GELU(), nn.Dropout(p), nn.Linear(config.ffn_mult * d, d)
         )
 
-    def forward(self, x: Tensor, ctx: DenoiserContext, map_keys: FoldedKeys, keep_from: int = 0) -> Tensor:
+    def forward(
+        self,
+        x: Tensor,
+        ctx: DenoiserContext,
+        map_keys: FoldedKeys,
+        context_keys: Tensor | None = None,
+        keep_from: int = 0,
+    ) -> Tensor:
         """x (S, A, T, d) -> (S, A, T - keep_from, d): the tokens from ``keep_from`` on.
 
-        ``map_keys`` are this block's folded lane tokens (leading dimensions (S, A)). With
+        ``map_keys`` are this block's folded lane tokens (leading dimensions (S, A)), ``context_keys``
+        its spatial attention's context keys and values (S or 1, T, C, 2, h, dh). With
         ``keep_from`` > 0 the dropped tokens still serve as temporal keys and values, but nothing is
         computed for them: after the temporal attention every layer is per time step or per token, so
         the kept tokens' outputs are exactly those of the whole block.
@@ -95,7 +117,8 @@ class Block(nn.Module):
         attended = self.temporal(h[:, keep_from:], h, ctx.token_valid.reshape(s * a, t))
         x = x[:, :, keep_from:] + attended.view(s, a, kept, d)
         edges, spatial_mask = ctx.edges[:, keep_from:], ctx.spatial_mask[:, keep_from:]
-        x = self.spatial(x.transpose(1, 2), edges, spatial_mask).transpose(1, 2)  # via (S, T, A, d)
+        known = None if context_keys is None else context_keys[:, keep_from:]
+        x = self.spatial(x.transpose(1, 2), edges, spatial_mask, known).transpose(1, 2)  # via (S, T, A, d)
         h = self.map_norm(x).reshape(s * a, kept, d)
         lanes = map_keys.map(lambda value: value.reshape(s * a, *value.shape[2:]))  # rows (S*A)
         x = x + self.map.attend(h, lanes).view(s, a, kept, d)
@@ -120,32 +143,66 @@ class Denoiser(nn.Module):
             nn.Linear(7, config.edge_dim), nn.GELU(), nn.Linear(config.edge_dim, config.edge_dim)
         )
         self.lane_encoder = LaneEncoder(d, config.lane_hidden)
+        if config.context is not None:
+            self.agent_emb = AgentEmbedding(d)
+            self.context_encoder = ContextEncoder(d, config.heads, config.ffn_mult)
+        if config.map is not None:
+            self.grid_encoder = GridEncoder(config.map.grid_cells, config.grid_patch, d)
         self.blocks = nn.ModuleList(Block(config) for _ in range(config.blocks))
         self.out_norm = nn.LayerNorm(d)
         self.out = nn.Linear(d, 2)
 
     def encode_context(self, batch: SceneBatch) -> DenoiserContext:
-        """Encode everything that does not depend on the noisy actions (history, edges, lanes)."""
+        """Encode everything that does not depend on the noisy actions (history, edges, map, context)."""
         cfg = self.config
         inputs: AgentInputs = prepare_inputs(batch, cfg)
-        hist_states = self.normalizer.normalize_states(inputs.hist)  # (S, A, H, 4)
-        hist_feat = torch.cat([hist_states, inputs.hist_valid[..., None].to(hist_states.dtype)], dim=-1)
-        hist_feat = torch.where(inputs.hist_valid[..., None], hist_feat, torch.zeros_like(hist_feat))
+        hist_tokens = self.hist_in(self._state_features(inputs.hist, inputs.hist_valid))  # (S, A, H, d)
         raw_edges, spatial_mask = edge_features(inputs, cfg)
-        edges = self.edge_mlp(raw_edges)  # (S, T, A, A, E)
+        edges = self.edge_mlp(raw_edges)  # (S, T, A, K, E)
         if not cfg.use_edges:
             edges = torch.zeros_like(edges)
-        lane_tokens, lane_valid = self.lane_encoder(inputs.lanes, inputs.lanes_valid)
+        lane_tokens, lane_valid = self.lane_encoder(inputs.lanes, inputs.lanes_valid)  # (S, A, L, d)
+        if cfg.map is not None:
+            grid_tokens = self.grid_encoder(batch.drivable)  # (S, A, N, d)
+            lane_tokens = torch.cat([lane_tokens, grid_tokens], dim=2)
+            grid_valid = inputs.agent_mask[..., None].expand(-1, -1, grid_tokens.shape[2])
+            lane_valid = torch.cat([lane_valid, grid_valid], dim=2)
+        agent_tokens, context_keys = None, None
+        if cfg.context is not None:
+            extent = torch.where(inputs.agent_mask[..., None], batch.extent, 0.0)
+            agent_tokens = self.agent_emb.sampled_vehicles(extent)[:, :, None]  # (S, A, 1, d)
+            hist_tokens = hist_tokens + agent_tokens
+            context_keys = self._context_keys(batch, inputs)
         future_valid = inputs.agent_mask[..., None].expand(-1, -1, cfg.future_steps)
         return DenoiserContext(
             agent_mask=inputs.agent_mask,
             current=inputs.current,
-            hist_tokens=self.hist_in(hist_feat),
+            hist_tokens=hist_tokens,
             token_valid=torch.cat([inputs.hist_valid, future_valid], dim=-1),
             edges=edges,
             spatial_mask=spatial_mask,
             map_keys=self._fold_lanes(lane_tokens, lane_valid),
+            agent_tokens=agent_tokens,
+            context_keys=context_keys,
         )
+
+    def _state_features(self, states: Tensor, valid: Tensor) -> Tensor:
+        """Normalized states and validity (…, T, 5) of states (…, T, 4), zero where invalid."""
+        flag = valid[..., None].to(states.dtype)
+        feat = torch.cat([self.normalizer.normalize_states(states), flag], dim=-1)
+        return torch.where(valid[..., None], feat, torch.zeros_like(feat))
+
+    def _context_keys(self, batch: SceneBatch, inputs: AgentInputs) -> tuple[Tensor, ...]:
+        """Each block's spatial-attention keys and values (S, T, C, 2, h, dh) of the context agents."""
+        n_ctx = inputs.ctx_mask.shape[1]
+        kind = torch.where(inputs.ctx_mask, batch.ctx_type[:, :n_ctx], 0)
+        role = torch.where(inputs.ctx_mask, batch.ctx_role[:, :n_ctx], 0)
+        extent = torch.where(inputs.ctx_mask[..., None], batch.ctx_extent[:, :n_ctx], 0.0)
+        agent = self.agent_emb(extent, kind, role)  # (S, C, d)
+        feats = self._state_features(inputs.ctx_states, inputs.ctx_valid)  # (S, C, T, 5)
+        tokens = self.context_encoder(feats, inputs.ctx_valid, self.time_emb(), agent)  # (S, C, T, d)
+        tokens = tokens.transpose(1, 2)  # (S, T, C, d)
+        return tuple(block.spatial.context_keys(tokens) for block in self.blocks)
 
     def _fold_lanes(self, lane_tokens: Tensor, lane_valid: Tensor) -> tuple[FoldedKeys, ...]:
         """Each block's map-attention keys from the lane tokens (S, A, L, d) and their mask (S, A, L):
@@ -176,12 +233,16 @@ class Denoiser(nn.Module):
         states = rollout(ctx.current, actions, self.config.dt_s)  # (S, A, F, 4) in the input frame
         states = self.normalizer.normalize_states(states)
         fut_tokens = self.fut_in(torch.cat([noisy, states], dim=-1))  # (S, A, F, d)
+        if ctx.agent_tokens is not None:  # the history tokens have it already
+            fut_tokens = fut_tokens + ctx.agent_tokens
         x = torch.cat([ctx.hist_tokens, fut_tokens], dim=2)  # (S, A, H+F, d)
         k_t = torch.as_tensor(k, device=x.device).long().expand(x.shape[0])  # (S,)
         x = x + self.time_emb()[None, None] + self.step_emb(k_t)[:, None, None]
         last = len(self.blocks) - 1
+        known = ctx.context_keys or (None,) * len(self.blocks)
         for i, (block, map_keys) in enumerate(zip(self.blocks, ctx.map_keys, strict=True)):
             # only the future tokens are read out: the last block computes nothing for the history ones
-            x = block(x, ctx, map_keys, keep_from=self.config.history_steps if i == last else 0)
+            keep_from = self.config.history_steps if i == last else 0
+            x = block(x, ctx, map_keys, known[i], keep_from=keep_from)
         out = self.out(self.out_norm(x))  # (S, A, F, 2)
         return torch.where(mask, out, torch.zeros_like(out))

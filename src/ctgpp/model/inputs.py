@@ -25,8 +25,10 @@ class AgentInputs:
     """Sanitized inputs: everything masked is zero, so padded garbage cannot leak.
 
     hist (S, A, H, 4), current (S, A, 4), lanes (S, A, L, P, 4): in each agent's frame, or in the
-    shared world-aligned frame at the batch origin when ``scene_centric``. track_xy (S, A, T, 2),
-    track_yaw / track_speed / track_valid (S, A, T): world-relative tracks (T = H + F) for edges.
+    shared world-aligned frame at the batch origin when ``scene_centric``. ctx_states (S, C, T, 4),
+    ctx_valid (S, C, T): the context agents' known tracks, framed likewise (C = 0 without context).
+    track_xy (S, K, T, 2), track_yaw / track_speed / track_valid (S, K, T): world-relative tracks
+    (T = H + F) of the K = A + C keys of the spatial attention, the sampled agents first.
     """
 
     agent_mask: Tensor
@@ -36,6 +38,9 @@ class AgentInputs:
     lanes: Tensor
     lanes_valid: Tensor
     pose: Tensor
+    ctx_mask: Tensor
+    ctx_states: Tensor
+    ctx_valid: Tensor
     track_xy: Tensor
     track_yaw: Tensor
     track_speed: Tensor
@@ -67,6 +72,18 @@ def prepare_inputs(batch: SceneBatch, config: ModelConfig) -> AgentInputs:
     local = torch.cat([hist, cv], dim=2)  # (S, A, T, 4)
     track_xy, yaw0 = _to_world(local, pose)
     track_valid = torch.cat([hist_valid, m[..., None].expand_as(cv_x)], dim=2)
+    track_yaw, track_speed = local[..., 3] + yaw0, local[..., 2]
+
+    n_ctx = batch.ctx_mask.shape[1] if config.context is not None else 0
+    ctx_mask = batch.ctx_mask[:, :n_ctx]
+    ctx_valid = batch.ctx_valid[:, :n_ctx] & ctx_mask[..., None]  # (S, C, T)
+    ctx_states = torch.where(ctx_valid[..., None], batch.ctx_states[:, :n_ctx], 0.0)
+    ctx_pose = torch.where(ctx_mask[..., None], batch.ctx_pose[:, :n_ctx], 0.0)
+    ctx_xy, ctx_yaw0 = _to_world(ctx_states, ctx_pose)
+    track_xy = torch.cat([track_xy, ctx_xy], dim=1)  # (S, A + C, T, 2)
+    track_yaw = torch.cat([track_yaw, ctx_states[..., 3] + ctx_yaw0], dim=1)
+    track_speed = torch.cat([track_speed, ctx_states[..., 2]], dim=1)
+    track_valid = torch.cat([track_valid, ctx_valid], dim=1)
 
     if config.scene_centric:
         hist_xy, _ = _to_world(hist, pose)
@@ -77,6 +94,8 @@ def prepare_inputs(batch: SceneBatch, config: ModelConfig) -> AgentInputs:
         lane_xy = rotate(lanes[..., :2], lane_yaw) + pose[..., None, None, :2]
         lanes = torch.cat([lane_xy, rotate(lanes[..., 2:4], lane_yaw)], dim=-1)
         lanes = torch.where(lanes_valid[..., None], lanes, torch.zeros_like(lanes))
+        ctx_states = torch.cat([ctx_xy, ctx_states[..., 2:3], ctx_states[..., 3:4] + ctx_yaw0[..., None]], -1)
+        ctx_states = torch.where(ctx_valid[..., None], ctx_states, 0.0)
     return AgentInputs(
         agent_mask=m,
         hist=hist,
@@ -85,15 +104,19 @@ def prepare_inputs(batch: SceneBatch, config: ModelConfig) -> AgentInputs:
         lanes=lanes,
         lanes_valid=lanes_valid,
         pose=pose,
+        ctx_mask=ctx_mask,
+        ctx_states=ctx_states,
+        ctx_valid=ctx_valid,
         track_xy=track_xy,
-        track_yaw=local[..., 3] + yaw0,
-        track_speed=local[..., 2],
+        track_yaw=track_yaw,
+        track_speed=track_speed,
         track_valid=track_valid,
     )
 
 
 def edge_features(inputs: AgentInputs, config: ModelConfig) -> tuple[Tensor, Tensor]:
-    """Raw edge features (S, T, A_i, A_j, 7) and the attention mask (S, T, A_i, A_j).
+    """Raw edge features (S, T, A_i, K_j, 7) and the attention mask (S, T, A_i, K_j): the A sampled
+    agents query the K = A + C keys (themselves, then the context agents).
 
     Features of key j for query i at step t, in agent i's CURRENT frame (world axes at the batch
     origin when scene-centric): R_iᵀ(p_j,t − p_i,0) / r, cos Δθ, sin Δθ (Δθ = θ_j,t − θ_i,t),
@@ -101,16 +124,18 @@ def edge_features(inputs: AgentInputs, config: ModelConfig) -> tuple[Tensor, Ten
     valid neighbours within r at step t, and always the agent itself.
     """
     radius = config.social_radius_m
-    xy = inputs.track_xy.transpose(1, 2)  # (S, A, T, 2) -> (S, T, A, 2)
-    yaw = inputs.track_yaw.transpose(1, 2)  # (S, T, A)
+    n_agents = inputs.agent_mask.shape[1]
+    xy = inputs.track_xy.transpose(1, 2)  # (S, K, T, 2) -> (S, T, K, 2)
+    yaw = inputs.track_yaw.transpose(1, 2)  # (S, T, K)
     vel = inputs.track_speed.transpose(1, 2)[..., None] * torch.stack([torch.cos(yaw), torch.sin(yaw)], -1)
     frame_yaw = inputs.pose[..., 2] if not config.scene_centric else torch.zeros_like(inputs.pose[..., 2])
     frame_yaw = frame_yaw[:, None, :, None]  # (S, 1, A_i, 1)
     origin_i = inputs.pose[:, None, :, None, :2]  # (S, 1, A_i, 1, 2)
-    rel_pos = rotate(xy[:, :, None, :, :] - origin_i, -frame_yaw)  # (S, T, A_i, A_j, 2)
-    rel_vel = rotate(vel[:, :, None, :, :] - vel[:, :, :, None, :], -frame_yaw)
-    d_yaw = yaw[:, :, None, :] - yaw[:, :, :, None]  # (S, T, A_i, A_j)
-    dist = torch.linalg.norm(xy[:, :, None, :, :] - xy[:, :, :, None, :], dim=-1)
+    rel_pos = rotate(xy[:, :, None, :, :] - origin_i, -frame_yaw)  # (S, T, A_i, K_j, 2)
+    q_xy, q_yaw, q_vel = xy[:, :, :n_agents], yaw[:, :, :n_agents], vel[:, :, :n_agents]  # the queries
+    rel_vel = rotate(vel[:, :, None, :, :] - q_vel[:, :, :, None, :], -frame_yaw)
+    d_yaw = yaw[:, :, None, :] - q_yaw[:, :, :, None]  # (S, T, A_i, K_j)
+    dist = torch.linalg.norm(xy[:, :, None, :, :] - q_xy[:, :, :, None, :], dim=-1)
     feats = torch.cat(
         [
             rel_pos / radius,
@@ -121,8 +146,7 @@ def edge_features(inputs: AgentInputs, config: ModelConfig) -> tuple[Tensor, Ten
         ],
         dim=-1,
     )
-    valid_j = inputs.track_valid.transpose(1, 2)[:, :, None, :]  # (S, T, 1, A_j)
-    n_agents = xy.shape[2]
-    eye = torch.eye(n_agents, dtype=torch.bool, device=xy.device)
+    valid_j = inputs.track_valid.transpose(1, 2)[:, :, None, :]  # (S, T, 1, K_j)
+    eye = torch.eye(n_agents, xy.shape[2], dtype=torch.bool, device=xy.device)  # (A_i, K_j)
     mask = (valid_j & (dist <= radius)) | eye
     return feats, mask

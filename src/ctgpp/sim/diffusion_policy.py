@@ -11,7 +11,7 @@ import torch
 from torch import Tensor
 
 from ctgpp.data.batch import collate
-from ctgpp.data.windows import WindowConfig, build_window
+from ctgpp.data.windows import build_window
 from ctgpp.diffusion import CosineSchedule, DDIMSampler, DDPMSampler, Sampler
 from ctgpp.diffusion.filtration import compose, filtration
 from ctgpp.diffusion.guided import GuidanceConfig, action_trajectories, guided_sample
@@ -127,7 +127,9 @@ class DiffusionPolicy:
         """Sample N joint futures (guided when the policy has a loss) and choose one per vehicle.
 
         Only the vehicles that move are sampled: those the simulator holds (``obs.held``) stand still
-        in every sample, and the guidance loss sees them so, in their rows of x. The denoiser runs in
+        in every sample, and the guidance loss sees them so, in their rows of x. A model with context
+        (``ModelConfig.context``) is conditioned on them and on every replayed agent near the moving
+        vehicles, with the futures the simulator gives them. The denoiser runs in
         inference mode (its outputs cloned back to normal tensors, which the guidance steps may use:
         autograd refuses inference tensors); only the guidance steps enable gradients.
         """
@@ -142,9 +144,11 @@ class DiffusionPolicy:
             traj = action_trajectories(actions, current, cfg.dt_s)
             return PlanSamples(actions, current, traj, None, torch.zeros(v, dtype=torch.long))
         rows = torch.from_numpy(np.flatnonzero(moves))  # the moving vehicles' rows among the V
-        windows = WindowConfig(cfg.history_steps, f, max_agents=len(rows), with_future=False)
-        seen = replace(obs.scene, agents=obs.tracks)  # the simulated past, never the logged future
-        window = build_window(seen, obs.step, windows, agent_index=planned.controlled)
+        windows = cfg.window_config(max_agents=len(rows), with_future=False)
+        # the simulated past, never the logged future; the model is conditioned on the held vehicles
+        # (standing still) and on every replayed agent (the log the simulator will play)
+        seen = replace(obs.scene, agents=obs.tracks)
+        window = build_window(seen, obs.step, windows, agent_index=planned.controlled, held=obs.held)
         batch = collate([window])  # (1, M, ...): the N samples share one scene
         context = model.encode_context(batch).expand(n)  # encoded once, (N, M, ...) views
         gen = torch.Generator().manual_seed(int(obs.rng.integers(2**31)))

@@ -122,16 +122,20 @@ def train(
     schedule = kind.schedule(model_config)
     out = Path(out)
     state: dict[str, Any] = {"step": 0, "history": [], "wall_s": 0.0}
+    for stale in out.glob(".*.tmp*"):  # a temporary file of a write that a kill interrupted
+        stale.unlink()
     if has_train_state(out):
         state = load_train_state(out, model, ema, optimizer)
         log.info("resuming from step %d in %s", state["step"], out)
     ddp = nn.parallel.DistributedDataParallel(model) if world > 1 else model
-    gen = torch.Generator().manual_seed(config.seed * 1000 + rank + 7919 * state["step"])
+    gen = torch.Generator().manual_seed(config.seed * 1000 + rank)
+    if "generator" in state:  # where the batches and noise of the stopped run would have gone on
+        gen.set_state(state.pop("generator")[rank])
     start_wall = time.monotonic() - state["wall_s"]
     show = progress and rank == 0
     bar = tqdm(total=config.steps, initial=state["step"], desc="training", unit="step", disable=not show)
     sizes = {"train_windows": len(train_set), "val_windows": len(val_set)}
-    recent: list[float] = []
+    recent: list[float] = []  # the state is saved right after this is emptied
     while state["step"] < config.steps:
         idx = torch.randint(len(train_set), (config.batch_scenes,), generator=gen).tolist()
         batch = kind.collate([train_set[i] for i in idx]).to(device)
@@ -147,6 +151,7 @@ def train(
         if state["step"] % config.val_every == 0 or state["step"] == config.steps:
             entry = {"step": state["step"], "train_loss": sum(recent) / len(recent)}
             recent = []
+            generators = _generator_states(gen, world)
             if rank == 0:
                 val = (
                     validation_loss(ema, schedule, val_batches, config.seed, kind.loss)
@@ -158,7 +163,7 @@ def train(
                 state["wall_s"] = time.monotonic() - start_wall
                 bar.set_postfix(train=f"{entry['train_loss']:.3f}", val=f"{entry['val_loss']:.3f}")
                 record = _record(config, state, data_note, sizes)
-                save_train_state(out, model, ema, optimizer, state)
+                save_train_state(out, model, ema, optimizer, state, generators)
                 save_checkpoint(out, ema, model_config, record)  # sampling uses the EMA weights
                 plot_curve(state["history"], out / "curve.png", title=f"training: {data_note}")
             if world > 1:
@@ -168,6 +173,17 @@ def train(
     if dist.is_initialized():
         dist.destroy_process_group()
     return record
+
+
+def _generator_states(gen: torch.Generator, world: int) -> list[torch.Tensor]:
+    """Every process's batch and noise generator state (process 0 saves them all), so that a resumed
+    run draws what the uninterrupted one would have drawn."""
+    state = gen.get_state()
+    if world == 1:
+        return [state]
+    states = [torch.empty_like(state) for _ in range(world)]
+    dist.all_gather_object(states, state)
+    return states
 
 
 def _record(

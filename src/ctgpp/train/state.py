@@ -17,10 +17,18 @@ STATE_JSON = "train_state.json"
 
 
 def save_train_state(
-    out: Path, model: nn.Module, ema: nn.Module, optimizer: torch.optim.Adam, scalars: dict[str, Any]
+    out: Path,
+    model: nn.Module,
+    ema: nn.Module,
+    optimizer: torch.optim.Adam,
+    scalars: dict[str, Any],
+    generators: list[torch.Tensor] | None = None,
 ) -> None:
-    """Write everything needed to resume: raw and EMA weights, Adam moments, step counters, history."""
+    """Write everything needed to resume: raw and EMA weights, Adam moments, the batch generators'
+    states (one per process), step counters, history."""
     tensors: dict[str, torch.Tensor] = {}
+    for rank, state in enumerate(generators or []):
+        tensors[f"rng.{rank}"] = state.detach().cpu().contiguous()
     for name, t in model.state_dict().items():
         tensors[f"model.{name}"] = t.detach().cpu().contiguous()
     for name, t in ema.state_dict().items():
@@ -44,12 +52,16 @@ def save_train_state(
 def load_train_state(
     out: Path, model: nn.Module, ema: nn.Module, optimizer: torch.optim.Adam
 ) -> dict[str, Any]:
-    """Restore what :func:`save_train_state` wrote; returns the scalars (step, history, ...)."""
+    """Restore what :func:`save_train_state` wrote; returns the scalars (step, history, ...) and, when
+    saved, ``generator``: the batch generators' states by process."""
     tensors = load_file(str(Path(out) / STATE_WEIGHTS))
     scalars = json.loads((Path(out) / STATE_JSON).read_text(encoding="utf-8"))
     model.load_state_dict({k[len("model.") :]: v for k, v in tensors.items() if k.startswith("model.")})
     ema.load_state_dict({k[len("ema.") :]: v for k, v in tensors.items() if k.startswith("ema.")})
     adam_steps = scalars.pop("adam_steps")
+    generators = sorted((int(k.split(".")[1]), v) for k, v in tensors.items() if k.startswith("rng."))
+    if generators:
+        scalars["generator"] = [state for _, state in generators]
     for name, p in model.named_parameters():
         if name in adam_steps:
             optimizer.state[p] = {
