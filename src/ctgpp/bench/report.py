@@ -11,7 +11,9 @@ from matplotlib.figure import Figure
 
 from ctgpp.bench.scaling import CallTiming
 from ctgpp.bench.scenarios import PresetResult
+from ctgpp.eval.table import MOVING_COLUMNS as EVAL_MOVING_COLUMNS
 from ctgpp.io.atomic import atomic_path
+from ctgpp.metrics.moving import POOL_WEIGHT, pooled_mean
 
 REFERENCE_PRESET = "paper"
 
@@ -47,6 +49,34 @@ def scenario_table(results: Sequence[PresetResult]) -> str:
             f"{_f(r.mean('fail'))} | {_f(r.mean('rule_violation'))} | {_f(r.mean('real'))} | "
             f"{_f(r.mean('rel_real'))} | {fail_diff} | {real_ratio} |"
         )
+    return "\n".join(lines) + "\n"
+
+
+# the figures over the vehicles moving at the start: ``evaluate``'s second table, at the 10-s horizon
+MOVING_COLUMNS = tuple((m, h) for m, h in EVAL_MOVING_COLUMNS if m not in ("ade_5s", "fde_5s"))
+
+
+def moving_pooled(result: PresetResult, metric: str) -> float:
+    """``metric`` of ``metrics.moving`` over all the moving vehicles of a preset's episodes (pooled:
+    each episode weighs by the count of vehicles behind its value)."""
+    weight = POOL_WEIGHT[metric]
+    return pooled_mean(
+        (e.moving_metrics.get(metric, math.nan), e.moving_counts.get(weight, 0)) for e in result.episodes
+    )
+
+
+def moving_table(results: Sequence[PresetResult]) -> str:
+    """Per preset, the figures over the vehicles that move at the start, pooled over its episodes'
+    vehicles: fail / collision / off-road (beyond the map apart), first collision with a held vehicle,
+    lane-leave, stop, yaw-rate sign changes per 10 s, ADE / FDE (m) to the log at 10 s."""
+    lines = [
+        "| preset | moving vehicles | " + " | ".join(h for _, h in MOVING_COLUMNS) + " |",
+        "|---|---:|" + "---:|" * len(MOVING_COLUMNS),
+    ]
+    for r in results:
+        moving = sum(e.moving_counts.get("moving", 0) for e in r.episodes)
+        cells = [_f(moving_pooled(r, metric)) for metric, _ in MOVING_COLUMNS]
+        lines.append(f"| {r.preset} | {moving} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 

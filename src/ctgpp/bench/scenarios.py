@@ -6,7 +6,7 @@ keeps one preset's caches from flattering the next. Each scene is loaded once pe
 drivable-area distance field (a one-off per scene, ~0.8 s for a nuScenes map crop) is built before
 the clock starts, as ``evaluate`` keeps it across a scene's episodes. The episodes' fail rate, rule
 violation and realism are measured beside the time, so a speed-up that costs quality shows in the
-same table.
+same table, and so are the figures over the vehicles moving at the start (``metrics.moving``).
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import statistics
 import time
 from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
@@ -26,7 +26,7 @@ from tqdm import tqdm
 
 from ctgpp.data.catalog import Catalog
 from ctgpp.eval.runner import episode_rule
-from ctgpp.metrics import compute_metrics
+from ctgpp.metrics import MOVING_METRICS, compute_metrics, moving_counts
 from ctgpp.scene.types import Scene
 from ctgpp.sim.closed_loop import STATIONARY_SPEED_MPS, simulate
 from ctgpp.sim.diffusion_policy import DiffusionPolicy
@@ -37,7 +37,9 @@ from ctgpp.sim.presets import preset
 @dataclass(frozen=True)
 class EpisodeTiming:
     """One closed-loop episode: wall seconds for the whole 10-s scenario and its metrics. vehicles: all
-    controlled; moving: those moving at the start, the ones sampled (the others are held still)."""
+    controlled; moving: those moving at the start, the ones sampled (the others are held still).
+    moving_metrics: ``metrics.moving.MOVING_METRICS`` (NaN where undefined); moving_counts: the
+    vehicles behind them (``metrics.moving.moving_counts``)."""
 
     scene: str
     start_s: float
@@ -50,6 +52,8 @@ class EpisodeTiming:
     rule_violation: float
     real: float
     rel_real: float
+    moving_metrics: dict[str, float] = field(default_factory=dict)
+    moving_counts: dict[str, int] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -111,7 +115,7 @@ class _Worker:
         began = time.perf_counter()
         rollout = simulate(scene, policy, start_s, seed=seed)
         seconds = time.perf_counter() - began
-        metrics = compute_metrics(rollout, ("fail", "real", "rel_real"))
+        metrics = compute_metrics(rollout, ("fail", "real", "rel_real", *MOVING_METRICS))
         fail = metrics["fail"] if spec is None else spec.fail(rollout)
         violation = math.nan if spec is None else spec.violation(rollout)
         controlled = rollout.controlled.nonzero()[0]
@@ -119,6 +123,7 @@ class _Worker:
         return EpisodeTiming(
             scene_id, start_s, seed, len(controlled), moving, seconds, policy.denoiser_calls, fail,
             violation, metrics["real"], metrics["rel_real"],
+            moving_metrics={k: metrics[k] for k in MOVING_METRICS}, moving_counts=moving_counts(rollout),
         )
 
 

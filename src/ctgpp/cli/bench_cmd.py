@@ -9,7 +9,7 @@ from pathlib import Path
 
 import torch
 
-from ctgpp.bench.report import agent_table, batching_table, plot_agent_curve, scenario_table
+from ctgpp.bench.report import agent_table, batching_table, moving_table, plot_agent_curve, scenario_table
 from ctgpp.bench.scaling import agent_curve, scene_batching
 from ctgpp.bench.scenarios import BenchJob, time_presets
 from ctgpp.cli.common import add_data_arg, open_catalog
@@ -113,6 +113,7 @@ def run_bench(args: argparse.Namespace) -> int:
         results = time_presets(jobs, runs)
         report["scenarios"] = [asdict(r) for r in results]
         text += ["## Guided 10-s closed-loop scenarios\n", scenario_table(results)]
+        text += ["### Vehicles that move at the start (pooled over vehicles)\n", moving_table(results)]
 
     if agents or sizes:
         busiest = _busiest_windows(catalog, args.split)

@@ -17,7 +17,7 @@ from ctgpp.cli.common import (
 from ctgpp.eval.realism_plot import plot_realism, read_histograms
 from ctgpp.eval.rule_setup import evaluation_rules
 from ctgpp.eval.runner import NO_RULE, EvalSet, plan_sets, run_episodes
-from ctgpp.eval.table import markdown_table, summarize
+from ctgpp.eval.table import markdown_table, moving_table, summarize
 from ctgpp.io.atomic import write_text_atomic
 from ctgpp.sim.factory import MODEL_NAMES, POLICY_NAMES, PolicyFactory
 
@@ -117,7 +117,8 @@ def run_evaluate(args: argparse.Namespace) -> int:
     results, histograms = args.out / "episodes.csv", args.out / "realism.jsonl"
     records = run_episodes(catalogs, episodes, factory, results, workers=args.workers, realism=histograms)
     names = [s.name for s in sets]
-    table = markdown_table(summarize(records), names)
+    summaries = summarize(records)
+    table = markdown_table(summaries, names) + "\n" + moving_table(summaries, names)
     write_text_atomic(args.out / "table.md", table)
     picture = plot_realism(read_histograms(histograms, records), args.out / "realism.png", names)
     print(table)

@@ -83,7 +83,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
 
 
 def run_simulate(args: argparse.Namespace) -> int:
-    from ctgpp.metrics import compute_metrics
+    from ctgpp.metrics import MOVING_METRICS, compute_metrics, moving_counts, vehicle_events
     from ctgpp.viz import animate_rollout, plot_scene
     from ctgpp.viz.events import rollout_events
 
@@ -125,7 +125,9 @@ def run_simulate(args: argparse.Namespace) -> int:
         "policy": policy.name,
         "seed": args.seed,
         "controlled_vehicles": int(rollout.controlled.sum()),
+        "moving_vehicles": moving_counts(rollout)["moving"],
         **metrics,
+        "events": vehicle_events(rollout),
     }
     if specs:
         record["rules"] = {
@@ -137,7 +139,7 @@ def run_simulate(args: argparse.Namespace) -> int:
             record["fail_excluding_rule_pairs"] = _json_float(fail_excluding(rollout, exempt))
     if query is not None:
         record["query"] = _query_report(args.query, query, rollout)
-    files.append(write_text_atomic(out / "metrics.json", json.dumps(record, indent=2) + "\n"))
+    files.append(write_text_atomic(out / "metrics.json", json.dumps(_json_safe(record), indent=2) + "\n"))
     events = rollout_events(rollout)
     step = rollout.first_step + rollout.current
     title = f"{scene.id}  t0 = {start:g} s  policy {policy.name}"
@@ -145,7 +147,9 @@ def run_simulate(args: argparse.Namespace) -> int:
     if args.animation != "none":
         files.append(animate_rollout(rollout, out / f"rollout.{args.animation}", events=events))
     print(f"{scene.id} from {start:g} s, {record['controlled_vehicles']} vehicles, policy {policy.name}")
-    print("  " + "  ".join(f"{k} {v:.3f}" for k, v in metrics.items()))
+    print("  " + "  ".join(f"{k} {v:.3f}" for k, v in metrics.items() if k not in MOVING_METRICS))
+    moving = "  ".join(f"{k} {metrics[k]:.3f}" for k in MOVING_METRICS if k in metrics)
+    print(f"  {record['moving_vehicles']} moving at the start: {moving}")
     for text, value in record.get("rules", {}).items():
         print(f"  rule {text}: violation {value['violation']}")
     if query is not None:
@@ -181,3 +185,14 @@ def _query_report(text: str, query: QueryLoss, rollout: Rollout) -> dict[str, ob
 
 def _json_float(value: float) -> float | None:
     return None if math.isnan(value) else value
+
+
+def _json_safe(value: object) -> object:
+    """``value`` with every NaN float (in nested dicts and lists) replaced by None: JSON has no NaN."""
+    if isinstance(value, float):
+        return None if math.isnan(value) else value
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_json_safe(v) for v in value]
+    return value

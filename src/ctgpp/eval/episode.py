@@ -1,8 +1,9 @@
 """One evaluation episode: what identifies it, and how it is simulated and measured.
 
-An episode is (set, method, rule, scene, start, seed); its result is one CSV row of metrics and the
-histograms of the realism statistics behind ``real`` and ``rel_real``. The same function serves the
-sequential run and the worker processes of a parallel one.
+An episode is (set, method, rule, scene, start, seed); its result is one CSV row of metrics (the
+paper's, then the figures over the vehicles moving at the start with the counts of vehicles behind
+them, ``metrics.moving``) and the histograms of the realism statistics behind ``real`` and
+``rel_real``. The same function serves the sequential run and the worker processes of a parallel one.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from typing import Any
 from ctgpp.data.catalog import Catalog
 from ctgpp.eval.rule_setup import RuleSpec, setup_rule
 from ctgpp.guidance.base import GuidanceLoss
-from ctgpp.metrics import compute_metrics
+from ctgpp.metrics import MOVING_COUNTS, MOVING_METRICS, compute_metrics, moving_counts
 from ctgpp.metrics.realism import (
     FEATURES,
     bin_counts,
@@ -33,7 +34,7 @@ from ctgpp.sim.rollout import Rollout
 NO_RULE = "none"
 KEY = ("set", "method", "rule", "scene", "start_s", "seed")
 METRICS = ("fail", "collision_rate", "offroad_rate", "real", "rel_real", "rule_violation")
-FIELDS = (*KEY, "vehicles", *METRICS)
+FIELDS = (*KEY, "vehicles", *METRICS, *MOVING_COUNTS, *MOVING_METRICS)
 STATISTICS = ("real", "rel_real")  # the realism metrics whose histograms are kept
 PolicyMaker = Callable[[str, GuidanceLoss | None], Policy]
 
@@ -123,7 +124,8 @@ def run_episode(scene: Scene, ep: Episode, make_policy: PolicyMaker) -> EpisodeR
 
     ``make_policy(method, guidance)`` builds the episode's policy; the guidance is the episode's rule
     loss. Under a rule, ``fail`` leaves out the pair a collision rule asks to crash, and
-    ``rule_violation`` is the rule's measure (appendix E).
+    ``rule_violation`` is the rule's measure (appendix E); the figures over the moving vehicles count
+    every one of them, that pair too.
     """
     spec = episode_rule(scene, ep.start_s, ep.rule)
     policy = make_policy(ep.method, None if spec is None else spec.loss)
@@ -134,6 +136,8 @@ def run_episode(scene: Scene, ep: Episode, make_policy: PolicyMaker) -> EpisodeR
         metrics["rule_violation"] = spec.violation(rollout)
     row = dict(zip(KEY, ep.key, strict=True))
     row["vehicles"] = str(int(rollout.controlled.sum()))
+    row.update({k: str(v) for k, v in moving_counts(rollout).items()})
+    metrics.update(compute_metrics(rollout, MOVING_METRICS))
     row.update({k: "" if math.isnan(v) else f"{v:.6f}" for k, v in metrics.items()})
     return EpisodeResult(row, realism_histograms(rollout))
 

@@ -1,9 +1,14 @@
-"""The paper's Table 1 from episode records: fail / rule / real / rel real per rule and method.
+"""The paper's Table 1 from episode records: fail / rule / real / rel real per rule and method; and
+beside it the figures over the vehicles that move at the start (``metrics.moving``).
 
 Aggregation (DESIGN.md, Metrics): for one set, method, rule and seed, each scene's episodes (its
 start times) are averaged first, then the scenes; the table shows the mean ± sample standard
 deviation of those per-seed values over the seeds (the mean alone for one seed). Episodes where a
 metric is undefined (no moving vehicle for ``real``, no rule) are left out of its averages.
+
+The figures over the moving vehicles are pooled over vehicles instead: a seed's value is the mean
+over all the moving vehicles of its episodes (each episode weighs by the count of vehicles behind
+its value, ``metrics.moving.POOL_WEIGHT``), so that "0.75" reads "three of four moving vehicles".
 """
 
 from __future__ import annotations
@@ -16,18 +21,35 @@ import numpy as np
 
 from ctgpp.eval.episode import METRICS, NO_RULE
 from ctgpp.eval.rule_setup import evaluation_rules
+from ctgpp.metrics.moving import MOVING_METRICS, POOL_WEIGHT, pooled_mean
 from ctgpp.sim.factory import POLICY_NAMES
 
 # the paper's columns (record column, header): its "rule" is headed "violation" beside the rule's name
 COLUMNS = (("fail", "fail"), ("rule_violation", "violation"), ("real", "real"), ("rel_real", "rel real"))
+# the second table's columns: the moving vehicles' figures (record column, header)
+MOVING_COLUMNS = (
+    ("moving_fail", "fail"),
+    ("moving_collision_rate", "collision"),
+    ("moving_offroad_rate", "off-road"),
+    ("first_partner_held", "hit held first"),
+    ("lane_leave", "lane-leave"),
+    ("stop_rate", "stop"),
+    ("yaw_sign_changes", "yaw sign changes / 10 s"),
+    ("ade_5s", "ADE 5 s"),
+    ("fde_5s", "FDE 5 s"),
+    ("ade_10s", "ADE 10 s"),
+    ("fde_10s", "FDE 10 s"),
+    ("beyond_map", "beyond map"),
+)
 REFERENCE = "replay"  # the log itself: realism 0 by construction, so never ranked
 DECIMALS = 3
 
 
 @dataclass(frozen=True)
 class Summary:
-    """One set × method × rule: ``episodes`` rows over ``seeds`` seeds; per metric of ``METRICS`` the
-    mean over seeds and the sample standard deviation over seeds (NaN for one seed or no value)."""
+    """One set × method × rule: ``episodes`` rows over ``seeds`` seeds; per metric of ``METRICS`` and
+    of ``MOVING_METRICS`` the mean over seeds and the sample standard deviation over seeds (NaN for
+    one seed or no value); ``moving``: the vehicles moving at the start per seed (mean over seeds)."""
 
     set: str
     method: str
@@ -36,6 +58,7 @@ class Summary:
     seeds: int
     mean: Mapping[str, float]
     std: Mapping[str, float]
+    moving: float = math.nan
 
 
 def seed_value(rows: Iterable[dict[str, str]], metric: str) -> float:
@@ -48,6 +71,12 @@ def seed_value(rows: Iterable[dict[str, str]], metric: str) -> float:
     return sum(means) / len(means) if means else math.nan
 
 
+def pooled_seed_value(rows: Iterable[dict[str, str]], metric: str) -> float:
+    """A moving-vehicle figure of one seed's rows: the mean over their vehicles (module docstring)."""
+    weight = POOL_WEIGHT[metric]
+    return pooled_mean((float(r[metric]), float(r.get(weight) or 0)) for r in rows if r.get(metric))
+
+
 def summarize(records: Iterable[dict[str, str]]) -> list[Summary]:
     """Per set, method and rule (in order of first appearance): metric means ± std over seeds."""
     groups: dict[tuple[str, str, str], dict[str, list[dict[str, str]]]] = {}
@@ -57,13 +86,15 @@ def summarize(records: Iterable[dict[str, str]]) -> list[Summary]:
     out = []
     for (set_name, method, rule), by_seed in groups.items():
         mean, std = {}, {}
-        for metric in METRICS:
-            values = np.array([seed_value(rows, metric) for rows in by_seed.values()])
+        for metric in (*METRICS, *MOVING_METRICS):
+            value_of = seed_value if metric in METRICS else pooled_seed_value
+            values = np.array([value_of(rows, metric) for rows in by_seed.values()])
             values = values[~np.isnan(values)]
             mean[metric] = float(values.mean()) if len(values) else math.nan
             std[metric] = float(values.std(ddof=1)) if len(values) > 1 else math.nan
         episodes = sum(len(rows) for rows in by_seed.values())
-        out.append(Summary(set_name, method, rule, episodes, len(by_seed), mean, std))
+        moving = [sum(int(r.get("moving") or 0) for r in rows) for rows in by_seed.values()]
+        out.append(Summary(set_name, method, rule, episodes, len(by_seed), mean, std, float(np.mean(moving))))
     return out
 
 
@@ -92,6 +123,36 @@ def markdown_table(summaries: Sequence[Summary], sets: Sequence[str] = ()) -> st
             group = [g for g in rows if g.rule == s.rule]
             cells = [_cell(s, metric, _best(group, metric)) for metric, _ in COLUMNS]
             lines.append(f"| {s.rule} | {s.method} | {s.episodes} | " + " | ".join(cells) + " |")
+        parts.append("\n".join(lines) + "\n")
+    return "\n".join(parts)
+
+
+def moving_table(summaries: Sequence[Summary], sets: Sequence[str] = ()) -> str:
+    """The second table: per set, rows (rule, method), the figures over the vehicles that move at the
+    start (``MOVING_COLUMNS``) as mean ± std over seeds of the per-seed means over vehicles."""
+    present = list(dict.fromkeys(s.set for s in summaries))
+    order = [s for s in sets if s in present] + [s for s in present if s not in sets]
+    parts = [
+        "## Vehicles that move at the start\n",
+        "Controlled vehicles faster than 0.5 m/s at the start (moving: their count per seed), pooled "
+        "over vehicles: per seed, the share (or mean) over all the moving vehicles of its episodes; "
+        "mean ± sample std over seeds. fail: collides (with any agent) or goes off-road; hit held "
+        "first: its first collision is with a held (stationary at the start) vehicle; lane-leave: "
+        "> 2 m from every centerline within 45° of its heading; stop: slower than 0.2 m/s at some "
+        "step; yaw sign changes: of the yaw rate outside ±0.001 rad/s, per 10 s; ADE / FDE (m) to the "
+        "log over the vehicles logged to the horizon; beyond map: its log leaves the mapped area or it "
+        "drives off the map's edge, reported apart and never counted as off-road.\n",
+    ]
+    for set_name in order:
+        rows = sorted((s for s in summaries if s.set == set_name), key=_row_order)
+        lines = [
+            f"### {set_name}\n",
+            "| rule | method | moving | " + " | ".join(h for _, h in MOVING_COLUMNS) + " |",
+            "|---|---|---:|" + "---:|" * len(MOVING_COLUMNS),
+        ]
+        for s in rows:
+            cells = [_cell(s, metric, math.nan) for metric, _ in MOVING_COLUMNS]
+            lines.append(f"| {s.rule} | {s.method} | {s.moving:.0f} | " + " | ".join(cells) + " |")
         parts.append("\n".join(lines) + "\n")
     return "\n".join(parts)
 

@@ -1,12 +1,24 @@
 """Episode metrics (DESIGN.md, Metrics; paper appendix E): pure functions of a Rollout, by name.
 
 Importing this package registers ``collision_rate``, ``offroad_rate``, ``fail``, ``real`` and
-``rel_real``; :func:`compute_metrics` evaluates them all on one rollout.
+``rel_real``, then the figures over the vehicles moving at the start (``MOVING_METRICS``:
+``moving_fail``, ``lane_leave``, ``stop_rate``, ``ade_10s``, ...); :func:`compute_metrics` evaluates
+them all on one rollout. :func:`vehicle_events` lists what happened to each vehicle.
 """
 
 from ctgpp.metrics.boxes import bounding_radius, box_corners, boxes_overlap
-from ctgpp.metrics.collision import collided_vehicles, collision_rate, collision_steps
-from ctgpp.metrics.offroad import fail_rate, failed_vehicles, offroad_rate, offroad_steps, offroad_vehicles
+from ctgpp.metrics.collision import collided_vehicles, collision_rate, collision_steps, first_contacts
+from ctgpp.metrics.events import vehicle_events
+from ctgpp.metrics.moving import MOVING_COUNTS, MOVING_METRICS, POOL_WEIGHT, moving_counts, pooled_mean
+from ctgpp.metrics.offroad import (
+    beyond_map_steps,
+    fail_rate,
+    failed_vehicles,
+    offroad_rate,
+    offroad_steps,
+    offroad_vehicles,
+)
+from ctgpp.metrics.outcomes import VehicleOutcomes, vehicle_outcomes
 from ctgpp.metrics.realism import realism, realism_distances, relative_realism, relative_realism_distances
 from ctgpp.metrics.registry import (
     MetricValue,
@@ -18,7 +30,12 @@ from ctgpp.metrics.registry import (
 )
 
 __all__ = [
+    "MOVING_COUNTS",
+    "MOVING_METRICS",
+    "POOL_WEIGHT",
     "MetricValue",
+    "VehicleOutcomes",
+    "beyond_map_steps",
     "bounding_radius",
     "box_corners",
     "boxes_overlap",
@@ -29,14 +46,19 @@ __all__ = [
     "evaluate_metrics",
     "fail_rate",
     "failed_vehicles",
+    "first_contacts",
     "get_metric",
     "metric_names",
+    "moving_counts",
     "offroad_rate",
     "offroad_steps",
     "offroad_vehicles",
+    "pooled_mean",
     "realism",
     "realism_distances",
     "register_metric",
     "relative_realism",
     "relative_realism_distances",
+    "vehicle_events",
+    "vehicle_outcomes",
 ]

@@ -21,21 +21,24 @@ def controlled_vehicle_indices(rollout: Rollout) -> np.ndarray:
     return np.flatnonzero(rollout.controlled & rollout.sim.is_vehicle)
 
 
-def collision_steps(tracks: AgentTracks, agents: np.ndarray, steps: slice) -> np.ndarray:
-    """Which of ``agents`` overlap another valid agent at each of ``steps``.
+def collision_contacts(
+    tracks: AgentTracks, agents: np.ndarray, steps: slice
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every overlap of one of ``agents`` with another valid agent at one of ``steps``.
 
     tracks: all agents of the scene; agents: (C,) indices to check; steps: window indices.
-    Returns (C, T) bool, T the number of steps. An agent does not collide at a step where it is
+    Returns (c, other, t), each (K,) int: position in ``agents``, agent index of the other box, and
+    position in ``steps`` (0 for its first step). An agent does not collide at a step where it is
     invalid. Vectorized over (agent, other agent, step): a bounding-circle pre-filter (centres closer
     than the sum of the half-diagonals) selects candidates, the separating axis test decides.
     """
     xy = tracks.xy[:, steps]  # (A, T, 2)
     yaw = tracks.yaw[:, steps]  # (A, T)
     valid = tracks.valid[:, steps]  # (A, T)
-    n_agents, n_steps = valid.shape
-    hits = np.zeros((len(agents), n_steps), dtype=bool)
-    if len(agents) == 0 or n_steps == 0:
-        return hits
+    n_agents = valid.shape[0]
+    none = np.zeros(0, dtype=np.int64)
+    if len(agents) == 0 or valid.shape[1] == 0:
+        return none, none, none
     radius = bounding_radius(tracks.extent)  # (A,)
 
     # (C, 1, T, 2) - (1, A, T, 2) -> (C, A, T) squared centre distances.
@@ -48,13 +51,44 @@ def collision_steps(tracks: AgentTracks, agents: np.ndarray, steps: slice) -> np
 
     ci, aj, t = np.nonzero(candidate)  # (K,) each
     if ci.size == 0:
-        return hits
+        return none, none, none
     ai = agents[ci]
     overlap = boxes_overlap(
         xy[ai, t], yaw[ai, t], tracks.extent[ai], xy[aj, t], yaw[aj, t], tracks.extent[aj]
     )  # (K,)
-    hits[ci[overlap], t[overlap]] = True
+    return ci[overlap], aj[overlap], t[overlap]
+
+
+def collision_steps(tracks: AgentTracks, agents: np.ndarray, steps: slice) -> np.ndarray:
+    """Which of ``agents`` overlap another valid agent at each of ``steps``.
+
+    Returns (C, T) bool, T the number of steps (:func:`collision_contacts`).
+    """
+    hits = np.zeros((len(agents), tracks.valid[:, steps].shape[1]), dtype=bool)
+    ci, _, t = collision_contacts(tracks, agents, steps)
+    hits[ci, t] = True
     return hits
+
+
+def first_contacts(tracks: AgentTracks, agents: np.ndarray, steps: slice) -> tuple[np.ndarray, np.ndarray]:
+    """Each agent's first collision: the step and the agent it overlaps then.
+
+    Returns (step (C,), partner (C,)) int: the window index of the first step of ``steps`` at which
+    the agent overlaps another, and that other agent's index (the one whose centre is closest when
+    it overlaps several at once); -1 for both when the agent never collides.
+    """
+    step = np.full(len(agents), -1, dtype=np.int64)
+    partner = np.full(len(agents), -1, dtype=np.int64)
+    ci, aj, t = collision_contacts(tracks, agents, steps)
+    if ci.size == 0:
+        return step, partner
+    w = np.arange(tracks.num_steps)[steps][t]  # (K,) window indices
+    dist = np.linalg.norm(tracks.xy[aj, w] - tracks.xy[agents[ci], w], axis=-1)  # (K,)
+    order = np.lexsort((dist, w, ci))  # by agent, then step, then centre distance
+    first = order[np.r_[True, ci[order][1:] != ci[order][:-1]]]  # the first contact of each agent
+    step[ci[first]] = w[first]
+    partner[ci[first]] = aj[first]
+    return step, partner
 
 
 def collided_vehicles(rollout: Rollout) -> tuple[np.ndarray, np.ndarray]:

@@ -6,6 +6,12 @@ the mapped road (driveways, car parks, kerbside slots the map leaves out) cannot
 counting it would charge every policy for the map's gaps. Such a vehicle counts as not off-road; the
 rates still divide by all controlled vehicles, so that ``fail`` is the union of the two failures over
 the same vehicles.
+
+Beyond the mapped area (:func:`beyond_map_steps`): the drivable raster is a crop around the scene and
+the map has gaps, so a vehicle whose log leaves the drivable area, or that drives off the edge of the
+raster, tells about the map rather than about the policy. Such vehicles are reported apart by the
+figures over the vehicles moving at the start (``metrics.moving``); ``offroad_rate`` and ``fail``
+keep the paper's definition.
 """
 
 from __future__ import annotations
@@ -32,6 +38,34 @@ def offroad_steps(rollout: Rollout, agents: np.ndarray | None = None) -> np.ndar
     future = rollout.future
     off = ~drivable.is_drivable(sim.xy[agents, future])  # (C, T_future)
     return off & sim.valid[agents, future] & on_road_at_start[:, None]
+
+
+def first_step(flags: np.ndarray, steps: slice, num_steps: int) -> np.ndarray:
+    """(C,) the window index of each row's first True in ``flags`` (C, T) over ``steps``; -1 if none."""
+    index = np.arange(num_steps)[steps]  # (T,)
+    return np.where(flags.any(axis=1), index[np.argmax(flags, axis=1)], -1)
+
+
+def beyond_map_steps(rollout: Rollout, agents: np.ndarray | None = None) -> np.ndarray:
+    """When each of ``agents`` (default: the controlled vehicles) is first found beyond the mapped area.
+
+    A vehicle is beyond the map from the first step (t ≥ 0) at which its logged centre is off the
+    drivable area or off the raster (the log never drives off the road: the map does not cover where
+    it went), or from its first off-road step (:func:`offroad_steps`) when its simulated centre is
+    off the raster there (it drove off the edge of the crop, not off the road). Returns (C,) window
+    indices, -1 for a vehicle that stays on the map.
+    """
+    if agents is None:
+        agents = controlled_vehicle_indices(rollout)
+    log, n = rollout.log, rollout.sim.num_steps
+    from_start = slice(rollout.current, n)
+    log_off = log.valid[agents, from_start] & ~rollout.scene.drivable.is_drivable(log.xy[agents, from_start])
+    log_step = first_step(log_off, from_start, n)  # (C,)
+    off_step = first_step(offroad_steps(rollout, agents), rollout.future, n)  # (C,)
+    xy_then = rollout.sim.xy[agents, np.maximum(off_step, 0)]  # (C, 2)
+    sim_step = np.where((off_step >= 0) & ~rollout.scene.drivable.covers(xy_then), off_step, -1)
+    both = np.stack([log_step, sim_step])  # (2, C)
+    return np.where((both >= 0).any(axis=0), np.where(both >= 0, both, n).min(axis=0), -1)
 
 
 def offroad_vehicles(rollout: Rollout) -> tuple[np.ndarray, np.ndarray]:

@@ -133,6 +133,45 @@ def nearest_lane(
     return _make(segs, k, float(t[k]), foot[k], xy)
 
 
+def centerline_distance(
+    lanes: LaneGraph,
+    xy: np.ndarray,
+    yaw: np.ndarray,
+    max_heading_diff_rad: float = math.pi / 2,
+    max_dist_m: float = math.inf,
+) -> np.ndarray:
+    """Distance (m) from each point to the nearest centerline running in its direction.
+
+    xy (N, 2) m, yaw (N,) rad -> (N,) m: the distance to the closest centerline segment whose
+    direction differs from the point's ``yaw`` by at most ``max_heading_diff_rad``; inf where no
+    segment qualifies. Segments whose bounding box lies farther than ``max_dist_m`` from the points'
+    bounding box are skipped, so distances above ``max_dist_m`` may come out as inf.
+    """
+    segs = _segments(lanes)
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    yaw = np.asarray(yaw, dtype=np.float64).reshape(-1)
+    out = np.full(len(xy), np.inf)
+    if len(xy) == 0 or len(segs.lane) == 0:
+        return out
+    lo, hi = xy.min(axis=0) - max_dist_m, xy.max(axis=0) + max_dist_m  # (2,) each
+    seg_lo = np.minimum(segs.start, segs.start + segs.vec)  # (S, 2)
+    seg_hi = np.maximum(segs.start, segs.start + segs.vec)
+    rows = np.flatnonzero(((seg_hi >= lo) & (seg_lo <= hi)).all(axis=1))
+    if rows.size == 0:
+        return out
+    start, vec = segs.start[rows], segs.vec[rows]  # (S, 2)
+    heading = np.arctan2(vec[:, 1], vec[:, 0])  # (S,)
+    for i in range(0, len(xy), 256):  # chunks of points bound the (n, S, 2) temporaries
+        p, th = xy[i : i + 256], yaw[i : i + 256]
+        rel = p[:, None] - start[None]  # (n, S, 2)
+        t = np.einsum("nsd,sd->ns", rel, vec) / np.maximum(segs.length[rows] ** 2, 1e-12)
+        foot = start[None] + np.clip(t, 0.0, 1.0)[..., None] * vec[None]  # (n, S, 2)
+        dist = np.linalg.norm(p[:, None] - foot, axis=-1)  # (n, S)
+        aligned = np.abs(wrap_angle(heading[None] - th[:, None])) <= max_heading_diff_rad
+        out[i : i + 256] = np.where(aligned, dist, np.inf).min(axis=1)
+    return out
+
+
 def _neighbour(lanes: LaneGraph, proj: LaneProjection, table: np.ndarray) -> LaneProjection | None:
     first = int(table[proj.lane])
     if first < 0:

@@ -147,13 +147,20 @@ class DrivableArea:
         """(..., 2) world m -> (..., 2) continuous (column, row) pixel coordinates."""
         return (xy - self.origin_xy) / self.resolution_m - 0.5
 
-    def is_drivable(self, xy: np.ndarray) -> np.ndarray:
-        """(..., 2) world points -> (...) bool; points outside the raster are not drivable."""
+    def _cell(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(..., 2) world points -> column, row (clipped to the raster) and whether the raster covers them."""
         cr = np.floor(self.to_pixel(xy) + 0.5).astype(np.int64)
         h, w = self.mask.shape
         inside = (cr[..., 0] >= 0) & (cr[..., 0] < w) & (cr[..., 1] >= 0) & (cr[..., 1] < h)
-        col = np.clip(cr[..., 0], 0, w - 1)
-        row = np.clip(cr[..., 1], 0, h - 1)
+        return np.clip(cr[..., 0], 0, w - 1), np.clip(cr[..., 1], 0, h - 1), inside
+
+    def covers(self, xy: np.ndarray) -> np.ndarray:
+        """(..., 2) world points -> (...) bool, True where the raster (the mapped area) covers the point."""
+        return self._cell(xy)[2]
+
+    def is_drivable(self, xy: np.ndarray) -> np.ndarray:
+        """(..., 2) world points -> (...) bool; points outside the raster are not drivable."""
+        col, row, inside = self._cell(xy)
         return inside & self.mask[row, col]
 
 

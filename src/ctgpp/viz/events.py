@@ -1,27 +1,22 @@
-"""Failure events of a rollout for pictures: each vehicle's first collision and first off-road step."""
+"""Failure events of a rollout for pictures: each vehicle's first collision and first off-road step,
+read from the same per-vehicle outcomes as the metrics (``metrics.outcomes``)."""
 
 from __future__ import annotations
 
-import numpy as np
-
-from ctgpp.metrics.collision import collision_steps, controlled_vehicle_indices
-from ctgpp.metrics.offroad import offroad_steps
+from ctgpp.metrics.outcomes import vehicle_outcomes
 from ctgpp.sim.rollout import Rollout
 from ctgpp.viz.scene_plot import Event
 
 
 def rollout_events(rollout: Rollout) -> list[Event]:
-    """One ⋆ per vehicle at its first collision, one △ at its first off-road step (future only)."""
-    agents = controlled_vehicle_indices(rollout)
-    future = rollout.future
+    """One ⋆ per vehicle at its first collision, one △ at its first off-road step (future only; a
+    vehicle beyond the mapped area, ``offroad.beyond_map_steps``, is not marked off-road)."""
+    o = vehicle_outcomes(rollout)
     events = []
-    for kind, hits in (
-        ("collision", collision_steps(rollout.sim, agents, future)),
-        ("offroad", offroad_steps(rollout, agents)),
-    ):
-        for c in np.flatnonzero(hits.any(axis=1)):
-            t = future.start + int(np.argmax(hits[c]))
-            agent = agents[c]
-            time_s = (t - rollout.current) * rollout.dt_s
+    for kind, steps in (("collision", o.hit_step), ("offroad", o.offroad_step)):
+        for agent, t in zip(o.agents, steps, strict=True):
+            if t < 0:
+                continue
+            time_s = (int(t) - rollout.current) * rollout.dt_s
             events.append(Event(kind, rollout.sim.xy[agent, t], int(rollout.number[agent]), round(time_s, 3)))
     return events

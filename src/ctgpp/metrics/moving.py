@@ -1,0 +1,179 @@
+"""The figures users see (DESIGN.md, Metrics), over the vehicles that move at the start.
+
+``fail`` averages over every controlled vehicle, most of them parked and held still, which hides how
+the moving ones fare. These metrics are over the controlled vehicles faster than 0.5 m/s at the
+start (``outcomes``), each a share of them or a mean over them, per episode:
+
+- ``moving_fail``: collides or goes off-road; ``moving_collision_rate``; ``moving_offroad_rate``
+  (centre off the drivable area), leaving out the vehicles beyond the map;
+- ``beyond_map``: its log leaves the mapped area or it drives off the raster's edge
+  (``offroad.beyond_map_steps``), reported apart and never counted as off-road (its collisions
+  still count);
+- ``first_partner_held`` / ``_moving`` / ``_replayed``: the agent of its first collision is a held
+  vehicle, another moving one, or a replayed agent; the three add up to ``moving_collision_rate``;
+- ``lane_leave``: > 2 m from every same-direction centerline at some step (``lane_keeping``);
+- ``stop_rate``: slower than 0.2 m/s at some step; ``yaw_sign_changes``: yaw-rate sign changes per
+  10 s (``motion``);
+- ``ade_5s``, ``fde_5s``, ``ade_10s``, ``fde_10s``: displacement from the log (m), over the moving
+  vehicles whose log lasts to the horizon.
+
+Every metric is invalid in an episode without a vehicle it averages over. Over many episodes these
+figures are pooled over vehicles (:func:`pooled_mean`): each episode weighs by the count of vehicles
+behind its value (:func:`moving_counts`, named by :data:`POOL_WEIGHT`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+import numpy as np
+
+from ctgpp.metrics.outcomes import vehicle_outcomes
+from ctgpp.metrics.registry import MetricValue, register_metric
+from ctgpp.sim.rollout import Rollout
+
+MOVING_METRICS = (
+    "moving_fail",
+    "moving_collision_rate",
+    "moving_offroad_rate",
+    "beyond_map",
+    "first_partner_held",
+    "first_partner_moving",
+    "first_partner_replayed",
+    "lane_leave",
+    "stop_rate",
+    "yaw_sign_changes",
+    "ade_5s",
+    "fde_5s",
+    "ade_10s",
+    "fde_10s",
+)
+MOVING_COUNTS = ("moving", "logged_5s", "logged_10s")
+# the count of vehicles each metric averages over (a key of :func:`moving_counts`)
+POOL_WEIGHT = {name: "moving" for name in MOVING_METRICS} | {
+    "ade_5s": "logged_5s",
+    "fde_5s": "logged_5s",
+    "ade_10s": "logged_10s",
+    "fde_10s": "logged_10s",
+}
+
+
+def _share(rollout: Rollout, flags_of_all: np.ndarray) -> MetricValue:
+    """The share of the moving vehicles for which ``flags_of_all`` (C,) over the controlled ones holds."""
+    moving = vehicle_outcomes(rollout).moving
+    if not moving.any():
+        return MetricValue.invalid()
+    return MetricValue(float(flags_of_all[moving].mean()), True)
+
+
+def _mean(rollout: Rollout, values_of_all: np.ndarray) -> MetricValue:
+    """The mean of ``values_of_all`` (C,) over the moving vehicles where it is defined (not NaN)."""
+    values = values_of_all[vehicle_outcomes(rollout).moving]
+    values = values[~np.isnan(values)]
+    return MetricValue(float(values.mean()), True) if values.size else MetricValue.invalid()
+
+
+def _partner_is(rollout: Rollout, kind: str) -> np.ndarray:
+    o = vehicle_outcomes(rollout)
+    return np.array([o.partner_kind(rollout, c) == kind for c in range(len(o.agents))], dtype=bool)
+
+
+@register_metric("moving_fail")
+def moving_fail(rollout: Rollout) -> MetricValue:
+    """Share of the moving vehicles that collide or go off-road (beyond the map is not off-road)."""
+    o = vehicle_outcomes(rollout)
+    return _share(rollout, (o.hit_step >= 0) | (o.offroad_step >= 0))
+
+
+@register_metric("moving_collision_rate")
+def moving_collision_rate(rollout: Rollout) -> MetricValue:
+    """Share of the moving vehicles whose box overlaps any other agent's at some future step."""
+    return _share(rollout, vehicle_outcomes(rollout).hit_step >= 0)
+
+
+@register_metric("moving_offroad_rate")
+def moving_offroad_rate(rollout: Rollout) -> MetricValue:
+    """Share of the moving vehicles that go off-road on the mapped area."""
+    return _share(rollout, vehicle_outcomes(rollout).offroad_step >= 0)
+
+
+@register_metric("beyond_map")
+def beyond_map(rollout: Rollout) -> MetricValue:
+    """Share of the moving vehicles beyond the mapped area (their log leaves it, or they leave the raster)."""
+    return _share(rollout, vehicle_outcomes(rollout).beyond_step >= 0)
+
+
+@register_metric("first_partner_held")
+def first_partner_held(rollout: Rollout) -> MetricValue:
+    """Share of the moving vehicles whose first collision is with a held (stationary at start) vehicle."""
+    return _share(rollout, _partner_is(rollout, "held"))
+
+
+@register_metric("first_partner_moving")
+def first_partner_moving(rollout: Rollout) -> MetricValue:
+    """Share of the moving vehicles whose first collision is with another moving vehicle."""
+    return _share(rollout, _partner_is(rollout, "moving"))
+
+
+@register_metric("first_partner_replayed")
+def first_partner_replayed(rollout: Rollout) -> MetricValue:
+    """Share of the moving vehicles whose first collision is with a replayed agent."""
+    return _share(rollout, _partner_is(rollout, "replayed"))
+
+
+@register_metric("lane_leave")
+def lane_leave(rollout: Rollout) -> MetricValue:
+    """Share of the moving vehicles > 2 m from every same-direction centerline at some future step."""
+    return _share(rollout, vehicle_outcomes(rollout).lane_step >= 0)
+
+
+@register_metric("stop_rate")
+def stop_rate(rollout: Rollout) -> MetricValue:
+    """Share of the moving vehicles that come to a stop (< 0.2 m/s) within the episode."""
+    return _share(rollout, vehicle_outcomes(rollout).stop_step >= 0)
+
+
+@register_metric("yaw_sign_changes")
+def yaw_sign_changes(rollout: Rollout) -> MetricValue:
+    """Mean yaw-rate sign changes per 10 s of the moving vehicles."""
+    return _mean(rollout, vehicle_outcomes(rollout).yaw_changes)
+
+
+@register_metric("ade_5s")
+def ade_5s(rollout: Rollout) -> MetricValue:
+    """Mean displacement (m) from the log over the first 5 s, of the moving vehicles logged to 5 s."""
+    return _mean(rollout, vehicle_outcomes(rollout).ade[5.0])
+
+
+@register_metric("fde_5s")
+def fde_5s(rollout: Rollout) -> MetricValue:
+    """Mean displacement (m) from the log at 5 s, of the moving vehicles logged to 5 s."""
+    return _mean(rollout, vehicle_outcomes(rollout).fde[5.0])
+
+
+@register_metric("ade_10s")
+def ade_10s(rollout: Rollout) -> MetricValue:
+    """Mean displacement (m) from the log over the 10 s, of the moving vehicles logged to 10 s."""
+    return _mean(rollout, vehicle_outcomes(rollout).ade[10.0])
+
+
+@register_metric("fde_10s")
+def fde_10s(rollout: Rollout) -> MetricValue:
+    """Mean displacement (m) from the log at 10 s, of the moving vehicles logged to 10 s."""
+    return _mean(rollout, vehicle_outcomes(rollout).fde[10.0])
+
+
+def moving_counts(rollout: Rollout) -> dict[str, int]:
+    """The vehicles behind the metrics of one episode: ``moving``, and ``logged_5s`` / ``logged_10s``
+    (the moving vehicles whose log lasts to the horizon, behind ADE / FDE)."""
+    o = vehicle_outcomes(rollout)
+    logged = {h: int((o.moving & ~np.isnan(o.fde[h])).sum()) for h in (5.0, 10.0)}
+    return {"moving": int(o.moving.sum()), "logged_5s": logged[5.0], "logged_10s": logged[10.0]}
+
+
+def pooled_mean(values_and_weights: Iterable[tuple[float, float]]) -> float:
+    """The mean over vehicles of episodes' values: sum(value × weight) / sum(weight), where the weight
+    is the count of vehicles behind each value; NaN values and zero weights are left out (NaN if none)."""
+    pairs = [(v, w) for v, w in values_and_weights if not np.isnan(v) and w > 0]
+    total = sum(w for _, w in pairs)
+    return sum(v * w for v, w in pairs) / total if total else float("nan")

@@ -1,0 +1,94 @@
+"""What happened to each controlled vehicle of a rollout: the one computation behind the figures
+over the vehicles moving at the start (``metrics.moving``), the per-vehicle events
+(``metrics.events``) and the failure marks on pictures (``viz.events``).
+
+Kinds of vehicles, fixed at the simulation start: *moving* — controlled and faster than 0.5 m/s
+(the vehicles of ``real``); *held* — controlled and slower (parked or waiting; the simulator keeps
+them still under the policies that hold stationary vehicles). Every other agent is *replayed* from
+the log (pedestrians, cyclists, static obstacles, and vehicles that appear after the start).
+"""
+
+from __future__ import annotations
+
+import weakref
+from dataclasses import dataclass
+
+import numpy as np
+
+from ctgpp.metrics.collision import controlled_vehicle_indices, first_contacts
+from ctgpp.metrics.lane_keeping import lane_leave_steps
+from ctgpp.metrics.motion import HORIZONS_S, displacement_errors, rollout_yaw_sign_changes, stop_steps
+from ctgpp.metrics.offroad import beyond_map_steps, first_step, offroad_steps
+from ctgpp.metrics.realism import realism_vehicles
+from ctgpp.sim.rollout import Rollout
+
+PARTNER_KINDS = ("held", "moving", "replayed")
+
+
+@dataclass(frozen=True, eq=False)
+class VehicleOutcomes:
+    """Per controlled vehicle (C, in agent order): window step indices, -1 where the event never happens.
+
+    agents (C,) agent indices; moving (C,) bool. hit_step / partner: the first collision (with any
+    agent, replayed ones included) and the agent hit then. offroad_step: the first off-road step of
+    a vehicle that stays on the map (-1 for one beyond the map: it is reported by ``beyond_step``,
+    see ``offroad.beyond_map_steps``). lane_step: first step > 2 m from every same-direction
+    centerline (``lane_keeping``), measured for the moving vehicles only (-1 for held ones).
+    stop_step: first step slower than 0.2 m/s. yaw_changes: yaw-rate sign changes per 10 s.
+    ade / fde: {horizon s: (C,) m}, NaN where the log ends before the horizon (``motion``).
+    """
+
+    agents: np.ndarray
+    moving: np.ndarray
+    hit_step: np.ndarray
+    partner: np.ndarray
+    offroad_step: np.ndarray
+    beyond_step: np.ndarray
+    lane_step: np.ndarray
+    stop_step: np.ndarray
+    yaw_changes: np.ndarray
+    ade: dict[float, np.ndarray]
+    fde: dict[float, np.ndarray]
+
+    def partner_kind(self, rollout: Rollout, c: int) -> str | None:
+        """Whether vehicle ``c``'s first collision partner is ``held``, ``moving`` or ``replayed``
+        (None when it never collides)."""
+        j = int(self.partner[c])
+        if j < 0:
+            return None
+        if not rollout.controlled[j]:
+            return "replayed"
+        return "moving" if self.moving[self.agents == j].any() else "held"
+
+
+_CACHE: weakref.WeakKeyDictionary[Rollout, VehicleOutcomes] = weakref.WeakKeyDictionary()
+
+
+def vehicle_outcomes(rollout: Rollout) -> VehicleOutcomes:
+    """The outcomes of every controlled vehicle of ``rollout`` (computed once per rollout)."""
+    cached = _CACHE.get(rollout)
+    if cached is not None:
+        return cached
+    agents = controlled_vehicle_indices(rollout)
+    moving = np.isin(agents, realism_vehicles(rollout))
+    hit_step, partner = first_contacts(rollout.sim, agents, rollout.future)
+    beyond = beyond_map_steps(rollout, agents)
+    offroad = first_step(offroad_steps(rollout, agents), rollout.future, rollout.sim.num_steps)
+    lane = np.full(len(agents), -1, dtype=np.int64)
+    lane[moving] = lane_leave_steps(rollout, agents[moving])
+    errors = {h: displacement_errors(rollout, agents, h) for h in HORIZONS_S}
+    out = VehicleOutcomes(
+        agents=agents,
+        moving=moving,
+        hit_step=hit_step,
+        partner=partner,
+        offroad_step=np.where(beyond >= 0, -1, offroad),
+        beyond_step=beyond,
+        lane_step=lane,
+        stop_step=stop_steps(rollout, agents),
+        yaw_changes=rollout_yaw_sign_changes(rollout, agents),
+        ade={h: e[0] for h, e in errors.items()},
+        fde={h: e[1] for h, e in errors.items()},
+    )
+    _CACHE[rollout] = out
+    return out
