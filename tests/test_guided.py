@@ -20,6 +20,7 @@ from ctgpp.diffusion.guided import (
     guide_mean,
     guided_sample,
 )
+from ctgpp.dynamics import KAPPA_MAX_PER_M
 from ctgpp.eval.rule_setup import select_pair
 from ctgpp.guidance import GuidanceLoss, build_guidance_batch, make_loss
 from ctgpp.model.config import ModelConfig
@@ -187,6 +188,20 @@ def test_action_trajectories_follow_the_contract() -> None:
     assert x.shape == (3, 2, 10, 6)
     torch.testing.assert_close(x[..., -1, 2], torch.full((3, 2), 6.0))
     torch.testing.assert_close(x[..., 4], torch.ones(3, 2, 10))
+
+
+def test_action_trajectories_yawvel_is_the_yaw_rate_turned_at() -> None:
+    """yawvel is the curvature-bounded yaw rate: it integrates to the yaw, and is 0 while stopped."""
+    actions = torch.zeros(2, 3, 10, 2, dtype=torch.float64)
+    actions[..., 1] = torch.tensor([1.5, -3.0])[:, None, None]  # (N=2,) yaw rates asked
+    actions[:, 2, :5, 0] = 1.0  # vehicle 2 starts from rest, speeds up for 0.5 s, then brakes
+    actions[:, 2, 5:, 0] = -10.0
+    current = torch.tensor([[0.0, 0.0, 5.0, 0.0], [0.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0]]).double()
+    x = action_trajectories(actions, current, 0.1)  # (V, N, F, 6)
+    torch.testing.assert_close(torch.cumsum(x[..., 5], dim=-1) * 0.1, x[..., 3])
+    assert (x[1, ..., 5] == 0).all()  # vehicle 1 stands still: no turn whatever is asked
+    assert (x[2, :, 0, 5].abs() < actions[:, 2, 0, 1].abs()).all()  # the limit acts at low speed
+    assert (x[..., 5].abs() <= KAPPA_MAX_PER_M * x[..., 2] + 1e-12).all()
 
 
 def test_guided_plans_on_the_untrained_model(scene_0103: Scene) -> None:

@@ -32,10 +32,14 @@ def test_window_frames_and_targets(scene_0103: Scene) -> None:
     assert ok.sum() > 10
     np.testing.assert_allclose(world[ok], logged[ok], atol=1e-3)
     # The action targets reproduce the future through the unicycle (exactly where the log respects
-    # the action bounds; see test_forward_inverse_reproduces_logged_vehicles for the residual).
+    # the action bounds and the curvature limit; see test_forward_inverse_reproduces_logged_vehicles
+    # for the residual). Near-stationary vehicles, whose annotations drift sideways by centimetres,
+    # are followed along their heading, not turned on the spot.
     states = rollout(torch.from_numpy(w.hist[:, -1]).double(), torch.from_numpy(w.fut_actions).double(), 0.1)
-    err = np.linalg.norm(states[..., :2].numpy() - w.fut[..., :2], axis=-1)[w.fut_valid]
-    assert np.median(err) < 1e-3 and err.mean() < 0.1
+    err = np.linalg.norm(states[..., :2].numpy() - w.fut[..., :2], axis=-1)  # (A, F) m
+    moving = w.fut_valid & (w.hist[:, -1:, 2] >= 1.0)  # (A, F): vehicles at 1 m/s or more now
+    assert moving.sum() > 100
+    assert np.median(err[moving]) < 1e-3 and err[w.fut_valid].mean() < 0.1
 
 
 def test_lanes_are_in_the_agent_frame(scene_0103: Scene) -> None:

@@ -23,7 +23,7 @@ import torch
 from torch import Tensor
 
 from ctgpp.diffusion.schedule import Sampler, randn_like
-from ctgpp.dynamics import clip_actions, rollout
+from ctgpp.dynamics import bound_yaw_rate, clip_actions, rollout
 
 Objective = Callable[[Tensor], Tensor]
 ADAM_BETAS = (0.9, 0.999)
@@ -133,9 +133,12 @@ def action_trajectories(actions: Tensor, current: Tensor, dt_s: float) -> Tensor
 
     actions (N, V, F, 2) acceleration m/s², yaw rate rad/s (denormalized; clipped here to the action
     bounds); current (V, 4) each vehicle's current state (0, 0, v, 0) in its own frame.
-    Returns (V, N, F, 6): (x m, y m, vel m/s, yaw rad, acc m/s², yawvel rad/s) in each vehicle's frame.
+    Returns (V, N, F, 6): (x m, y m, vel m/s, yaw rad, acc m/s², yawvel rad/s) in each vehicle's frame;
+    yawvel is the yaw rate the vehicle turns at, within the curvature limit of its speed
+    (:func:`ctgpp.dynamics.bound_yaw_rate`), so that yawvel·dt sums to the yaw.
     """
     acts = clip_actions(actions)
     states = rollout(current[None].to(acts.dtype), acts, dt_s)  # (N, V, F, 4)
-    x = torch.cat([states, acts], dim=-1)  # (N, V, F, 6)
+    yaw_rate = bound_yaw_rate(acts[..., 1], states[..., 2])  # (N, V, F)
+    x = torch.cat([states, acts[..., :1], yaw_rate[..., None]], dim=-1)  # (N, V, F, 6)
     return x.transpose(0, 1)  # (N, V, F, 6) -> (V, N, F, 6)
