@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from ctgpp.data.catalog import Catalog, default_data_dir
 from ctgpp.data.nuscenes_drivable import crop_mask_png, nuscenes_drivable, rasterize_polygons
 from ctgpp.data.safe_pickle import UnsafePickleError, safe_load
 from ctgpp.data.scenarionet import iter_scenarionet, load_scenarionet
@@ -117,6 +118,26 @@ def test_all_scenes_load_with_consistent_shapes(scenes) -> None:
         step = np.linalg.norm(np.diff(a.xy[0], axis=0), axis=1) / scene.dt_s
         assert np.median(np.abs(step - a.speed[0, 1:])) < 0.3
         assert scene.lanes.num_lanes > 100 and len(scene.lanes.successors) > 0.8 * scene.lanes.num_lanes
+
+
+def test_vehicle_boxes_are_longer_than_wide(scenes) -> None:
+    """The files store the ego's box as 1.73 m long, 4.08 m wide; the adapter turns every vehicle box
+    whose width exceeds its length to lie along the heading. Other agents keep theirs (a barrier is
+    wider than long across its heading). The embedded scenes carry the same boxes."""
+    embedded = Catalog.open(default_data_dir())
+    for name, scene in scenes.items():
+        raw = safe_load(SCENES / f"sd_nuscenes_v1.0-mini_{name}.pkl")["tracks"]["ego"]["state"]
+        assert (raw["length"].max(), raw["width"].min()) == pytest.approx((1.73, 4.08))  # the quirk
+        a = scene.agents
+        assert tuple(a.extent[scene.ego]) == pytest.approx((4.08, 1.73))
+        assert np.all(a.extent[a.is_vehicle, 0] >= a.extent[a.is_vehicle, 1])
+        stored = embedded.load(name).agents
+        assert np.array_equal(stored.ids, a.ids)
+        np.testing.assert_allclose(stored.extent, a.extent, rtol=1e-6)  # float32 in the file
+        assert tuple(stored.extent[scene.ego]) == pytest.approx((4.08, 1.73))
+    barriers = scenes["scene-0553"].agents
+    static = barriers.types == AgentType.STATIC
+    assert np.any(barriers.extent[static, 1] > barriers.extent[static, 0])
 
 
 def test_drivable_mask_covers_moving_vehicles_scene_0103() -> None:

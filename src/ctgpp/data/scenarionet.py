@@ -6,7 +6,8 @@ map_features`` (``shared/data/README.md``), read with the restricted unpickler o
 connectivity comes from Waymo-style ``entry_lanes / exit_lanes / left_neighbor / right_neighbor``
 when present, otherwise it is rebuilt geometrically (:mod:`ctgpp.data.lane_topology`). The drivable
 area is a crop of the nuScenes map mask when ``drivable_dir/<map>.png`` exists, else the union of
-the lane polygons (centerlines buffered by 1.8 m where a lane has no polygon).
+the lane polygons (centerlines buffered by 1.8 m where a lane has no polygon). A vehicle whose
+stored width exceeds its length has the two swapped (the ego box of the nuScenes conversions).
 """
 
 from __future__ import annotations
@@ -65,14 +66,23 @@ def _tracks(raw: dict, path: Path) -> tuple[AgentTracks, int]:
         yaw[a] = np.where(ok, np.asarray(state["heading"], dtype=np.float64).reshape(-1), 0.0)
         vel = np.asarray(state["velocity"], dtype=np.float64)[:, :2]
         speed[a] = np.where(ok, np.linalg.norm(vel, axis=1), 0.0)
+        types[a] = _TYPES.get(str(track.get("type", "")), AgentType.OTHER)
         if ok.any():
             length = np.asarray(state["length"], dtype=np.float64).reshape(-1)[ok]
             width = np.asarray(state["width"], dtype=np.float64).reshape(-1)[ok]
-            extent[a] = (np.median(length), np.median(width))
-        types[a] = _TYPES.get(str(track.get("type", "")), AgentType.OTHER)
+            extent[a] = _box(float(np.median(length)), float(np.median(width)), types[a])
     ids = np.asarray([str(k) for k in order], dtype=np.str_)
     agents = AgentTracks(ids=ids, types=types, xy=xy, yaw=yaw, speed=speed, extent=extent, valid=valid)
     return agents, (0 if order and str(order[0]) == sdc else -1)
+
+
+def _box(length_m: float, width_m: float, kind: int) -> tuple[float, float]:
+    """(length, width) m of an agent's box: a vehicle's longer side is its length. Converted files
+    can store them the other way round (the ego of the nuScenes ScenarioNet files: 1.73 m long,
+    4.08 m wide); its heading is kept, so the box is turned to lie along it."""
+    if kind == AgentType.VEHICLE and width_m > length_m:
+        return width_m, length_m
+    return length_m, width_m
 
 
 def _clean_line(points: list | np.ndarray) -> np.ndarray:
