@@ -223,14 +223,17 @@ def test_guided_plans_on_the_untrained_model(scene_0103: Scene) -> None:
 
 def test_held_vehicles_stand_still_and_cost_no_sampling(scene_0103: Scene) -> None:
     """Vehicles the simulator holds are not sampled: every sample has them at rest (zero actions, zero
-    trajectory, their rows still in the guidance loss), and the moving vehicles get exactly the plans
-    of sampling them alone with the same seed."""
+    trajectory, their rows still in the guidance loss). A model without context gets for the moving
+    vehicles exactly the plans of sampling them alone with the same seed; one with context sees the
+    held vehicles standing (tests/test_context.py)."""
     obs = observation(scene_0103)
     speed = scene_0103.agents.speed[obs.controlled, STEP]
     held = obs.controlled[speed < 0.5]
     moves = speed >= 0.5
     assert 0 < len(held) < len(obs.controlled)
-    model, sampling, loss = make_model(), SamplingConfig.evenly("ddim", 4, 3), TargetSpeedOnX(2.0)
+    torch.manual_seed(0)
+    model = Denoiser(replace(TINY, context=None)).eval()
+    sampling, loss = SamplingConfig.evenly("ddim", 4, 3), TargetSpeedOnX(2.0)
     policy = DiffusionPolicy(model, sampling, loss)
     samples = policy.sample_plans(replace(obs, held=held))
     assert samples.actions.shape == (3, len(obs.controlled), 52, 2)

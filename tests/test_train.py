@@ -78,22 +78,28 @@ def test_loaded_checkpoint_samples_the_same_plans(scene_0103: Scene, trained: tu
 
 
 def test_policy_never_sees_the_logged_future(scene_0103: Scene, trained: tuple[Path, dict]) -> None:
-    """Scrambling the log after the current step changes nothing in the plan."""
+    """Scrambling the log of the controlled vehicles after the current step changes nothing in the
+    plan; the replayed agents' logged future is what the simulator plays, and the model sees it."""
     out, _ = trained
     policy = DiffusionPolicy.from_checkpoint(out, SamplingConfig.evenly("ddim", 3, 2))
     step = 40
     controlled = np.array([0, 1, 2, 3])
     a = scene_0103.agents
-    xy = a.xy.copy()
-    xy[:, step + 1 :] += 50.0
-    scrambled = replace(scene_0103, agents=replace(a, xy=xy))
+
+    def scrambled_log(agents: np.ndarray) -> Scene:
+        xy = a.xy.copy()
+        xy[agents, step + 1 :] += 50.0
+        return replace(scene_0103, agents=replace(a, xy=xy))
 
     def obs(scene: Scene) -> Observation:
         tracks = replace(scene.agents, valid=scene.agents.valid.copy())
         tracks.valid[controlled, step + 1 :] = False
         return Observation(scene, tracks, step, controlled, 52, np.random.default_rng(0))
 
-    np.testing.assert_array_equal(policy.plan(obs(scene_0103)).states, policy.plan(obs(scrambled)).states)
+    plan = policy.plan(obs(scene_0103)).states
+    np.testing.assert_array_equal(plan, policy.plan(obs(scrambled_log(controlled))).states)
+    replayed = np.setdiff1d(np.flatnonzero(a.valid[:, step]), controlled)
+    assert not np.array_equal(plan, policy.plan(obs(scrambled_log(replayed))).states)
 
 
 def test_torchrun_two_process_training(tmp_path: Path) -> None:

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from typing import Any, ClassVar, TypeVar
 
 from ctgpp.baselines.raster import RasterConfig
+from ctgpp.data.windows import WindowConfig
 from ctgpp.model.config import ACTION_MEAN, ACTION_STD, STATE_MEAN, STATE_STD
 
 ConfigT = TypeVar("ConfigT", bound="BaselineConfig")
@@ -49,6 +50,12 @@ class BaselineConfig:
         return RasterConfig(
             self.raster_pixels, self.raster_resolution_m, self.raster_behind_m, self.history_steps
         )
+
+    def window_config(self, max_agents: int, with_future: bool = True) -> WindowConfig:
+        """The windows this model reads: its history and future lengths, every vehicle sampled, no
+        context (the baselines condition on rasters) and the nearest lanes."""
+        steps = (self.history_steps, self.future_steps)
+        return WindowConfig(*steps, max_agents=max_agents, with_future=with_future)
 
     def to_dict(self) -> dict[str, Any]:
         """A JSON-ready dict (tuples become lists)."""
