@@ -57,6 +57,15 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         default="full",
         help="the model or one of the paper's ablations",
     )
+    p.add_argument(
+        "--stride", type=int, default=TrainConfig.stride, help="steps between window starts (1: every start)"
+    )
+    p.add_argument(
+        "--max-agents",
+        type=int,
+        default=TrainConfig.max_agents,
+        help=f"vehicles sampled per training window at most (default {TrainConfig.max_agents})",
+    )
     p.add_argument("--val-every", type=int, default=TrainConfig.val_every, help="steps between validations")
     p.add_argument("--val-windows", type=int, default=TrainConfig.val_windows, help="validation windows")
     p.set_defaults(run=run_train)
@@ -93,8 +102,8 @@ def model_config_of(args: argparse.Namespace) -> ModelConfig | BaselineConfig:
 
 
 def run_train(args: argparse.Namespace) -> int:
-    if args.steps < 1 or args.batch < 1:
-        raise ValueError("--steps and --batch must be positive")
+    if min(args.steps, args.batch, args.stride, args.max_agents) < 1:
+        raise ValueError("--steps, --batch, --stride and --max-agents must be positive")
     model_config = model_config_of(args)
     specs = args.train or ["mini_train"]
     train_scenes = [s for spec in specs for s in load_split(spec)]
@@ -104,8 +113,10 @@ def run_train(args: argparse.Namespace) -> int:
         batch_scenes=args.batch,
         lr=args.lr,
         seed=args.seed,
+        stride=args.stride,
         val_every=args.val_every,
         val_windows=args.val_windows,
+        max_agents=args.max_agents,
     )
     note = f"train {' + '.join(specs)} ({len(train_scenes)} scenes), val {args.val}, "
     note += f"variant {args.variant}" if args.model == "ctgpp" else f"model {args.model}"

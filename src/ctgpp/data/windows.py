@@ -11,19 +11,16 @@ replayed agents with their known futures.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
 from ctgpp.data.context import ContextAgents, ContextConfig, select_context, training_roles
+from ctgpp.data.map_inputs import MapConfig, agent_lanes, drivable_grid
 from ctgpp.dynamics import inverse
 from ctgpp.geometry import world_to_local, wrap_angle
 from ctgpp.scene.types import Scene
 from ctgpp.scene.vehicles import controlled_vehicles
-
-if TYPE_CHECKING:
-    from ctgpp.data.map_inputs import MapConfig
 
 
 @dataclass(frozen=True)
@@ -121,8 +118,6 @@ def build_window(
         lanes, lanes_valid = _agent_lanes(scene, pose, config)
         drivable = np.zeros((len(idx), 0, 0), dtype=np.float32)
     else:
-        from ctgpp.data.map_inputs import agent_lanes, drivable_grid
-
         lanes, lanes_valid = agent_lanes(scene, pose, config.map)
         drivable = drivable_grid(scene, pose, config.map)
     ctx_config = config.context if config.context is not None else ContextConfig(max_context=0)

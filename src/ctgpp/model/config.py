@@ -9,13 +9,11 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from ctgpp.data.context import ContextConfig
+from ctgpp.data.map_inputs import MapConfig
 from ctgpp.data.windows import WindowConfig
-
-if TYPE_CHECKING:
-    from ctgpp.data.map_inputs import MapConfig
 
 # Per-channel mean and standard deviation of the training targets in each vehicle's own frame, measured
 # once on nuScenes v1.0-mini mini_train (8 scenes, windows from ctgpp.data.windows.build_window at every
@@ -62,8 +60,8 @@ class ModelConfig:
     state_mean: tuple[float, ...] = STATE_MEAN
     state_std: tuple[float, ...] = STATE_STD
     context: ContextConfig | None = ContextConfig()
-    map: MapConfig | None = None
-    grid_patch: int = 4
+    map: MapConfig | None = MapConfig()
+    grid_patch: int = 6
 
     def __post_init__(self) -> None:
         if self.d_model % self.heads != 0:
@@ -113,8 +111,6 @@ class ModelConfig:
         if values["context"] is not None:
             values["context"] = ContextConfig(**values["context"])
         if values["map"] is not None:
-            from ctgpp.data.map_inputs import MapConfig  # the map module is only needed for such models
-
             values["map"] = MapConfig(**values["map"])
         return cls(**values)
 

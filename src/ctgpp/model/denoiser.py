@@ -147,6 +147,8 @@ class Denoiser(nn.Module):
             self.agent_emb = AgentEmbedding(d)
             self.context_encoder = ContextEncoder(d, config.heads, config.ffn_mult)
         if config.map is not None:
+            # the lane slots come in priority order (own path ahead first: ctgpp.data.map_inputs)
+            self.slot_emb = nn.Parameter(torch.randn(config.map.max_lanes, d) * 0.02)
             self.grid_encoder = GridEncoder(config.map.grid_cells, config.grid_patch, d)
         self.blocks = nn.ModuleList(Block(config) for _ in range(config.blocks))
         self.out_norm = nn.LayerNorm(d)
@@ -163,6 +165,7 @@ class Denoiser(nn.Module):
             edges = torch.zeros_like(edges)
         lane_tokens, lane_valid = self.lane_encoder(inputs.lanes, inputs.lanes_valid)  # (S, A, L, d)
         if cfg.map is not None:
+            lane_tokens = lane_tokens + self.slot_emb  # (S, A, L, d)
             grid_tokens = self.grid_encoder(batch.drivable)  # (S, A, N, d)
             lane_tokens = torch.cat([lane_tokens, grid_tokens], dim=2)
             grid_valid = inputs.agent_mask[..., None].expand(-1, -1, grid_tokens.shape[2])
