@@ -43,6 +43,7 @@ def _active_params(batch: GuidanceBatch) -> dict[str, dict]:
         "move_to_rightmost_lane": {"vehicle": 0},
         "turn_at_next_intersection": {"vehicle": 0, "direction": "right"},
         "follow_lane": {"vehicle": None},
+        "keep_lane": {"vehicle": None, "tolerance_m": 0.0},
         "cut_in": {"vehicle": 2, "ahead_of": 0},
         "stay_side_of": {"vehicle": 2, "other": 0, "side": "right"},
         "same_direction": {"vehicle": 3, "other": 1},

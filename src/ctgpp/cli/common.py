@@ -7,6 +7,7 @@ from pathlib import Path
 
 from ctgpp.data.catalog import Catalog
 from ctgpp.diffusion.guided import GuidanceConfig
+from ctgpp.guidance.guards import GUARD_NAMES, GuardConfig
 from ctgpp.sim.diffusion_policy import SamplingConfig
 
 
@@ -64,6 +65,30 @@ def add_guidance_args(parser: argparse.ArgumentParser) -> None:
         help="for a rule that couples vehicles: compose the plan vehicle by vehicle from the N samples "
         "(default) or keep one sample for the whole scene (the paper)",
     )
+
+
+def add_guard_args(parser: argparse.ArgumentParser, default: str) -> None:
+    """The realism guards (``--guards``, ``--no-guards``): ``default`` "on" for simulate, "off" for
+    the paper's protocol."""
+    parser.add_argument(
+        "--guards",
+        default=default,
+        metavar="on|off|" + ",".join(GUARD_NAMES),
+        help=f"realism guards of the diffusion policies (default: {default}): every vehicle the rule or "
+        "query does not send elsewhere stays on the road (offroad), out of collisions with every agent "
+        "(collision) and in its lane (lane); a comma-separated subset runs only those",
+    )
+    parser.add_argument(
+        "--no-guards", dest="guards", action="store_const", const="off", help="the same as --guards off"
+    )
+
+
+def guard_config(args: argparse.Namespace) -> GuardConfig:
+    """The ``--guards`` choice (ValueError naming the guards for an unknown one)."""
+    try:
+        return GuardConfig.parse(args.guards)
+    except ValueError as err:
+        raise ValueError(f"--guards {args.guards}: {err}") from None
 
 
 def guidance_config(args: argparse.Namespace) -> GuidanceConfig:

@@ -8,8 +8,10 @@ from pathlib import Path
 
 from ctgpp.cli.common import (
     add_data_arg,
+    add_guard_args,
     add_guidance_args,
     add_model_args,
+    guard_config,
     guidance_config,
     sampling_config,
     split_spec,
@@ -37,6 +39,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     )
     add_model_args(p)
     add_guidance_args(p)
+    add_guard_args(p, "off")  # the paper's protocol: the rule alone
     p.add_argument(
         "--checkpoint-of",
         action="append",
@@ -110,6 +113,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
         sampling=sampling_config(args),
         guidance_config=guidance_config(args),
         checkpoints=checkpoints_of(args.checkpoint_of, args.checkpoint),
+        guards=guard_config(args),
     )
     factory.check(methods)  # a missing checkpoint fails now, not in the middle of the run
     sets = evaluation_sets(args.split, args.data)

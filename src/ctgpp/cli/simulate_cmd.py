@@ -8,12 +8,15 @@ import json
 import math
 from pathlib import Path
 
+import numpy as np
 from tqdm import tqdm
 
 from ctgpp.cli.common import (
     add_data_arg,
+    add_guard_args,
     add_guidance_args,
     add_model_args,
+    guard_config,
     guidance_config,
     open_catalog,
     sampling_config,
@@ -21,6 +24,8 @@ from ctgpp.cli.common import (
 from ctgpp.cli.rules_cmd import RULE_SYNTAX, parse_rule_arg
 from ctgpp.eval.rule_setup import RuleSpec, custom_rule
 from ctgpp.guidance import CompositeLoss
+from ctgpp.guidance.guards import GuardConfig, guard_report
+from ctgpp.guidance.scope import LossScope
 from ctgpp.io.atomic import write_text_atomic
 from ctgpp.language.client import LLMConfig
 from ctgpp.language.query import QueryLoss, resolve_query
@@ -28,9 +33,16 @@ from ctgpp.language.satisfaction import check_satisfied
 from ctgpp.metrics.rules import fail_excluding
 from ctgpp.scene.types import Scene
 from ctgpp.scene.vehicles import controlled_vehicles
-from ctgpp.sim.closed_loop import episode_bounds, initial_observation, simulate, start_step
+from ctgpp.sim.closed_loop import (
+    STATIONARY_SPEED_MPS,
+    episode_bounds,
+    initial_observation,
+    simulate,
+    start_step,
+)
 from ctgpp.sim.export import write_rollout
-from ctgpp.sim.factory import POLICY_NAMES, make_policy
+from ctgpp.sim.factory import GUARDED_POLICIES, POLICY_NAMES, make_policy
+from ctgpp.sim.policy import Policy
 from ctgpp.sim.rollout import Rollout
 
 
@@ -67,6 +79,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         "vehicles are the displayed numbers; see `ctgpp rules`",
     )
     add_guidance_args(p)
+    add_guard_args(p, "on")
     p.add_argument("--seed", type=int, default=0, help="random seed")
     p.add_argument("--out", type=Path, default=Path("ctgpp-out"), metavar="DIR", help="output directory")
     p.add_argument("--format", choices=["parquet", "csv"], default="parquet", help="rollout table format")
@@ -91,6 +104,7 @@ def run_simulate(args: argparse.Namespace) -> int:
     start = episode_bounds(scene)[0] if args.start is None else args.start
     step0 = start_step(scene, start)  # a bad --start is reported before any work starts
     guide = guidance_config(args)  # a bad --guide-steps is reported before any work starts
+    guards = guard_config(args)
     specs = _rules(args, scene, step0)
     losses = [s.loss for s in specs]
     query = None
@@ -105,7 +119,10 @@ def run_simulate(args: argparse.Namespace) -> int:
     loss = None
     if losses:
         loss = losses[0] if len(losses) == 1 else CompositeLoss([(item, 1.0) for item in losses])
-    policy = make_policy(args.policy, args.checkpoint, sampling_config(args), loss, guide)
+    scope = LossScope.nothing()  # the vehicles the rules and the query address, for the guards
+    for item in [*(s.loss.scope() for s in specs), *([query.scope] if query is not None else [])]:
+        scope = scope.union(item)
+    policy = make_policy(args.policy, args.checkpoint, sampling_config(args), loss, guide, guards, scope)
     if losses and args.policy != "ctgpp":
         print(f"policy {args.policy} is not guided: the rules and the query are only measured")
     with tqdm(total=20, desc=f"simulating {scene.id}", unit="plan") as bar:
@@ -139,6 +156,7 @@ def run_simulate(args: argparse.Namespace) -> int:
             record["fail_excluding_rule_pairs"] = _json_float(fail_excluding(rollout, exempt))
     if query is not None:
         record["query"] = _query_report(args.query, query, rollout)
+    record["guards"] = _guards_record(args.policy, policy, guards, scope, scene, step0)
     files.append(write_text_atomic(out / "metrics.json", json.dumps(_json_safe(record), indent=2) + "\n"))
     events = rollout_events(rollout)
     step = rollout.first_step + rollout.current
@@ -157,6 +175,9 @@ def run_simulate(args: argparse.Namespace) -> int:
         print(f"  query satisfied: {report['satisfied']}")
         for part in report["parts"]:
             print(f"    [{'yes' if part['satisfied'] else 'no '}] {part['text']}: {part['measured']}")
+    guarded = record["guards"]
+    note = f" ({guarded['note']})" if "note" in guarded else ""
+    print(f"  guards: {', '.join(guarded['ran']) or 'none'}{note}")
     for f in files:
         print(f"wrote {f}")
     return 0
@@ -181,6 +202,21 @@ def _query_report(text: str, query: QueryLoss, rollout: Rollout) -> dict[str, ob
     parts = check_satisfied(rollout, query.compiled)
     rows = [{"text": p.text, "satisfied": p.satisfied, "measured": p.measured} for p in parts]
     return {**report, "satisfied": all(p.satisfied for p in parts), "parts": rows}
+
+
+def _guards_record(
+    name: str, policy: Policy, guards: GuardConfig, scope: LossScope, scene: Scene, step: int
+) -> dict[str, object]:
+    """The realism guards of the episode for ``metrics.json`` (:func:`guard_report`), or why none ran."""
+    if not guards.enabled:
+        return {"ran": [], "note": "off (--guards off)"}
+    if name not in GUARDED_POLICIES:
+        guarded = ", ".join(GUARDED_POLICIES)
+        return {"ran": [], "note": f"policy {name} takes no guards (only the diffusion policies {guarded})"}
+    controlled = controlled_vehicles(scene, step)
+    slow = scene.agents.speed[controlled, step] < STATIONARY_SPEED_MPS
+    held = np.flatnonzero(slow) if policy.hold_stationary else []
+    return guard_report(guards, scope, len(controlled), [int(v) for v in held])
 
 
 def _json_float(value: float) -> float | None:

@@ -6,6 +6,8 @@
   map-aware ones (adjacent / rightmost lanes, next intersection, turns).
 - :mod:`~ctgpp.guidance.rules`: the rules library; :mod:`~ctgpp.guidance.composite`: "and" of
   weighted losses, ``make_loss`` by name, ``describe_rules``.
+- :mod:`~ctgpp.guidance.scope`: which vehicles a loss addresses; :mod:`~ctgpp.guidance.guards`: the
+  realism guards (on the road, no collision, in lane) around a rule's or query's loss.
 """
 
 import ctgpp.guidance.rules_map  # noqa: F401  (registers the map-aware and relative rules)

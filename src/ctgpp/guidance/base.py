@@ -6,7 +6,9 @@ x of shape (B, N, T, 6): B vehicles (the controlled vehicles in displayed order:
 vehicle's own current frame; and returns a differentiable cost of shape (B, N) (per vehicle) or (N)
 (per sample, for rules that couple vehicles). Lower is better. ``data_batch`` is whatever the
 sampler passes (a :class:`ctgpp.guidance.context.GuidanceBatch`); loss code only hands it on to the
-helpers. ``agt_mask`` (B,) bool, when given, selects the vehicles the loss applies to.
+helpers. ``agt_mask`` (B,) bool, when given, selects the vehicles the loss applies to. ``scope()``
+says which vehicles a loss addresses (:class:`ctgpp.guidance.scope.LossScope`), so that the realism
+guards leave alone what the loss asks for.
 """
 
 from __future__ import annotations
@@ -15,6 +17,8 @@ from collections.abc import Callable
 from typing import Any, ClassVar
 
 from torch import Tensor, nn
+
+from ctgpp.guidance.scope import LossScope
 
 
 class GuidanceLoss(nn.Module):
@@ -28,6 +32,11 @@ class GuidanceLoss(nn.Module):
 
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         raise NotImplementedError
+
+    def scope(self) -> LossScope:
+        """Which vehicles the loss addresses, which it moves out of their lanes and which pairs it
+        asks to collide (for the realism guards). A loss that does not say is opaque."""
+        return LossScope.unknown()
 
 
 LossFactory = Callable[..., GuidanceLoss]

@@ -15,6 +15,7 @@ from torch import Tensor
 
 import ctgpp.guidance.rules  # noqa: F401  (registers the rules library)
 from ctgpp.guidance.base import GuidanceLoss, registered_losses
+from ctgpp.guidance.scope import LossScope
 
 UNIT_SUFFIXES = ("_mps2", "_mps", "_m", "_s", "_rad")
 
@@ -39,6 +40,13 @@ class CompositeLoss(GuidanceLoss):
     @property
     def couples_agents(self) -> bool:  # type: ignore[override]
         return any(loss.couples_agents for loss in self.losses)
+
+    def scope(self) -> LossScope:
+        """Every part's scope together."""
+        out = LossScope.nothing()
+        for loss in self.losses:
+            out = out.union(loss.scope())
+        return out
 
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         pairs = zip(self.losses, self.weights, strict=True)

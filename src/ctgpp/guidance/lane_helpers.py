@@ -21,6 +21,7 @@ from ctgpp.guidance.lane_paths import (
     Direction,
     _memo,
     _path_polyline,
+    _reach_m,
     _to_tensor,
     get_adjacent_lane,
     get_current_lane,
@@ -28,11 +29,14 @@ from ctgpp.guidance.lane_paths import (
     get_turn_lane,
     next_intersection_distance,
     project_onto_polyline,
+    project_onto_polylines,
     vehicle_lane,
 )
 from ctgpp.scene.lanes import LaneProjection, lane_length, lanes_ahead, project_to_lane
 from ctgpp.scene.types import LaneGraph
 
+LANE_PATHS_MAX = 12  # get_lane_paths: at most this many paths per vehicle
+LANE_PATHS_SPACING_M = 2.0  # get_lane_paths: centerline points about this far apart (1 m in the maps)
 ROUTE_MAX_OFFSET_M = 2.0  # a lane path leads through a point passing at most this far from it
 ROUTE_BEYOND_M = 30.0  # a route continues this far past the point
 FORK_OFFSET_M = 2.0  # a fork's other branch is a start of routes when the vehicle is this close to it
@@ -40,11 +44,13 @@ FORK_OFFSET_M = 2.0  # a fork's other branch is a start of routes when the vehic
 __all__ = [
     "get_adjacent_lane",
     "get_current_lane",
+    "get_lane_paths",
     "get_rightmost_lane",
     "get_rightmost_lane_projection",
     "get_route_to_point",
     "get_turn_lane",
     "get_turn_lane_projection",
+    "lane_path_distance",
     "next_intersection_distance",
     "project_onto_polyline",
     "ramp_weights",
@@ -152,3 +158,59 @@ def get_route_to_point(data_batch: GuidanceBatch, i: int, point_world: np.ndarra
         return None if best is None else _to_tensor(data_batch, best)
 
     return _memo(data_batch, ("route", i, float(point[0]), float(point[1])), build)
+
+
+def get_lane_paths(data_batch: GuidanceBatch, i: int) -> list[Tensor]:
+    """Every lane path vehicle i may follow without changing lanes: target polylines (M, 2), local
+    world frame m, of its current lane and each chain of successors ahead (straight on and every turn
+    through the intersections within its reach), also from the lanes that fork from the same place
+    as its lane (overlapping connectors); at most ``LANE_PATHS_MAX``, the straightest first, with
+    points about ``LANE_PATHS_SPACING_M`` apart (a 2 m chord strays 5 cm from a 10 m turning radius).
+    Empty when the vehicle is on no lane."""
+    key = ("paths", i)
+    if key not in data_batch.memo:
+        proj = vehicle_lane(data_batch, i)
+        paths: list[Tensor] = []
+        if proj is not None:
+            lanes = data_batch.scene.lanes
+            xy = data_batch.to_world(data_batch.pose[i, :2].detach().cpu().numpy())
+            reach = _reach_m(data_batch, i)
+            for start in _fork_starts(lanes, proj, xy):
+                for path in lanes_ahead(lanes, start, reach, max_paths=LANE_PATHS_MAX):
+                    line = _thinned(_path_polyline(lanes, path, start.s_m, reach), LANE_PATHS_SPACING_M)
+                    paths.append(_to_tensor(data_batch, line))
+        data_batch.memo[key] = paths[:LANE_PATHS_MAX]
+    return data_batch.memo[key]
+
+
+def _thinned(line: np.ndarray, spacing_m: float) -> np.ndarray:
+    """The polyline (M, 2) with only the points about ``spacing_m`` apart along it, ends kept."""
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(line, axis=0), axis=1))])  # (M,) m
+    keep = np.flatnonzero(np.diff(np.floor(s / spacing_m), prepend=-1.0) > 0)  # first point past each mark
+    keep = np.union1d(keep, [len(line) - 1])
+    return line[keep]
+
+
+def lane_path_distance(pos_world: Tensor, paths: list[list[Tensor]]) -> tuple[Tensor, Tensor]:
+    """Distance (m) of each vehicle's positions from the nearest of its lane paths.
+
+    pos_world (B, ..., 2) local world frame m; paths: for each of the B vehicles, its polylines (M, 2)
+    (:func:`get_lane_paths`). Returns the distances (B, ...) m — differentiable with respect to the
+    positions, smooth at zero (:func:`lane_offset`) — and has (B,) bool, False for a vehicle without
+    paths (its distances are 0).
+    """
+    n_b, rest = pos_world.shape[0], pos_world.shape[1:-1]
+    rows = [b for b in range(n_b) for _ in paths[b]]
+    has = torch.tensor([len(p) > 0 for p in paths], device=pos_world.device)
+    if not rows:
+        return pos_world.new_zeros(n_b, *rest), has
+    lines = [line.to(pos_world) for p in paths for line in p]
+    points = pos_world[rows]  # (R, ..., 2): each vehicle's positions once per path
+    flat = points.reshape(len(rows), 1, -1, 2)  # (R, ..., 2) -> (R, 1, Q, 2)
+    foot, _ = project_onto_polylines(flat, flat[..., :1], lines)
+    dist = lane_offset(flat, foot).reshape(len(rows), *rest)  # (R, 1, Q) -> (R, ...)
+    slot = [k for p in paths for k in range(len(p))]
+    table = pos_world.new_full((n_b, max(len(p) for p in paths), *rest), float("inf"))
+    table = table.index_put((torch.tensor(rows), torch.tensor(slot)), dist)  # (B, K, ...)
+    nearest = table.amin(dim=1)  # (B, ...)
+    return torch.where(has.reshape(n_b, *[1] * len(rest)), nearest, torch.zeros_like(nearest)), has

@@ -6,6 +6,7 @@ one sample index for the whole scene. Vehicle arguments are displayed numbers (r
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -23,6 +24,7 @@ from ctgpp.guidance.rules_common import (
     time_weights,
     world_states,
 )
+from ctgpp.guidance.scope import LossScope, Pair, pair
 
 
 def _closest_overlap(a: Tensor, ra: Tensor, b: Tensor, rb: Tensor, buffer_m: float) -> Tensor:
@@ -42,7 +44,7 @@ class NoCollision(Rule):
 
     Only the (pair, sample, step) contacts whose centres are near enough for the hinge to be
     non-zero are evaluated (found without gradient): the others add zero and no gradient, and in a
-    plausible scene they are nearly all of them.
+    plausible scene they are nearly all of them. :meth:`except_pairs` leaves some vehicle pairs out.
     """
 
     couples_agents: ClassVar[bool] = True
@@ -55,7 +57,18 @@ class NoCollision(Rule):
         super().__init__()
         self.buffer_m = float(buffer_m)
         self.decay = float(decay)
+        self.exempt: frozenset[Pair] = frozenset()  # vehicle pairs left out (:meth:`except_pairs`)
         self._layout_of: tuple[GuidanceBatch, int, torch.dtype, _Layout] | None = None
+
+    def except_pairs(self, pairs: Iterable[tuple[int, int]]) -> NoCollision:
+        """The same rule with the vehicle pairs ``pairs`` (displayed numbers) left out: their contacts
+        cost nothing (a pair that a collision rule asks to crash). Contacts with replayed agents stay."""
+        out = NoCollision(self.buffer_m, self.decay)
+        out.exempt = frozenset(pair(a, b) for a, b in pairs)
+        return out
+
+    def scope(self) -> LossScope:
+        return LossScope.everyone()
 
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         n, n_t = x.shape[1], x.shape[2]
@@ -90,6 +103,10 @@ class NoCollision(Rule):
         buffer = self.buffer_m + 1e-3  # a hair more: round-off never drops a touching contact
         lo, hi = _boxes(pos, lay.reach)
         i, j = torch.nonzero(torch.triu(_overlap(lo, hi, lo, hi, buffer), diagonal=1), as_tuple=True)
+        if self.exempt:
+            kept = [pair(a, b) not in self.exempt for a, b in zip(i.tolist(), j.tolist(), strict=True)]
+            keep = torch.tensor(kept, dtype=torch.bool, device=i.device)
+            i, j = i[keep], j[keep]
         reach = (lay.reach[i] + lay.reach[j] + buffer)[:, None, None]
         p, n_v, t_v = torch.nonzero(((pos[i] - pos[j]) ** 2).sum(-1) < reach**2, as_tuple=True)
         rep = lay.replayed
@@ -194,6 +211,9 @@ class KeepDistance(Rule):
         self.follower, self.leader = int(follower), int(leader)
         self.min_m, self.max_m = float(min_m), float(max_m)
 
+    def scope(self) -> LossScope:
+        return LossScope.of((self.follower, self.leader))
+
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         a = check_vehicle(self.follower, data_batch, x.shape[0])
         b = check_vehicle(self.leader, data_batch, x.shape[0])
@@ -221,6 +241,11 @@ class Collision(Rule):
             raise ValueError("a collision needs two different vehicles")
         self.vehicle_a, self.vehicle_b = int(vehicle_a), int(vehicle_b)
         self.contact_m = float(contact_m)
+
+    def scope(self) -> LossScope:
+        """The pair, asked to collide: each may leave its lane to meet the other."""
+        both = (self.vehicle_a, self.vehicle_b)
+        return LossScope.of(both, leave_lane=both, collide=[both])
 
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         a = check_vehicle(self.vehicle_a, data_batch, x.shape[0])

@@ -25,9 +25,16 @@ import ctgpp.guidance.rules_route  # noqa: F401  (registers cut_in and reach_poi
 from ctgpp.guidance.base import register_loss
 from ctgpp.guidance.context import GuidanceBatch
 from ctgpp.guidance.helpers import get_current_lane_projection
-from ctgpp.guidance.lane_helpers import lane_offset, ramp_weights, signed_offset
+from ctgpp.guidance.lane_helpers import (
+    get_lane_paths,
+    lane_offset,
+    lane_path_distance,
+    ramp_weights,
+    signed_offset,
+)
 from ctgpp.guidance.lane_paths import get_adjacent_lane, get_current_lane, get_rightmost_lane, get_turn_lane
 from ctgpp.guidance.rules_common import Rule, apply_mask, check_vehicle, soft_abs, world_states
+from ctgpp.guidance.scope import LossScope
 from ctgpp.scene.lanes import lane_points_ahead, nearest_lane
 
 COMMIT_STEPS = 150  # a committed target lane is kept this many scene steps (15 s)
@@ -88,6 +95,10 @@ class CommittedLaneRule(Rule):
     def reset(self) -> None:
         """Forget the committed target lanes (before another episode)."""
         self._lines.clear()
+
+    def scope(self) -> LossScope:
+        """The vehicle, moved to another lane (or through a turn)."""
+        return LossScope.of([self.vehicle], leave_lane=[self.vehicle])
 
     def choose(self, data_batch: GuidanceBatch, i: int) -> Tensor | None:
         raise NotImplementedError
@@ -208,6 +219,9 @@ class FollowLane(Rule):
         super().__init__()
         self.vehicle = None if vehicle is None else int(vehicle)
 
+    def scope(self) -> LossScope:
+        return LossScope.everyone() if self.vehicle is None else LossScope.of([self.vehicle])
+
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         proj = get_current_lane_projection(x[..., :2], x[..., 3:4], data_batch)  # (B, N, T, 3)
         cost = lane_offset(x[..., :2], proj).mean(-1)  # (B, N)
@@ -217,9 +231,59 @@ class FollowLane(Rule):
         return apply_mask(cost, agt_mask)
 
 
+@register_loss("keep_lane")
+class KeepLane(Rule):
+    """A vehicle (or every vehicle: ``vehicle=None``) keeps its lane: the mean over the horizon of its
+    distance (m) from the nearest of the lane paths it may follow without changing lanes — its lane
+    and every continuation ahead, turns included (:func:`~ctgpp.guidance.lane_helpers.get_lane_paths`)
+    — beyond an allowance: ``tolerance_m``, or how far the vehicle is from them now when that is more
+    (it is never pulled in from where it drives, only kept from drifting further). Zero for a vehicle
+    on no lane. Unlike ``follow_lane`` it lets the vehicle take any turn and tolerates the lane's
+    width, so that it is zero for a vehicle driving in its lane."""
+
+    param_doc = {
+        "vehicle": ("", "displayed number of the vehicle; None for every vehicle"),
+        "tolerance_m": ("m", "distance from the lane centerline that costs nothing"),
+    }
+
+    def __init__(self, vehicle: int | None = None, tolerance_m: float = 1.5) -> None:
+        super().__init__()
+        self.vehicle = None if vehicle is None else int(vehicle)
+        self.tolerance_m = float(tolerance_m)
+
+    def scope(self) -> LossScope:
+        return LossScope.everyone() if self.vehicle is None else LossScope.of([self.vehicle])
+
+    def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
+        n_b = x.shape[0]
+        rows = [True] * n_b if self.vehicle is None else [False] * n_b
+        if self.vehicle is not None:
+            rows[check_vehicle(self.vehicle, data_batch, n_b)] = True
+        if agt_mask is not None:  # the lanes of vehicles left out are not even looked up
+            rows = [r and bool(m) for r, m in zip(rows, agt_mask.tolist(), strict=True)]
+        paths = [get_lane_paths(data_batch, b) if rows[b] else [] for b in range(n_b)]
+        pos, _ = world_states(x, data_batch)  # (B, N, T, 2)
+        dist, _ = lane_path_distance(pos, paths)  # (B, N, T)
+        now = [self._distance_now(data_batch, b) if rows[b] else 0.0 for b in range(n_b)]
+        allowance = x.new_tensor(now).clamp_min(self.tolerance_m)  # (B,) m
+        return apply_mask(torch.relu(dist - allowance[:, None, None]).mean(-1), agt_mask)
+
+    @staticmethod
+    def _distance_now(data_batch: GuidanceBatch, i: int) -> float:
+        """Vehicle i's distance (m) from its lane paths at the re-plan (kept per batch)."""
+        key = ("keep_lane_now", i)
+        if key not in data_batch.memo:
+            with torch.no_grad():
+                paths = [get_lane_paths(data_batch, i)]
+                now, _ = lane_path_distance(data_batch.pose[i : i + 1, :2], paths)  # (1,) m
+            data_batch.memo[key] = float(now[0])
+        return data_batch.memo[key]
+
+
 __all__ = [
     "CommittedLaneRule",
     "FollowLane",
+    "KeepLane",
     "LaneChange",
     "MoveToRightmostLane",
     "TurnAtNextIntersection",

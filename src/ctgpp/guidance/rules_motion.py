@@ -27,6 +27,7 @@ from ctgpp.guidance.rules_common import (
     soft_abs,
     world_states,
 )
+from ctgpp.guidance.scope import LossScope
 
 
 @register_loss("speed_limit")
@@ -39,6 +40,9 @@ class SpeedLimit(Rule):
     def __init__(self, limit_mps: float = 10.0) -> None:
         super().__init__()
         self.limit_mps = float(limit_mps)
+
+    def scope(self) -> LossScope:
+        return LossScope.everyone()
 
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         cost = torch.relu(x[..., 2] - self.limit_mps).mean(-1)  # (B, N)
@@ -86,6 +90,9 @@ class TargetSpeed(Rule):
         out[:, inside] = table[:n_b, cols[inside]]
         return out
 
+    def scope(self) -> LossScope:
+        return LossScope.everyone()
+
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         target = self.targets(x, data_batch)[:, None]  # (B, 1, T)
         has = ~torch.isnan(target)
@@ -105,6 +112,9 @@ class AccelerationLimit(Rule):
         super().__init__()
         self.max_mps2 = float(max_mps2)
 
+    def scope(self) -> LossScope:
+        return LossScope.everyone()
+
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         lat = x[..., 2] * x[..., 5]
         mag = torch.sqrt(x[..., 4] ** 2 + lat**2 + 1e-6)
@@ -122,6 +132,9 @@ class NoOffroad(Rule):
     def __init__(self, margin_m: float = 0.5) -> None:
         super().__init__()
         self.margin_m = float(margin_m)
+
+    def scope(self) -> LossScope:
+        return LossScope.everyone()
 
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         pos, yaw = world_states(x, data_batch)  # (B, N, T, 2), (B, N, T)
@@ -143,6 +156,10 @@ class _Targets(Rule):
         if not len(self.vehicles) == len(xs) == len(ys):
             raise ValueError("vehicle, x and y must have the same number of entries")
         self.goals_world = np.array([xs, ys], dtype=np.float64).T  # (G, 2)
+
+    def scope(self) -> LossScope:
+        """The vehicles with targets, which may leave their lanes to reach them."""
+        return LossScope.of(self.vehicles, leave_lane=self.vehicles)
 
     def goal_distances(self, x: Tensor, data_batch: GuidanceBatch) -> tuple[list[int], Tensor]:
         """Vehicles (G) and their distances (G, N, T) m to their targets over the horizon."""

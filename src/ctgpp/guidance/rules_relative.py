@@ -23,6 +23,7 @@ from torch import Tensor
 
 from ctgpp.guidance.base import GuidanceLoss, register_loss
 from ctgpp.guidance.rules_common import Rule, as_list, check_vehicle, time_weights, world_states
+from ctgpp.guidance.scope import LossScope
 
 
 class _ForSomeVehicles(GuidanceLoss):
@@ -38,6 +39,10 @@ class _ForSomeVehicles(GuidanceLoss):
     @property
     def couples_agents(self) -> bool:  # type: ignore[override]
         return bool(self.loss.couples_agents)
+
+    def scope(self) -> LossScope:
+        """The wrapped loss's scope among ``vehicles``."""
+        return self.loss.scope().restricted(self.vehicles)
 
     def rows(self, x: Tensor, data_batch: Any) -> Tensor:
         """(B,) bool, True on the rows of x of ``vehicles``."""
@@ -126,6 +131,10 @@ class StaySideOf(_Pair):
             raise ValueError(f"side must be 'left' or 'right', not {side!r}")
         self.side, self.margin_m = side, float(margin_m)
 
+    def scope(self) -> LossScope:
+        """The vehicle may change lanes to get to that side of the other."""
+        return LossScope.of((self.vehicle, self.other), leave_lane=[self.vehicle])
+
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         a, b = self.rows(x, data_batch)
         _, lat = relative_position(x, data_batch, a, b)  # (N, T)
@@ -142,6 +151,10 @@ class SameDirection(_Pair):
         "vehicle": ("", "displayed number of the vehicle that turns"),
         "other": ("", "displayed number of the reference vehicle"),
     }
+
+    def scope(self) -> LossScope:
+        """The vehicle may turn (out of its lane) to head the other's way."""
+        return LossScope.of((self.vehicle, self.other), leave_lane=[self.vehicle])
 
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         a, b = self.rows(x, data_batch)
@@ -173,6 +186,9 @@ class StayAway(_Pair):
         super().__init__(vehicle, other)
         self.min_m, self.margin_m, self.decay = float(min_m), float(margin_m), float(decay)
 
+    def scope(self) -> LossScope:
+        return LossScope.of((self.vehicle, self.other))
+
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         a, b = self.rows(x, data_batch)
         pos, _ = world_states(along_path(x, data_batch.dt_s), data_batch)  # (B, N, T, 2)
@@ -199,6 +215,11 @@ class CollideFromBehind(_Pair):
     @property
     def target(self) -> int:
         return self.other
+
+    def scope(self) -> LossScope:
+        """The pair, asked to collide; the one that hits may leave its lane, its target keeps it."""
+        both = (self.vehicle, self.other)
+        return LossScope.of(both, leave_lane=[self.vehicle], collide=[both])
 
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         a, b = self.rows(x, data_batch)

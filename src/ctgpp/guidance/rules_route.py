@@ -22,6 +22,7 @@ from ctgpp.guidance.lane_paths import get_current_lane
 from ctgpp.guidance.rules_common import Rule, apply_mask, check_vehicle, soft_abs, world_states
 from ctgpp.guidance.rules_motion import GoalWaypoint, _scatter
 from ctgpp.guidance.rules_relative import relative_position
+from ctgpp.guidance.scope import LossScope
 
 CUT_IN_RAMP_S = 3.0  # a cut-in is a lane change: its lane offsets count fully after 3 s
 ROUTE_RAMP_S = 0.5  # a route is followed from the start: the executed near term counts as much
@@ -51,6 +52,10 @@ class CutIn(Rule):
             raise ValueError(f"need 0 <= min_gap_m < gap_m, got {min_gap_m} and {gap_m}")
         self.vehicle, self.ahead_of = int(vehicle), int(ahead_of)
         self.gap_m, self.min_gap_m = float(gap_m), float(min_gap_m)
+
+    def scope(self) -> LossScope:
+        """The vehicle that cuts in changes lanes; the one it cuts in front of keeps its lane."""
+        return LossScope.of((self.vehicle, self.ahead_of), leave_lane=[self.vehicle])
 
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         a = check_vehicle(self.vehicle, data_batch, x.shape[0])

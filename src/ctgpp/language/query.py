@@ -16,6 +16,7 @@ import torch
 from ctgpp.data.windows import WindowConfig, build_window
 from ctgpp.guidance.base import GuidanceLoss
 from ctgpp.guidance.context import build_guidance_batch
+from ctgpp.guidance.scope import LossScope
 from ctgpp.language.client import LLMClient, LLMConfig, LLMError
 from ctgpp.language.compiler import CompiledQuery, QueryError, compile_query
 from ctgpp.language.generate import GenerationFailed, generate_loss
@@ -34,6 +35,13 @@ class QueryLoss:
     path: str
     compiled: CompiledQuery | None
     notes: list[str] = field(default_factory=list)
+
+    @property
+    def scope(self) -> LossScope:
+        """Which vehicles the query addresses, for the realism guards: the compiled query's when the
+        compiler understands the query (a language model's program for it is opaque, and addresses the
+        same vehicles), else the loss's own."""
+        return (self.compiled.loss if self.compiled is not None else self.loss).scope()
 
 
 def probe_x(obs: Observation) -> torch.Tensor:

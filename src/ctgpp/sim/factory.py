@@ -13,6 +13,8 @@ from ctgpp.baselines.ctg_policy import CTGPolicy
 from ctgpp.baselines.kinds import checkpoint_kind, load_model
 from ctgpp.diffusion.guided import GuidanceConfig
 from ctgpp.guidance.base import GuidanceLoss
+from ctgpp.guidance.guards import GuardConfig, with_guards
+from ctgpp.guidance.scope import LossScope
 from ctgpp.model.checkpoint import load_checkpoint, load_config
 from ctgpp.model.denoiser import Denoiser
 from ctgpp.sim.diffusion_policy import DiffusionPolicy, SamplingConfig
@@ -41,6 +43,10 @@ TRAIN_COMMANDS = {
     "bits": "ctgpp train --model bits --out DIR",
 }
 BITS_OPT = BITSPlanConfig(opt_steps=30)
+# the policies the realism guards steer: the diffusion models, which take the guidance loss in their
+# sampler; never ctgpp-unguided, and not the others (bits ranks with the loss but does not sample by it;
+# replay and constvel take no guidance at all)
+GUARDED_POLICIES = ("ctgpp", "ctgpp-no_edge", "ctgpp-scene_centric", "ctg")
 
 
 def default_checkpoint(kind: str = "ctgpp") -> Path:
@@ -55,7 +61,10 @@ class PolicyFactory:
     (``ctgpp``, ``ctgpp-no_edge``, ``ctgpp-scene_centric``, ``ctg``, ``bits``) to its checkpoint
     directory, overriding ``checkpoint`` for ``ctgpp``; a model not named there uses the one shipped
     under its name (:func:`default_checkpoint`). ``bits`` and ``bits_opt`` configure the BITS and
-    BITS+opt planners. A factory that has loaded no model yet is cheap to pickle (worker processes).
+    BITS+opt planners. ``guards`` adds the realism guards (:mod:`ctgpp.guidance.guards`) to the guidance
+    of the diffusion policies (``GUARDED_POLICIES``); off by default here, the evaluation's factory
+    (the paper's protocol: the rule alone). A factory that has loaded no model yet is cheap to pickle
+    (worker processes).
     """
 
     def __init__(
@@ -66,6 +75,7 @@ class PolicyFactory:
         checkpoints: Mapping[str, Path] | None = None,
         bits: BITSPlanConfig = BITSPlanConfig(),
         bits_opt: BITSPlanConfig = BITS_OPT,
+        guards: GuardConfig = GuardConfig.off(),
     ) -> None:
         unknown = sorted(set(checkpoints or {}) - set(MODEL_NAMES))
         if unknown:
@@ -77,6 +87,7 @@ class PolicyFactory:
         self.sampling = sampling
         self.guidance_config = guidance_config
         self.bits, self.bits_opt = bits, bits_opt
+        self.guards = guards
         self._models: dict[str, nn.Module] = {}
 
     @property
@@ -130,9 +141,14 @@ class PolicyFactory:
             self._models[kind] = load_model(self._verified(kind))[0]
         return self._models[kind]
 
-    def __call__(self, name: str, guidance: GuidanceLoss | None = None) -> Policy:
+    def __call__(
+        self, name: str, guidance: GuidanceLoss | None = None, scope: LossScope | None = None
+    ) -> Policy:
         """Policy ``name``; ``guidance`` steers the diffusion models and the baselines (``ctgpp-unguided``,
-        replay and constvel ignore it)."""
+        replay and constvel ignore it), with the factory's guards around it for ``GUARDED_POLICIES``
+        (``scope``: the vehicles the guidance addresses, default its own ``scope()``)."""
+        if name in GUARDED_POLICIES:
+            guidance = with_guards(guidance, self.guards, scope)
         if name == "ctg":
             return CTGPolicy(self.baseline("ctg"), self.sampling, guidance, self.guidance_config)  # type: ignore[arg-type]
         if name in ("bits", "bits+opt"):
@@ -155,10 +171,17 @@ def make_policy(
     sampling: SamplingConfig = SamplingConfig(),
     guidance: GuidanceLoss | None = None,
     guidance_config: GuidanceConfig = GuidanceConfig(),
+    guards: GuardConfig = GuardConfig(),
+    scope: LossScope | None = None,
 ) -> Policy:
     """A policy by name: ``ctgpp`` (the diffusion model of ``checkpoint``, default the shipped one),
     ``ctgpp-unguided``, ``ctgpp-no_edge``, ``ctgpp-scene_centric`` (the ablations), ``ctg``, ``bits``,
     ``bits+opt`` (the baselines), ``replay`` (the log) or ``constvel`` (constant velocity);
-    ``checkpoint``, when given, holds the model the policy runs."""
+    ``checkpoint``, when given, holds the model the policy runs.
+
+    As in ``ctgpp simulate``, the realism guards are on by default (``guards``; ``GuardConfig.off()``
+    for the rule alone): a diffusion policy (``GUARDED_POLICIES``) keeps every vehicle on the road, out
+    of collisions and in its lane except where ``guidance`` (whose vehicles ``scope`` names, default
+    its own) asks otherwise; with no guidance at all, the guards are the whole guidance."""
     checkpoints = {MODEL_OF[name]: Path(checkpoint)} if name in MODEL_OF and checkpoint is not None else {}
-    return PolicyFactory(None, sampling, guidance_config, checkpoints)(name, guidance)
+    return PolicyFactory(None, sampling, guidance_config, checkpoints, guards=guards)(name, guidance, scope)

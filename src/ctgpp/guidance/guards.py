@@ -1,0 +1,223 @@
+"""Realism guards (DESIGN.md, Closed loop): every vehicle stays on the road, out of collisions with
+every agent and in its lane, except where the rule or query asks otherwise.
+
+The guards are three rules of the library, composed (:class:`RealismGuards`, a guidance loss like
+any other) and added to the rule's or query's loss by :func:`with_guards`:
+
+- ``offroad``: :class:`~ctgpp.guidance.rules_motion.NoOffroad` for every vehicle that is on the road
+  at the re-plan (one that is off it now — a car park beyond the mapped drivable area — is not
+  dragged onto it across whatever lies between; the fail metric leaves such vehicles out too).
+- ``collision``: :class:`~ctgpp.guidance.rules_interaction.NoCollision` between every pair of
+  vehicles (moving or held still) and between every vehicle and every replayed agent (pedestrians,
+  cyclists, static objects, vehicles that appear later): all that the guidance batch holds. A pair
+  the loss asks to collide is left out (``LossScope.collide``); each of the two still keeps
+  clear of everyone else.
+- ``lane``: :class:`~ctgpp.guidance.rules_map.KeepLane` — within ``lane_tolerance_m`` of one of its
+  lane paths, turns included, never further than it is now — for every vehicle the loss leaves in
+  its lane (:meth:`LossScope.keeps_lane`): not the vehicles it sends across lanes (lane change,
+  rightmost lane, turn, goal, reach a point, stop region, cut in, stay beside or head the way of
+  another, both vehicles of a collision and the one that rear-ends).
+
+An opaque loss (a language model's program) may do anything to any vehicle: only the off-road
+guard, and the collision guard against replayed agents, apply then.
+
+Weights. The sampler's Adam step moves every action element by about the learning rate whatever
+the size of its gradient (:mod:`ctgpp.guidance.rules_relative`), so weights do not set how hard a
+guard pushes a vehicle it alone concerns; they matter where a vehicle is pulled two ways (the
+query's pair) and in filtration, which composes the plan with the lowest total. Each guard costs
+metres (mean depth off the road, overlap depth, distance out of the lane), as the rules do, so all
+weigh 1, the rule or query too: on the quickstart query over 20 seeds, a collision weight of 5 or a
+rule weight of 3 or 10 left more vehicles colliding, a lane tolerance of 1.0 or 2.0 m more than
+1.5 m (BENCHMARKS.md, Realism guards). Every guard is a hinge, zero (with no gradient) while it is
+satisfied, so a vehicle that drives well is not moved at all.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from ctgpp.guidance.base import GuidanceLoss
+from ctgpp.guidance.composite import CompositeLoss
+from ctgpp.guidance.context import GuidanceBatch
+from ctgpp.guidance.rules_common import sample_sdf
+from ctgpp.guidance.rules_interaction import NoCollision
+from ctgpp.guidance.rules_map import KeepLane
+from ctgpp.guidance.rules_motion import NoOffroad
+from ctgpp.guidance.scope import LossScope, pair
+
+GUARD_NAMES = ("offroad", "collision", "lane")
+COLLISION_WEIGHT = 1.0  # 5 measured worse (BENCHMARKS.md, Realism guards)
+LANE_TOLERANCE_M = 1.5  # 1.0 and 2.0 measured worse
+
+
+@dataclass(frozen=True)
+class GuardConfig:
+    """Which realism guards run (``guards``, a subset of ``GUARD_NAMES``) and how they weigh.
+
+    Default: all three (``ctgpp simulate``); :meth:`off` runs none (the paper's protocol, ``ctgpp
+    evaluate``). ``rule_weight`` weighs the rule's or query's loss against the guards.
+    """
+
+    guards: tuple[str, ...] = GUARD_NAMES
+    offroad_weight: float = 1.0
+    collision_weight: float = COLLISION_WEIGHT
+    lane_weight: float = 1.0
+    rule_weight: float = 1.0
+    offroad_margin_m: float = 0.5
+    collision_buffer_m: float = 0.2
+    lane_tolerance_m: float = LANE_TOLERANCE_M
+
+    def __post_init__(self) -> None:
+        unknown = [g for g in self.guards if g not in GUARD_NAMES]
+        if unknown:
+            raise ValueError(f"unknown guard {unknown[0]!r}; the guards are: {', '.join(GUARD_NAMES)}")
+        object.__setattr__(self, "guards", tuple(g for g in GUARD_NAMES if g in self.guards))
+
+    @classmethod
+    def off(cls) -> GuardConfig:
+        """No guard."""
+        return cls(guards=())
+
+    @classmethod
+    def parse(cls, text: str) -> GuardConfig:
+        """``on`` (or ``all``): every guard; ``off`` (or ``none``): none; else a comma-separated
+        subset such as ``offroad,collision``."""
+        word = text.strip().lower()
+        if word in ("on", "all"):
+            return cls()
+        if word in ("off", "none", ""):
+            return cls.off()
+        return cls(guards=tuple(g.strip() for g in word.split(",") if g.strip()))
+
+    @property
+    def enabled(self) -> bool:
+        return bool(self.guards)
+
+
+class RealismGuards(GuidanceLoss):
+    """The guards of ``config`` around a loss of scope ``scope`` (module docstring).
+
+    Returns (N) when the collision guard runs (it couples vehicles), else (B, N). A vehicle that
+    stands still where it is in every sample (its row of x all zero: held by the simulator) is only
+    an obstacle: it cannot leave its road or lane, and its lanes are not even looked up.
+    """
+
+    def __init__(self, config: GuardConfig, scope: LossScope = LossScope.nothing()) -> None:
+        super().__init__()
+        self.config, self.addressed = config, scope
+        self.offroad = NoOffroad(config.offroad_margin_m)
+        self.lane = KeepLane(None, config.lane_tolerance_m)
+        self._collision: dict[int, NoCollision] = {}
+
+    @property
+    def couples_agents(self) -> bool:  # type: ignore[override]
+        return "collision" in self.config.guards
+
+    def scope(self) -> LossScope:
+        return LossScope.everyone()
+
+    def collision_loss(self, num_vehicles: int) -> NoCollision:
+        """The collision guard of a scene of ``num_vehicles`` vehicles, the loss's pairs left out."""
+        if num_vehicles not in self._collision:
+            pairs = exempt_pairs(self.addressed, num_vehicles)
+            loss = NoCollision(self.config.collision_buffer_m).except_pairs(pairs)
+            self.add_module(f"collision{num_vehicles}", loss)
+            self._collision[num_vehicles] = loss
+        return self._collision[num_vehicles]
+
+    def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
+        n_b, cfg = x.shape[0], self.config
+        moves = x.detach().flatten(1).abs().amax(1) > 0  # (B,): False for a vehicle held in every sample
+        mask = moves if agt_mask is None else moves & agt_mask.to(device=x.device, dtype=torch.bool)
+        per_vehicle = x.new_zeros(x.shape[:2])  # (B, N)
+        if "offroad" in cfg.guards:
+            on = mask & on_road(data_batch).to(x.device)
+            per_vehicle = per_vehicle + cfg.offroad_weight * self.offroad(x, data_batch, on)
+        if "lane" in cfg.guards:
+            keeps = torch.tensor([self.addressed.keeps_lane(v) for v in range(n_b)], device=x.device)
+            per_vehicle = per_vehicle + cfg.lane_weight * self.lane(x, data_batch, mask & keeps)
+        if "collision" not in cfg.guards:
+            return per_vehicle
+        collision = self.collision_loss(n_b)(x, data_batch, agt_mask)  # (N,)
+        return per_vehicle.sum(0) + cfg.collision_weight * collision  # (B, N) -> (N)
+
+
+def on_road(data_batch: GuidanceBatch) -> Tensor:
+    """(B,) bool: the vehicles whose centre is on the drivable area at the re-plan (kept per batch)."""
+    key = ("guards", "on_road")
+    if key not in data_batch.memo:
+        with torch.no_grad():
+            data_batch.memo[key] = sample_sdf(data_batch, data_batch.pose[:, :2]) <= 0.0
+    return data_batch.memo[key]
+
+
+def exempt_pairs(scope: LossScope, num_vehicles: int) -> list[tuple[int, int]]:
+    """The vehicle pairs the collision guard leaves out for a loss of ``scope``: those it may ask to
+    collide (every pair when the loss is opaque)."""
+    vehicles = range(num_vehicles)
+    return [(a, b) for a in vehicles for b in vehicles if a < b and scope.may_collide(a, b)]
+
+
+def with_guards(
+    loss: GuidanceLoss | None, config: GuardConfig, scope: LossScope | None = None
+) -> GuidanceLoss | None:
+    """``loss`` (None: no rule, no query) with the guards of ``config`` added; ``scope`` says which
+    vehicles the loss addresses (default: ``loss.scope()``; the compiled query's when the loss is a
+    language model's program for a query the compiler understands too). Without guards, ``loss``."""
+    if not config.enabled:
+        return loss
+    if scope is None:
+        scope = LossScope.nothing() if loss is None else loss.scope()
+    guards = RealismGuards(config, scope)
+    if loss is None:
+        return guards
+    return CompositeLoss([(loss, config.rule_weight), (guards, 1.0)])
+
+
+def guard_report(
+    config: GuardConfig, scope: LossScope, num_vehicles: int, held: Iterable[int] = ()
+) -> dict[str, Any]:
+    """What the guards do in an episode, for ``metrics.json``: the guards that ran, and for each the
+    vehicles (displayed numbers) it steers — the moving ones; ``held`` vehicles stand still and are
+    only obstacles — with the pairs left out of the collision guard and the vehicles the rule or query
+    addresses (``"all"`` for a global rule, ``"unknown"`` for an opaque loss)."""
+    held_set = {int(v) for v in held}
+    moving = [v for v in range(num_vehicles) if v not in held_set]
+    addressed: Any = sorted(scope.vehicles) if scope.vehicles is not None else "all"
+    report: dict[str, Any] = {
+        "ran": list(config.guards),
+        "addressed": "unknown" if scope.opaque else addressed,
+        "held": sorted(held_set),
+    }
+    if "offroad" in config.guards:
+        report["offroad"] = {"vehicles": moving, "weight": config.offroad_weight,
+                             "margin_m": config.offroad_margin_m}
+    if "collision" in config.guards:
+        report["collision"] = {
+            "vehicles": moving,
+            "weight": config.collision_weight,
+            "buffer_m": config.collision_buffer_m,
+            "exempt_pairs": "all vehicle pairs" if scope.collide is None
+            else [list(pair(a, b)) for a, b in exempt_pairs(scope, num_vehicles)],
+        }
+    if "lane" in config.guards:
+        kept = [v for v in moving if scope.keeps_lane(v)]
+        tolerance = config.lane_tolerance_m
+        report["lane"] = {"vehicles": kept, "weight": config.lane_weight, "tolerance_m": tolerance}
+    return report
+
+
+__all__ = [
+    "GUARD_NAMES",
+    "GuardConfig",
+    "RealismGuards",
+    "exempt_pairs",
+    "guard_report",
+    "on_road",
+    "with_guards",
+]
