@@ -116,7 +116,9 @@ def test_raster_shows_the_map_and_the_others_but_never_the_future(scene: Scene) 
 def test_ctg_denoises_every_vehicle_independently(batch) -> None:  # type: ignore[no-untyped-def]
     torch.manual_seed(0)
     ctg = CTGDenoiser(TINY_CTG).eval()
-    ctgpp = Denoiser(ModelConfig(d_model=32, heads=2, blocks=1, edge_dim=16, lane_hidden=32)).eval()
+    # the baselines' windows: every vehicle sampled, nearest lanes (the first checkpoints' inputs)
+    legacy = ModelConfig(d_model=32, heads=2, blocks=1, edge_dim=16, lane_hidden=32, context=None, map=None)
+    ctgpp = Denoiser(legacy).eval()
     s, a, f = batch.num_scenes, batch.num_agents, TINY_CTG.future_steps
     x, k = torch.randn(s, a, f, 2), torch.tensor([5, 60])
     hist = batch.hist.clone()

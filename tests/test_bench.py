@@ -17,6 +17,8 @@ from ctgpp.data.windows import build_window
 from ctgpp.diffusion.guided import GuidanceConfig
 from ctgpp.model import Denoiser, ModelConfig
 from ctgpp.scene.types import Scene
+from ctgpp.scene.vehicles import controlled_vehicles
+from ctgpp.sim.closed_loop import STATIONARY_SPEED_MPS
 from ctgpp.sim.diffusion_policy import SamplingConfig
 from ctgpp.sim.presets import preset
 
@@ -24,12 +26,18 @@ TINY = ModelConfig(d_model=32, heads=2, blocks=1, edge_dim=8, lane_hidden=16)
 
 
 def test_tiled_copies_beyond_the_social_radius_predict_like_the_original(scene_0103: Scene) -> None:
-    window = build_window(scene_0103, 40)
-    a = window.num_agents
+    step = 40
+    controlled = controlled_vehicles(scene_0103, step)
+    still = scene_0103.agents.speed[controlled, step] < STATIONARY_SPEED_MPS
+    spec = TINY.window_config(max_agents=64, with_future=False)
+    window = build_window(scene_0103, step, spec, controlled[~still], controlled[still])
+    a, c = window.num_agents, window.context.num_agents
+    assert a > 2 and c > 2  # moving vehicles sampled, held and replayed agents as context
     torch.manual_seed(0)
     model = Denoiser(TINY).eval()
     tiled = tiled_batch(window, 3 * a - 2)  # two whole copies and a cut one
     assert tiled.num_agents == 3 * a - 2 and bool(tiled.agent_mask.all())
+    assert int(tiled.ctx_mask.sum()) == 3 * c  # every copy brings its context along
     x_one = torch.randn(1, a, TINY.future_steps, 2, generator=torch.Generator().manual_seed(1))
     x = torch.cat([x_one] * 3, dim=1)[:, : 3 * a - 2]
     k = torch.tensor([40])

@@ -43,17 +43,20 @@ def median_ms(fn: Callable[[], object], repeats: int) -> float:
 
 
 def tiled_batch(window: SceneWindow, agents: int) -> SceneBatch:
-    """A one-scene batch of exactly ``agents`` agents: copies of ``window`` 300 m apart, cut to size."""
+    """A one-scene batch of exactly ``agents`` sampled agents: copies of ``window`` 300 m apart, cut to
+    size. Every copy brings its context agents (held, replayed) along, shifted with it."""
     one = collate([window])
     copies = -(-agents // window.num_agents)
-    per_agent = [f.name for f in fields(one) if f.name != "origin"]
+    names = [f.name for f in fields(one) if f.name != "origin"]
     parts = []
     for c in range(copies):
         shift = torch.tensor([c * TILE_SPACING_M, 0.0, 0.0])
         pose = torch.where(one.agent_mask[..., None], one.pose + shift, one.pose)
-        parts.append(replace(one, pose=pose))
-    tiled = {name: torch.cat([getattr(p, name) for p in parts], dim=1)[:, :agents] for name in per_agent}
-    return replace(one, **tiled)
+        ctx_pose = torch.where(one.ctx_mask[..., None], one.ctx_pose + shift, one.ctx_pose)
+        parts.append(replace(one, pose=pose, ctx_pose=ctx_pose))
+    tiled = {name: torch.cat([getattr(p, name) for p in parts], dim=1) for name in names}
+    cut = {name: t[:, :agents] for name, t in tiled.items() if not name.startswith("ctx_")}
+    return replace(one, **{**tiled, **cut})
 
 
 @torch.no_grad()

@@ -14,13 +14,14 @@ from ctgpp.bench.scaling import agent_curve, scene_batching
 from ctgpp.bench.scenarios import BenchJob, time_presets
 from ctgpp.cli.common import add_data_arg, open_catalog
 from ctgpp.data.catalog import Catalog
-from ctgpp.data.windows import SceneWindow, WindowConfig, build_window
+from ctgpp.data.windows import SceneWindow, build_window
 from ctgpp.diffusion import CosineSchedule
 from ctgpp.eval.rule_setup import evaluation_rules
 from ctgpp.eval.runner import NO_RULE, Episode, plan_episodes
 from ctgpp.io.atomic import write_text_atomic
+from ctgpp.model.config import ModelConfig
 from ctgpp.scene.vehicles import controlled_vehicles
-from ctgpp.sim.closed_loop import episode_starts, start_step
+from ctgpp.sim.closed_loop import STATIONARY_SPEED_MPS, episode_starts, start_step
 from ctgpp.sim.factory import PolicyFactory
 from ctgpp.sim.presets import PRESETS, SPELLING, preset
 
@@ -116,7 +117,7 @@ def run_bench(args: argparse.Namespace) -> int:
         text += ["### Vehicles that move at the start (pooled over vehicles)\n", moving_table(results)]
 
     if agents or sizes:
-        busiest = _busiest_windows(catalog, args.split)
+        busiest = _busiest_windows(catalog, args.split, model.config)
         samples = preset("fast").sampling.num_samples
         if agents:
             curve = agent_curve(model, busiest[0], agents, samples, args.repeats)
@@ -136,8 +137,10 @@ def run_bench(args: argparse.Namespace) -> int:
     return 0
 
 
-def _busiest_windows(catalog: Catalog, split: str) -> list[SceneWindow]:
-    """One window per scene of ``split`` at its first episode start, the one with most vehicles first."""
+def _busiest_windows(catalog: Catalog, split: str, config: ModelConfig) -> list[SceneWindow]:
+    """One window per scene of ``split`` at its first episode start, the one with most sampled vehicles
+    first: built as the diffusion policy builds them (the moving vehicles sampled, the ones at rest
+    held, the model's context and map)."""
     windows = []
     for scene_id in catalog.ids(split):
         scene = catalog.load(scene_id)
@@ -146,7 +149,12 @@ def _busiest_windows(catalog: Catalog, split: str) -> list[SceneWindow]:
             continue
         step = start_step(scene, starts[0])
         controlled = controlled_vehicles(scene, step)
-        windows.append(build_window(scene, step, WindowConfig(max_agents=len(controlled)), controlled))
+        still = scene.agents.speed[controlled, step] < STATIONARY_SPEED_MPS
+        moving, held = controlled[~still], controlled[still]
+        if not len(moving):
+            continue
+        spec = config.window_config(max_agents=len(moving), with_future=False)
+        windows.append(build_window(scene, step, spec, moving, held))
     if not windows:
-        raise ValueError(f"no scene of split {split!r} is long enough for an episode")
+        raise ValueError(f"no scene of split {split!r} is long enough for an episode with a moving vehicle")
     return sorted(windows, key=lambda w: -w.num_agents)

@@ -46,7 +46,7 @@ class ContextConfig:
     start is held rather than sampled; replay_prob: the chance that a moving one is replayed.
     """
 
-    max_context: int = 32
+    max_context: int = 24
     radius_m: float = 40.0
     held_prob: float = 0.5
     replay_prob: float = 0.1
