@@ -1,0 +1,69 @@
+"""``ctgpp train`` killed with SIGKILL after its first saved state and run again ends with exactly the
+weights, optimizer moments, generator states and history of a run that was never interrupted, and
+leaves no temporary file behind (issue 16, item 5)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import torch
+from safetensors.torch import load_file
+
+STATE = "train_state.safetensors"
+# a tiny model on the two mini_val scenes, a state saved every 2 of 4 steps
+TINY = [
+    "--train", "mini_val", "--val", "mini_val", "--steps", "4", "--val-every", "2", "--val-windows", "1",
+    "--batch", "1", "--stride", "40", "--max-agents", "4", "--d-model", "32", "--blocks", "1", "--heads", "2",
+]
+
+
+def _command(out: Path) -> list[str]:
+    return [sys.executable, "-m", "ctgpp.cli.main", "train", "--out", str(out), *TINY]
+
+
+def _env() -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if k not in ("WORLD_SIZE", "RANK", "LOCAL_RANK")}
+    return {**env, "OMP_NUM_THREADS": "1", "CUDA_VISIBLE_DEVICES": ""}
+
+
+def _run(out: Path) -> None:
+    done = subprocess.run(_command(out), env=_env(), capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+
+
+def _kill_after_first_state(out: Path) -> None:
+    """Start the run and SIGKILL it as soon as its first training state is on disk."""
+    proc = subprocess.Popen(_command(out), env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 300
+        while not (out / STATE).exists():
+            assert proc.poll() is None, "the run ended before saving a state"
+            assert time.monotonic() < deadline, "no training state after 300 s"
+            time.sleep(0.01)
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.wait(timeout=60)
+    assert proc.returncode == -signal.SIGKILL, "the run finished before it could be killed"
+
+
+def test_train_killed_and_resumed_reproduces_the_uninterrupted_run(tmp_path: Path) -> None:
+    whole, resumed = tmp_path / "whole", tmp_path / "resumed"
+    _run(whole)
+    _kill_after_first_state(resumed)
+    killed_at = json.loads((resumed / "train_state.json").read_text())["step"]
+    assert killed_at < 4
+    _run(resumed)
+    for name in (STATE, "model.safetensors"):
+        want, got = load_file(str(whole / name)), load_file(str(resumed / name))
+        assert want.keys() == got.keys()
+        for key, tensor in want.items():
+            assert torch.equal(tensor, got[key]), f"{name}: {key} differs after resuming"
+    history = [json.loads((d / "config.json").read_text())["extra"]["history"] for d in (whole, resumed)]
+    assert history[0] == history[1] and [h["step"] for h in history[0]] == [2, 4]
+    assert not [p.name for p in resumed.iterdir() if ".tmp" in p.name]
