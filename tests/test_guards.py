@@ -228,7 +228,7 @@ def _moved_onto(x: torch.Tensor, batch: GuidanceBatch, mover: int, target: int) 
     every step (not exactly on top of it: there the overlap's gradient vanishes by symmetry)."""
     pos_w, yaw_w = transform_coord_agents_to_world(x[..., :2], x[..., 3:4], batch)
     beside = pos_w[target] + torch.tensor([0.6, 0.8])
-    pos_i, yaw_i = transform_coord_world_to_agent_i(beside, batch, mover, yaw_w[target])
+    pos_i, yaw_i = transform_coord_world_to_agent_i(beside, yaw_w[target], batch, mover)
     out = x.clone()
     out[mover, ..., :2], out[mover, ..., 3:4] = pos_i, yaw_i
     return out

@@ -103,7 +103,7 @@ def test_transforms_invert_and_match_the_log(batch: GuidanceBatch, x_and_window)
     pos_w, yaw_w = transform_coord_agents_to_world(pos, yaw, batch)
     assert pos_w.shape == pos.shape and yaw_w.shape == yaw.shape
     for k in range(x.shape[0]):
-        back, back_yaw = transform_coord_world_to_agent_i(pos_w, batch, k, yaw_w)
+        back, back_yaw = transform_coord_world_to_agent_i(pos_w, yaw_w, batch, k)
         assert torch.allclose(select_agent_ind(back, k), pos[k], atol=1e-4)
         assert torch.allclose(torch.cos(back_yaw[k] - yaw[k]), torch.ones_like(yaw[k]), atol=1e-5)
     # the logged future in agent frames lands on the logged world positions

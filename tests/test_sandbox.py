@@ -84,7 +84,7 @@ HOSTILE_SOURCE: dict[str, tuple[str, str]] = {
     "power tower": (loss_program("z = 10**10**10" + RETURN), "integer constant too large"),
     "recursion bomb": (loss_program("return self.forward(x, data_batch)"), "recursion is not allowed"),
     "second class": (loss_program(RETURN) + "\n\nclass Other(GuidanceLoss):\n    pass\n",
-                     "exactly one class"),
+                     "class Other has no forward"),
     "module-level side effect": ("x = torch.zeros(3)\n" + loss_program(RETURN), "module-level Assign"),
     "module-level call": (loss_program(RETURN) + "\nHostile()\n", "module-level Expr"),
     "format dunder string": (loss_program("s = '{0.__class__}'.format(x)" + RETURN),
@@ -112,6 +112,9 @@ HOSTILE_SOURCE: dict[str, tuple[str, str]] = {
     "syntax error": (loss_program("return x.sum(("), "syntax error"),
     "call in an annotation": (loss_program(RETURN).replace("data_batch,", "data_batch: os.system('ls'),"),
                               "Call is not allowed in an annotation"),
+    "required argument": (loss_program(RETURN).replace("    def forward", "    def __init__(self, k):\n"
+                                                       "        super().__init__()\n\n    def forward"),
+                          "give every parameter of __init__ a default value"),
     "dict of dunder keywords": (loss_program("k = max(**{'__class__': 1})" + RETURN),
                                 "string constants may not contain '__'"),
 }
@@ -157,9 +160,6 @@ HOSTILE_AT_RUN_TIME: dict[str, tuple[str, str]] = {
     "detached cost": (loss_program("return x.detach().sum((2, 3))"), "does not depend differentiably"),
     "not a tensor": (loss_program("return 1.0"), "must return a torch tensor"),
     "constant cost": (loss_program("return x.sum((2, 3)) * 0.0"), "gradient with respect to x is zero"),
-    "required argument": (loss_program(RETURN).replace("    def forward", "    def __init__(self, k):\n"
-                                                       "        super().__init__()\n\n    def forward"),
-                          "without arguments"),
     "raises": (loss_program("raise ValueError('boom')"), "ValueError: boom (at line 6 of the program)"),
 }
 
@@ -255,13 +255,14 @@ def test_paper_style_program_is_accepted(name: str, checker: LossChecker, batch:
 
 def test_prompt_examples_cover_the_paper_and_map_queries() -> None:
     queries = " | ".join(ex.query for ex in examples())
-    for words in ("collide", "distance", "slower than", "right side", "follow their lanes", "reach",
-                  "change to the left lane", "turn right at the next intersection"):
+    for words in ("collide", "acceleration below", "left side", "distance", "slower than",
+                  "follow their lanes", "reach", "change to the left lane",
+                  "turn right at the next intersection"):
         assert words in queries
-    assert len(examples()) >= 8
+    assert len(examples()) >= 9
 
 
-@pytest.mark.parametrize("index", range(8))
+@pytest.mark.parametrize("index", range(len(examples())))
 def test_prompt_example_passes_the_checks(index: int, checker: LossChecker, batch: GuidanceBatch,
                                           x: torch.Tensor) -> None:
     example = examples()[index]

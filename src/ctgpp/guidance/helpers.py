@@ -1,4 +1,6 @@
-"""The six helpers of the paper's LLM API (CTG++ appendix D), with the paper's names and signatures.
+"""The six helpers of the paper's LLM API (CTG++ appendix D), with the paper's names, argument order,
+shapes and return values (``../shared/docs/LLM-API.md``); ctgpp's own additions live in
+:mod:`ctgpp.guidance.lane_helpers`.
 
 Guidance code receives x (B, N, T, 6) in each vehicle's own current frame (B vehicles in displayed
 order, N samples, T steps); ``pos_pred = x[..., :2]`` (B, N, T, 2) m and ``yaw_pred = x[..., 3:4]``
@@ -33,10 +35,11 @@ __all__ = [
 def transform_coord_agents_to_world(
     pos_pred: Tensor, yaw_pred: Tensor, data_batch: GuidanceBatch
 ) -> tuple[Tensor, Tensor]:
-    """Positions and yaws of every vehicle from its own frame to the shared world frame.
+    """Positions and yaws of every vehicle from its own frame to the shared world frame (helper 1).
 
-    pos_pred (B, N, T, 2) m, yaw_pred (B, N, T, 1) rad, each vehicle in its own current frame ->
-    (pos_pred_world (B, N, T, 2) m, yaw_pred_world (B, N, T, 1) rad) in the world frame.
+    pos_pred (B, N, T, 2) m, yaw_pred (B, N, T, 1) rad, row b in vehicle b's current frame ->
+    ``(pos_world, yaw_world)``: (B, N, T, 2) m and (B, N, T, 1) rad in the world frame (yaw not
+    wrapped: the agent yaw plus the vehicle's current world yaw).
     """
     pose = data_batch.pose.to(pos_pred)  # (B, 3)
     origin, yaw0 = pose[:, None, None, :2], pose[:, None, None, 2]  # (B, 1, 1, 2), (B, 1, 1)
@@ -45,22 +48,22 @@ def transform_coord_agents_to_world(
 
 
 def transform_coord_world_to_agent_i(
-    pos_pred_world: Tensor, data_batch: GuidanceBatch, ind_k: int, yaw_pred_world: Tensor | None = None
-) -> Tensor | tuple[Tensor, Tensor]:
-    """World positions (..., 2) m (e.g. (B, N, T, 2) of all vehicles) into vehicle ``ind_k``'s
-    current frame (x forward, y left), same shape. When ``yaw_pred_world`` (..., 1) rad is given,
-    returns ``(pos_pred_i, yaw_pred_i)`` with the yaws relative to vehicle ``ind_k``'s heading
-    (wrapped to [-pi, pi)); otherwise only ``pos_pred_i``.
+    pos_pred_world: Tensor, yaw_pred_world: Tensor, data_batch: GuidanceBatch, ind_k: int
+) -> tuple[Tensor, Tensor]:
+    """World positions and yaws into vehicle ``ind_k``'s current frame (x forward, y left) (helper 2).
+
+    pos_pred_world (B, N, T, 2) m, yaw_pred_world (B, N, T, 1) rad (any leading shape (..., 2) and
+    (..., 1) works) -> ``(pos, yaw)`` of the same shapes, seen from vehicle ``ind_k``: positions
+    relative to its current position and heading, yaws relative to its heading, wrapped to
+    [-pi, pi). Both are always returned (``pos_i, _ = ...`` when only positions are needed).
     """
     pose = data_batch.pose[ind_k].to(pos_pred_world)  # (3,)
     pos_i = world_to_local(pos_pred_world, pose[:2], pose[2])
-    if yaw_pred_world is None:
-        return pos_i
     return pos_i, wrap_angle(yaw_pred_world - pose[2])
 
 
 def select_agent_ind(x: Tensor, i: int) -> Tensor:
-    """Vehicle i's slice of a per-vehicle tensor: x (B, ...) -> x[i] (...)."""
+    """Vehicle i's slice of a per-vehicle tensor (helper 3): x (B, N, T, k) -> x[i] (N, T, k)."""
     return x[i]
 
 
@@ -80,7 +83,7 @@ def _lane_projection(
 
 
 def get_current_lane_projection(pos_pred: Tensor, yaw_pred: Tensor, data_batch: GuidanceBatch) -> Tensor:
-    """Projection of each vehicle's predicted positions onto its current lane.
+    """Projection of each vehicle's predicted positions onto its current lane (helper 4).
 
     pos_pred (B, N, T, 2) m, yaw_pred (B, N, T, 1) rad in the agent frames -> (B, N, T, 3): the
     closest points (x, y) on the centerline of the lane the vehicle is on now (continued straight
@@ -94,15 +97,17 @@ def get_current_lane_projection(pos_pred: Tensor, yaw_pred: Tensor, data_batch: 
 
 def get_left_lane_projection(pos_pred: Tensor, yaw_pred: Tensor, data_batch: GuidanceBatch) -> Tensor:
     """Like :func:`get_current_lane_projection`, onto the lane to the left of each vehicle's current
-    lane (same driving direction). A vehicle with no left lane gets its own positions and yaws back
-    (zero offset, so a loss on it is zero for that vehicle)."""
+    lane (same driving direction) (helper 5): pos_pred (B, N, T, 2), yaw_pred (B, N, T, 1) -> (B, N,
+    T, 3). A vehicle with no left lane gets its own positions and yaws back (zero offset, so a loss
+    on it is zero for that vehicle)."""
     lines = [get_adjacent_lane(data_batch, i, "left") for i in range(pos_pred.shape[0])]
     return _lane_projection(pos_pred, yaw_pred, data_batch, lines)
 
 
 def get_right_lane_projection(pos_pred: Tensor, yaw_pred: Tensor, data_batch: GuidanceBatch) -> Tensor:
     """Like :func:`get_current_lane_projection`, onto the lane to the right of each vehicle's
-    current lane (same driving direction). A vehicle with no right lane gets its own positions and
-    yaws back (zero offset)."""
+    current lane (same driving direction) (helper 6): pos_pred (B, N, T, 2), yaw_pred (B, N, T, 1)
+    -> (B, N, T, 3). A vehicle with no right lane gets its own positions and yaws back (zero
+    offset)."""
     lines = [get_adjacent_lane(data_batch, i, "right") for i in range(pos_pred.shape[0])]
     return _lane_projection(pos_pred, yaw_pred, data_batch, lines)

@@ -1,8 +1,9 @@
 """The prompt for the language model, from the template files in ``ctgpp/language/templates``.
 
-The user message is: the loss API (``api.md``, with the vocabulary of the sandbox and the helper
-descriptions filled in), the paired examples (``examples.md``: query -> loss class), then the query
-(``query.md``). The system message (``system.md``) states the rules of the sandbox; ``repair.md``
+The user message is: the loss API (``api.md``: the paper's contract and its six helpers as
+``../shared/docs/LLM-API.md`` states them, then ctgpp's own helpers and the sandbox's vocabulary),
+the paired examples (``examples.md``: query -> loss class, the paper's two among them), then the
+query (``query.md``). The system message (``system.md``) states the rules of the sandbox; ``repair.md``
 sends a refusal back. Helper descriptions are generated from the helpers' signatures and docstrings,
 so the prompt never drifts from the code. :data:`PROMPT_VERSION` hashes everything that goes into a
 prompt except the query, and keys the cache of accepted programs.
@@ -13,11 +14,14 @@ from __future__ import annotations
 import hashlib
 import inspect
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass
 from importlib import resources
 
+from ctgpp.guidance import helpers
 from ctgpp.language.vocabulary import (
     FUNCTIONAL_FUNCTIONS,
+    HELPER_NAMES,
     LINALG_FUNCTIONS,
     MATH_NAMES,
     SAFE_BUILTIN_NAMES,
@@ -60,13 +64,12 @@ def _fill(template: str, **values: str) -> str:
     return template
 
 
-def helper_descriptions() -> str:
-    """One Markdown entry per helper: ``name(signature)`` and its docstring (roles stripped)."""
+def helper_descriptions(which: Sequence[str] | None = None) -> str:
+    """One Markdown entry per helper of ``which`` (default: every helper): ``name(signature)`` and its
+    docstring (roles stripped)."""
     names = prebound_names()
-    from ctgpp.language.vocabulary import HELPER_NAMES
-
     entries = []
-    for name in HELPER_NAMES:
+    for name in HELPER_NAMES if which is None else which:
         fn = names[name]
         signature = str(inspect.signature(fn)).replace("'", "")
         doc = _ROLE.sub(lambda m: m.group(1).split(".")[-1], inspect.getdoc(fn) or "")
@@ -88,7 +91,8 @@ def _api_text() -> str:
         functional_functions=listing(FUNCTIONAL_FUNCTIONS),
         math_names=listing(MATH_NAMES),
         builtins=listing(SAFE_BUILTIN_NAMES),
-        helpers=helper_descriptions(),
+        paper_helpers=helper_descriptions(helpers.__all__),
+        more_helpers=helper_descriptions([n for n in HELPER_NAMES if n not in helpers.__all__]),
     )
 
 

@@ -6,8 +6,13 @@ untrusted).
 the reason and the line. The program must be: a docstring, imports from a fixed list (``import
 torch``, ``import math``, ``import torch.nn.functional as F``, ``from ctgpp.guidance.helpers import
 ...`` and the like; they bind names that are pre-bound anyway), literal constants, plain functions,
-and exactly one class deriving from ``GuidanceLoss`` whose methods are ``__init__`` (calling only
-``super().__init__()`` among dunders), ``forward`` and helpers.
+and one or more (at most 8) classes deriving from ``GuidanceLoss``, each with ``forward`` and
+optionally ``__init__`` (calling only ``super().__init__()`` or ``super(C, self).__init__()`` among
+dunders) and helper methods. The loss that runs is the *main class*
+(:func:`ctgpp.language.extract.main_class`: the last class no other part of the program names; the
+others are helper losses it builds); it is built as ``cls()``, so its ``__init__`` must give every
+parameter a default value — a program whose main class does not is refused with a message asking
+for defaults. Helper classes may take arguments (the main class passes them).
 
 Refused: any other import; every name or attribute starting with ``_`` (``__class__``,
 ``__globals__``, ``__subclasses__``, ``__builtins__``, ``__import__``); ``getattr``/``eval``/
@@ -34,6 +39,7 @@ import ast
 import copy
 
 from ctgpp.guidance.base import GuidanceLoss
+from ctgpp.language.extract import main_class
 from ctgpp.language.sandbox_rules import ProgramChecker, SandboxError
 from ctgpp.language.vocabulary import prebound_names, safe_builtins
 
@@ -84,11 +90,11 @@ class _StripUnevaluated(ast.NodeTransformer):
 
 
 def _class_name(tree: ast.Module) -> str:
-    """The name of the (single, checked) loss class of a module."""
-    for node in tree.body:
-        if isinstance(node, ast.ClassDef):
-            return node.name
-    raise SandboxError("the program defines no class deriving from GuidanceLoss", 1)
+    """The name of the main loss class of a checked module (:func:`main_class`)."""
+    cls = main_class(tree)
+    if cls is None:
+        raise SandboxError("the program defines no class deriving from GuidanceLoss", 1)
+    return cls.name
 
 
 def load_loss_class(code: str) -> type[GuidanceLoss]:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import ast
 
+from ctgpp.language.extract import loss_classes, main_class
 from ctgpp.language.vocabulary import (
     BATCH_ATTRIBUTES,
     FORBIDDEN_CALLS,
@@ -20,6 +21,7 @@ from ctgpp.language.vocabulary import (
 PREBOUND = frozenset(prebound_names())
 MODULE_NAMES = frozenset({"torch", "math", "F"})
 LOOP_CALLS = frozenset({"range", "enumerate", "zip", "reversed"})
+MAX_CLASSES = 8  # loss classes in one program: the main one and the helper losses it builds
 EXPRESSIONS = (
     ast.BoolOp, ast.BinOp, ast.UnaryOp, ast.Lambda, ast.IfExp, ast.Dict, ast.Set, ast.ListComp,
     ast.SetComp, ast.DictComp, ast.GeneratorExp, ast.Compare, ast.Call, ast.Constant, ast.Attribute,
@@ -44,7 +46,7 @@ REFUSED_STATEMENTS = {
     "Delete": "del statements are not allowed",
     "Import": "imports are only allowed at the top of the program",
     "ImportFrom": "imports are only allowed at the top of the program",
-    "ClassDef": "only one class, at the top level of the program, is allowed",
+    "ClassDef": "classes are only allowed at the top level of the program",
     "Match": "match statements are not allowed",
 }
 
@@ -108,8 +110,8 @@ class ProgramChecker:
         self.bound: set[str] = set()
         self.self_attributes: set[str] = set()
         self.functions: list[str] = []  # enclosing function names, innermost last
-        self.method: str | None = None  # the enclosing method of the loss class
-        self.class_seen = False
+        self.method: str | None = None  # the enclosing method of a loss class
+        self.class_name: str | None = None  # the enclosing loss class
 
     # ---- statements -------------------------------------------------------------------------------
     def check_module(self, tree: ast.Module) -> None:
@@ -120,11 +122,7 @@ class ProgramChecker:
             if isinstance(stmt, ast.Import | ast.ImportFrom):
                 self._check_import(stmt)
             elif isinstance(stmt, ast.ClassDef):
-                if self.class_seen:
-                    raise _refuse(stmt, "the program must define exactly one class deriving from "
-                                        f"GuidanceLoss (a second one: {stmt.name})")
                 self._check_class(stmt)
-                self.class_seen = True
             elif isinstance(stmt, ast.FunctionDef):
                 self._check_function(stmt)
             elif isinstance(stmt, ast.Expr) and isinstance(stmt.value, ast.Constant):
@@ -133,11 +131,33 @@ class ProgramChecker:
                 self._check_expr(stmt.value)  # type: ignore[arg-type]
             else:
                 raise _refuse(stmt, f"module-level {type(stmt).__name__} statement is not allowed: only "
-                                    "imports, constants, functions and the loss class")
-        classes = [n for n in tree.body if isinstance(n, ast.ClassDef)]
-        if len(classes) != 1:
-            raise SandboxError(f"the program must define exactly one class deriving from GuidanceLoss "
-                               f"(it defines {len(classes)})", classes[1].lineno if len(classes) > 1 else 1)
+                                    "imports, constants, functions and loss classes")
+        self._check_classes(tree)
+
+    def _check_classes(self, tree: ast.Module) -> None:
+        """Between 1 and ``MAX_CLASSES`` loss classes with distinct names; the main one
+        (:func:`ctgpp.language.extract.main_class`) can be built without arguments."""
+        classes = loss_classes(tree)
+        if not classes:
+            raise SandboxError("the program defines no class deriving from GuidanceLoss", 1)
+        if len(classes) > MAX_CLASSES:
+            raise _refuse(classes[MAX_CLASSES], f"at most {MAX_CLASSES} classes are allowed in one program")
+        names = [c.name for c in classes]
+        for cls in classes:
+            if names.count(cls.name) > 1:
+                raise _refuse(cls, f"two classes are named {cls.name}")
+        main = main_class(tree)
+        assert main is not None
+        init = next((s for s in main.body if isinstance(s, ast.FunctionDef) and s.name == "__init__"), None)
+        if init is not None:
+            required = _required_parameters(init.args)
+            if required:
+                listing = ", ".join(required)
+                example = ", ".join(f"{n}=..." for n in required)
+                raise _refuse(init, f"{main.name} is the loss and is built without arguments, as "
+                                    f"{main.name}(), but its __init__ needs {listing}: give every parameter "
+                                    f"of __init__ a default value (def __init__(self, {example}) with the "
+                                    "values the query asks for)")
 
     def _check_binding(self, name: str, tree: ast.Module) -> None:
         node = next(n for n in ast.walk(tree) if name in (getattr(n, "id", None), getattr(n, "arg", None),
@@ -178,6 +198,7 @@ class ProgramChecker:
         base = cls.bases[0] if len(cls.bases) == 1 else None
         if not (isinstance(base, ast.Name) and base.id == "GuidanceLoss"):
             raise _refuse(cls, f"class {cls.name} must derive from GuidanceLoss only")
+        self.class_name = cls.name
         methods = [s for s in cls.body if isinstance(s, ast.FunctionDef)]
         if "forward" not in {m.name for m in methods}:
             raise _refuse(cls, f"class {cls.name} has no forward(self, x, data_batch, agt_mask=None) method")
@@ -201,6 +222,7 @@ class ProgramChecker:
             else:
                 raise _refuse(stmt, f"{type(stmt).__name__} statement in the class body is not allowed: "
                                     "only a docstring, constants and methods")
+        self.class_name = None
 
     def _check_function(self, fn: ast.FunctionDef) -> None:
         if fn.decorator_list:
@@ -340,7 +362,8 @@ class ProgramChecker:
             raise _refuse(node, f"recursion is not allowed ({func.id} calls itself)")
         if isinstance(func, ast.Attribute) and _is_self(func.value) and func.attr == self.method:
             raise _refuse(node, f"recursion is not allowed ({func.attr} calls itself)")
-        if isinstance(func, ast.Attribute) and func.attr == "__init__" and _is_super_call(func.value):
+        if isinstance(func, ast.Attribute) and func.attr == "__init__" and _is_super_call(func.value,
+                                                                                         self.class_name):
             if self.method != "__init__" or node.args or node.keywords:
                 raise _refuse(node, "super().__init__() is only allowed, without arguments, inside __init__")
             return True  # nothing else in `super().__init__()` to check
@@ -351,9 +374,22 @@ def _is_self(node: ast.AST) -> bool:
     return isinstance(node, ast.Name) and node.id == "self"
 
 
-def _is_super_call(node: ast.AST) -> bool:
-    return (isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id == "super"
-            and not node.args and not node.keywords)
+def _is_super_call(node: ast.AST, class_name: str | None) -> bool:
+    """``super()``, or ``super(C, self)`` inside class C."""
+    if not (isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id == "super"
+            and not node.keywords):
+        return False
+    if not node.args:
+        return True
+    return (len(node.args) == 2 and isinstance(node.args[0], ast.Name) and node.args[0].id == class_name
+            and _is_self(node.args[1]))
+
+
+def _required_parameters(args: ast.arguments) -> list[str]:
+    """Names of the parameters (after ``self``) that a call without arguments would leave unset."""
+    positional = [*args.posonlyargs, *args.args]  # defaults belong to the last ones
+    required = [a.arg for a in positional[1 : len(positional) - len(args.defaults)]]
+    return required + [a.arg for a, d in zip(args.kwonlyargs, args.kw_defaults, strict=True) if d is None]
 
 
 def _module_path(node: ast.AST) -> str | None:

@@ -22,7 +22,7 @@ from ctgpp.guidance.base import GuidanceLoss
 
 TORCH_FUNCTIONS = frozenset(
     """abs acos amax amin arange argmax argmin asin atan atan2 bool broadcast_to cat cdist ceil clamp
-    clamp_max clamp_min clip cos cosh cumprod cumsum deg2rad diff einsum exp expm1 eye flatten float32
+    clamp_max clamp_min clip cos cosh cumprod cumsum deg2rad diff einsum exp expm1 eye flatten float float32
     float64 floor fmod full full_like gather hypot inf isfinite linspace log log1p logical_and
     logical_not logical_or logsumexp long matmul max maximum mean min minimum norm ones ones_like
     permute pi pow prod rad2deg relu remainder reshape round sigmoid sign sin sinh softmax sort sqrt
@@ -53,10 +53,11 @@ TENSOR_ATTRIBUTES = frozenset(
     detach device diff dim dtype exp expand expand_as flatten flip float gather indices isfinite item
     log log1p long masked_fill max mean min ndim neg new_full new_ones new_tensor new_zeros norm numel
     permute pow prod relu repeat reshape roll shape sigmoid sign sin size softmax sort sqrt square
-    squeeze std sum t tanh to topk transpose unsqueeze values view view_as T append""".split()
+    squeeze std sum t tanh to topk transpose unsqueeze values view view_as T append forward""".split()
 )
 """Attributes allowed on any value that is not a module or ``self``: tensor methods and properties,
-``.values``/``.indices`` of ``max``/``min`` results, and ``list.append``. No ``numpy``, ``tolist``,
+``.values``/``.indices`` of ``max``/``min`` results, ``list.append`` and ``.forward`` of the program's
+own helper losses. No ``numpy``, ``tolist``,
 ``data``, ``grad``, in-place methods (``add_``) or anything reaching frames and code objects."""
 
 BATCH_ATTRIBUTES = frozenset(
