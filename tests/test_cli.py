@@ -126,11 +126,11 @@ def test_convert_refuses_a_malicious_pickle_and_reports_it(
     src = tmp_path / "evil"
     src.mkdir()
     (src / "sd_evil.pkl").write_bytes(pickle.dumps({"id": "x", "tracks": Exploit()}))
-    assert main(["data", "convert", str(src), str(tmp_path / "out"), "--no-progress"]) == 1
-    out = capsys.readouterr().out
-    assert "shutil.rmtree" in out and "failed" in out
+    assert main(["data", "convert", str(src), str(tmp_path / "out"), "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "shutil.rmtree" in err[0] and "sd_evil.pkl" in err[0]
     assert (tmp_path / "victim").is_dir()  # nothing ran
-    assert not (tmp_path / "out" / "index.json").exists()
+    assert not (tmp_path / "out").exists()
 
 
 @pytest.mark.parametrize("command", ["simulate", "evaluate", "evaluate-queries"])

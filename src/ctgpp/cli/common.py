@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
 from ctgpp.data.catalog import Catalog
@@ -92,8 +93,11 @@ def guard_config(args: argparse.Namespace) -> GuardConfig:
 
 
 def guidance_config(args: argparse.Namespace) -> GuidanceConfig:
-    if args.guide_steps < 0 or args.guide_lr <= 0:
-        raise ValueError("--guide-steps must be ≥ 0 and --guide-lr positive")
+    if args.guide_steps < 0 or not (math.isfinite(args.guide_lr) and args.guide_lr > 0):
+        raise ValueError(
+            "--guide-steps must be ≥ 0 and --guide-lr positive "
+            f"(got --guide-steps {args.guide_steps} --guide-lr {args.guide_lr:g})"
+        )
     return GuidanceConfig(args.guide_steps, args.guide_lr, compose=args.filtration == "compose")
 
 

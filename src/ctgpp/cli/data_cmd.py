@@ -29,9 +29,15 @@ def run_convert(args: argparse.Namespace) -> int:
     if args.drivable is not None and not args.drivable.is_dir():
         raise NotADirectoryError(f"--drivable {args.drivable} is not a directory")
     report = convert(args.src, args.dst, args.drivable, progress=not args.no_progress)
+    failed = [reason if str(path) in reason else f"{path}: {reason}" for path, reason in report.failed]
+    if failed and not report.written:  # nothing converted: the first reason is the error
+        more = f" (and {len(failed) - 1} more sources that could not be read)" if len(failed) > 1 else ""
+        raise ValueError(failed[0] + more)
     print(f"converted {len(report.written)} scenes into {args.dst}")
-    for path, reason in report.failed:
-        print(f"  failed: {path}: {reason}")
+    for note in report.notes:
+        print(f"  {note}")
+    for reason in failed:
+        print(f"  failed: {reason}")
     if report.failed:
         print(f"{len(report.failed)} of {len(report.written) + len(report.failed)} sources could not be read")
         return 1

@@ -21,7 +21,15 @@ from ctgpp.cli import (
 )
 
 # Mistakes a user can make (bad paths, ids, times, files): reported in one line, exit code 2.
-USER_ERRORS = (FileNotFoundError, NotADirectoryError, PermissionError, ValueError, KeyError)
+USER_ERRORS = (
+    FileNotFoundError,
+    FileExistsError,
+    NotADirectoryError,
+    IsADirectoryError,
+    PermissionError,
+    ValueError,
+    KeyError,
+)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -4,8 +4,6 @@
 from __future__ import annotations
 
 import argparse
-import json
-import math
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +24,8 @@ from ctgpp.eval.rule_setup import RuleSpec, custom_rule
 from ctgpp.guidance import CompositeLoss
 from ctgpp.guidance.guards import GuardConfig, guard_report
 from ctgpp.guidance.scope import LossScope
-from ctgpp.io.atomic import write_text_atomic
+from ctgpp.io.atomic import check_output_dir, staged_dir, write_text_atomic
+from ctgpp.io.strict_json import dumps_strict, json_safe
 from ctgpp.language.client import LLMConfig
 from ctgpp.language.query import QueryLoss, resolve_query
 from ctgpp.language.satisfaction import check_satisfied
@@ -100,9 +99,12 @@ def run_simulate(args: argparse.Namespace) -> int:
     from ctgpp.viz import animate_rollout, plot_scene
     from ctgpp.viz.events import rollout_events
 
+    check_output_dir(args.out)  # every bad input is reported before any work starts
     scene = open_catalog(args).load(args.scene)
     start = episode_bounds(scene)[0] if args.start is None else args.start
-    step0 = start_step(scene, start)  # a bad --start is reported before any work starts
+    step0 = start_step(scene, start)
+    if len(controlled_vehicles(scene, step0)) == 0:
+        raise ValueError(f"scene {scene.id} has no vehicle at {start:g} s: nothing to simulate")
     guide = guidance_config(args)  # a bad --guide-steps is reported before any work starts
     guards = guard_config(args)
     specs = _rules(args, scene, step0)
@@ -133,9 +135,6 @@ def run_simulate(args: argparse.Namespace) -> int:
 
         rollout = simulate(scene, policy, start, seed=args.seed, on_replan=on_replan)
     metrics = compute_metrics(rollout)
-    out: Path = args.out
-    out.mkdir(parents=True, exist_ok=True)
-    files = [write_rollout(rollout, out / f"rollout.{args.format}")]
     record = {
         "scene": scene.id,
         "start_s": start,
@@ -148,25 +147,29 @@ def run_simulate(args: argparse.Namespace) -> int:
     }
     if specs:
         record["rules"] = {
-            spec.description: {"rule": spec.name, "violation": _json_float(spec.violation(rollout))}
-            for spec in specs
+            spec.description: {"rule": spec.name, "violation": spec.violation(rollout)} for spec in specs
         }
         exempt = sorted({v for spec in specs for v in spec.exempt})
         if exempt:
-            record["fail_excluding_rule_pairs"] = _json_float(fail_excluding(rollout, exempt))
+            record["fail_excluding_rule_pairs"] = fail_excluding(rollout, exempt)
     if query is not None:
         record["query"] = _query_report(args.query, query, rollout)
     record["guards"] = _guards_record(args.policy, policy, guards, scope, scene, step0)
-    files.append(write_text_atomic(out / "metrics.json", json.dumps(_json_safe(record), indent=2) + "\n"))
+    record = json_safe(record)  # strict JSON: null where a value is undefined (NaN)
     events = rollout_events(rollout)
     step = rollout.first_step + rollout.current
     title = f"{scene.id}  t0 = {start:g} s  policy {policy.name}"
-    files.append(plot_scene(scene, step, out / "scene.png", rollout=rollout, events=events, title=title))
-    if args.animation != "none":
-        files.append(animate_rollout(rollout, out / f"rollout.{args.animation}", events=events))
+    with staged_dir(args.out) as stage:  # the files reach --out together, or none of them
+        files = [write_rollout(rollout, stage.path(f"rollout.{args.format}"))]
+        files.append(write_text_atomic(stage.path("metrics.json"), dumps_strict(record, indent=2) + "\n"))
+        picture = stage.path("scene.png")
+        files.append(plot_scene(scene, step, picture, rollout=rollout, events=events, title=title))
+        if args.animation != "none":
+            files.append(animate_rollout(rollout, stage.path(f"rollout.{args.animation}"), events=events))
+        files = [stage.final(f) for f in files]
     print(f"{scene.id} from {start:g} s, {record['controlled_vehicles']} vehicles, policy {policy.name}")
-    print("  " + "  ".join(f"{k} {v:.3f}" for k, v in metrics.items() if k not in MOVING_METRICS))
-    moving = "  ".join(f"{k} {metrics[k]:.3f}" for k in MOVING_METRICS if k in metrics)
+    print("  " + "  ".join(f"{k} {_fmt(v)}" for k, v in metrics.items() if k not in MOVING_METRICS))
+    moving = "  ".join(f"{k} {_fmt(metrics[k])}" for k in MOVING_METRICS if k in metrics)
     print(f"  {record['moving_vehicles']} moving at the start: {moving}")
     for text, value in record.get("rules", {}).items():
         print(f"  rule {text}: violation {value['violation']}")
@@ -189,7 +192,11 @@ def _rules(args: argparse.Namespace, scene: Scene, step: int) -> list[RuleSpec]:
     specs = []
     for text in args.rule:
         name, params = parse_rule_arg(text)
-        specs.append(custom_rule(name, params, scene, step, controlled, text))
+        try:
+            specs.append(custom_rule(name, params, scene, step, controlled, text))
+        except ValueError as err:
+            message = str(err) if str(err).startswith("--rule") else f"--rule {text}: {err}"
+            raise ValueError(message) from None
     return specs
 
 
@@ -219,16 +226,5 @@ def _guards_record(
     return guard_report(guards, scope, len(controlled), [int(v) for v in held])
 
 
-def _json_float(value: float) -> float | None:
-    return None if math.isnan(value) else value
-
-
-def _json_safe(value: object) -> object:
-    """``value`` with every NaN float (in nested dicts and lists) replaced by None: JSON has no NaN."""
-    if isinstance(value, float):
-        return None if math.isnan(value) else value
-    if isinstance(value, dict):
-        return {k: _json_safe(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_json_safe(v) for v in value]
-    return value
+def _fmt(value: float) -> str:
+    return f"{value:.3f}" if value == value else "undefined"

@@ -4,11 +4,13 @@ data (resumable; torchrun for DDP)."""
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
 from ctgpp.baselines.config import BaselineConfig, BITSConfig, CTGConfig
 from ctgpp.cli.common import split_spec
 from ctgpp.data.catalog import Catalog
+from ctgpp.io.atomic import check_output_dir
 from ctgpp.model.config import ModelConfig
 from ctgpp.scene.types import Scene
 from ctgpp.train.loop import TrainConfig, train
@@ -104,6 +106,9 @@ def model_config_of(args: argparse.Namespace) -> ModelConfig | BaselineConfig:
 def run_train(args: argparse.Namespace) -> int:
     if min(args.steps, args.batch, args.stride, args.max_agents) < 1:
         raise ValueError("--steps, --batch, --stride and --max-agents must be positive")
+    if not (math.isfinite(args.lr) and args.lr > 0):
+        raise ValueError(f"--lr {args.lr}: expected a positive number")
+    check_output_dir(args.out)
     model_config = model_config_of(args)
     specs = args.train or ["mini_train"]
     train_scenes = [s for spec in specs for s in load_split(spec)]

@@ -9,7 +9,8 @@ from importlib import resources
 from pathlib import Path
 
 from ctgpp.data.splits import split_of
-from ctgpp.data.store import SUFFIX, load_scene
+from ctgpp.data.store import SUFFIX, SceneFormatError, load_scene
+from ctgpp.data.timebase import DT_TOLERANCE_S, SIM_DT_S
 from ctgpp.io.atomic import write_text_atomic
 from ctgpp.scene.types import Scene
 
@@ -93,7 +94,16 @@ class Catalog:
         raise UnknownSceneError(f"no scene {scene_id!r} in {self.root}.{hint}")
 
     def load(self, scene_id: str) -> Scene:
-        return load_scene(self.root / self.entry(scene_id).file)
+        """The scene ``scene_id``; a file whose time step is not the simulator's 0.1 s is refused
+        (:class:`SceneFormatError`: ``ctgpp data convert`` resamples its source)."""
+        path = self.root / self.entry(scene_id).file
+        scene = load_scene(path)
+        if abs(scene.dt_s - SIM_DT_S) > DT_TOLERANCE_S:
+            raise SceneFormatError(
+                f"{path}: time step {scene.dt_s:g} s, but ctgpp simulates at {SIM_DT_S:g} s; convert the "
+                "source again with `ctgpp data convert` (it resamples to 0.1 s)"
+            )
+        return scene
 
 
 def write_index(root: Path, entries: list[CatalogEntry]) -> Path:

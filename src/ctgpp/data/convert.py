@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from tqdm import tqdm
 
 from ctgpp.data.catalog import INDEX_NAME, Catalog, CatalogEntry, write_index
 from ctgpp.data.store import SUFFIX, save_scene
+from ctgpp.data.timebase import DT_TOLERANCE_S, SIM_DT_S, conform_scene
 from ctgpp.scene.types import Scene
 
 log = logging.getLogger(__name__)
@@ -20,10 +21,11 @@ _SCENARIONET_SKIP = {"dataset_summary.pkl", "dataset_mapping.pkl"}
 
 @dataclass(frozen=True)
 class ConvertReport:
-    """What a conversion wrote and what it could not read."""
+    """What a conversion wrote, what it could not read and what it changed (``notes``: resampling)."""
 
     written: list[CatalogEntry]
     failed: list[tuple[Path, str]]
+    notes: list[str] = field(default_factory=list)
 
 
 def find_sources(src: Path) -> list[Path]:
@@ -62,27 +64,35 @@ def guess_drivable_dir(src: Path) -> Path | None:
 def convert(src: Path, dst: Path, drivable_dir: Path | None = None, progress: bool = True) -> ConvertReport:
     """Convert every source scene under ``src`` into ``dst`` and update ``dst/index.json``.
 
-    Existing scenes in ``dst`` stay listed; a re-converted scene replaces its old file. Each scene
-    file and the index are written atomically, so a killed conversion leaves no half-written file.
+    Every scene is made fit for the simulator (:func:`ctgpp.data.timebase.conform_scene`: NaN or
+    infinite states dropped at their step, resampled to 0.1 s). Existing scenes in ``dst`` stay
+    listed; a re-converted scene replaces its old file. Each scene file and the index are written
+    atomically, so a killed conversion leaves no half-written file; ``dst`` is created only when a
+    scene is written. A source that cannot be read is reported in ``failed``, not written.
     """
     sources = find_sources(src)
     if not sources:
         raise FileNotFoundError(f"{src} holds no ScenarioNet (.pkl) or CommonRoad (.xml) scenes")
     drivable_dir = drivable_dir if drivable_dir is not None else guess_drivable_dir(src)
     dst = Path(dst)
-    dst.mkdir(parents=True, exist_ok=True)
+    if dst.exists() and not dst.is_dir():
+        raise NotADirectoryError(f"output directory {dst} is an existing file")
     entries: dict[str, CatalogEntry] = {}
     if (dst / INDEX_NAME).exists():
         entries = {e.id: e for e in Catalog.open(dst).entries}
     written: list[CatalogEntry] = []
     failed: list[tuple[Path, str]] = []
-    for path in tqdm(sources, desc="converting", unit="scene", disable=not progress):
+    notes: list[str] = []
+    for path in tqdm(sources, desc="converting", unit="scene", disable=not progress or len(sources) == 1):
         try:
-            scene = _loader(path, drivable_dir)()
+            source = _loader(path, drivable_dir)()
+            scene = conform_scene(source, str(path))
         except (ValueError, OSError) as err:
-            log.warning("skipping %s: %s", path, err)
+            log.info("skipping %s: %s", path, err)
             failed.append((path, str(err)))
             continue
+        if abs(source.dt_s - SIM_DT_S) > DT_TOLERANCE_S:
+            notes.append(f"{scene.id}: resampled from {source.dt_s:g} s to {SIM_DT_S:g} s steps")
         file = f"{scene.id}{SUFFIX}"
         save_scene(scene, dst / file)
         entry = CatalogEntry.of(scene, file)
@@ -90,4 +100,4 @@ def convert(src: Path, dst: Path, drivable_dir: Path | None = None, progress: bo
         written.append(entry)
     if written:
         write_index(dst, list(entries.values()))
-    return ConvertReport(written, failed)
+    return ConvertReport(written, failed, notes)

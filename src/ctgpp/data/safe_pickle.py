@@ -15,6 +15,7 @@ from __future__ import annotations
 import importlib
 import io
 import pickle
+import struct
 from pathlib import Path
 
 # (module, name) pairs a scene pickle may reference. numpy 1.x writes ``numpy.core.*``, numpy 2.x
@@ -54,6 +55,18 @@ _PY2_NAMES = {"long": "int", "unicode": "str"}
 
 class UnsafePickleError(ValueError):
     """A pickle references a global outside the allow list; nothing from it was executed."""
+
+
+class CorruptPickleError(ValueError):
+    """A file is not a complete pickle (truncated, damaged or another format)."""
+
+
+# what unpickling damaged data raises (besides UnsafePickleError): truncation gives EOFError or
+# UnpicklingError, damaged opcodes and arguments the others
+_BROKEN = (
+    pickle.UnpicklingError, EOFError, ValueError, TypeError, IndexError, KeyError, AttributeError,
+    struct.error, MemoryError, OverflowError, UnicodeDecodeError,
+)
 
 
 def _numpy_core_module(submodule: str) -> str:
@@ -99,8 +112,17 @@ class RestrictedUnpickler(pickle.Unpickler):
 
 
 def safe_loads(data: bytes, source_name: str = "<bytes>") -> object:
-    """Unpickle ``data`` with :class:`RestrictedUnpickler`. Raises :class:`UnsafePickleError`."""
-    return RestrictedUnpickler(io.BytesIO(data), source_name).load()
+    """Unpickle ``data`` with :class:`RestrictedUnpickler`. Raises :class:`UnsafePickleError`, and
+    :class:`CorruptPickleError` naming ``source_name`` for data that is not a complete pickle."""
+    try:
+        return RestrictedUnpickler(io.BytesIO(data), source_name).load()
+    except UnsafePickleError:
+        raise
+    except _BROKEN as err:
+        reason = str(err) or type(err).__name__
+        raise CorruptPickleError(
+            f"{source_name} is not a readable pickle (truncated or damaged: {reason})"
+        ) from None
 
 
 def safe_load(path: Path | str) -> object:
@@ -109,4 +131,4 @@ def safe_load(path: Path | str) -> object:
     Raises :class:`UnsafePickleError` when the file references a global that could run code.
     """
     path = Path(path)
-    return safe_loads(path.read_bytes(), path.name)
+    return safe_loads(path.read_bytes(), str(path))

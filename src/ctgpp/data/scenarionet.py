@@ -20,6 +20,7 @@ import numpy as np
 from ctgpp.data.lane_topology import detect_intersections, reconstruct_connectivity
 from ctgpp.data.nuscenes_drivable import nuscenes_drivable, rasterize_polygons
 from ctgpp.data.safe_pickle import safe_load
+from ctgpp.data.timebase import SIM_DT_S, check_dt, finite_tracks
 from ctgpp.scene.types import AgentTracks, AgentType, DrivableArea, LaneGraph, Scene
 
 DRIVABLE_MARGIN_M = 30.0
@@ -45,6 +46,8 @@ def iter_scenarionet(src: Path) -> Iterator[Path]:
 def _tracks(raw: dict, path: Path) -> tuple[AgentTracks, int]:
     """Agent tracks, ego first, then the file's order; returns (tracks, ego index or -1)."""
     tracks: dict = raw["tracks"]
+    if not isinstance(tracks, dict) or not tracks:
+        raise ValueError(f"{path}: the scenario holds no tracks")
     sdc = str(raw.get("metadata", {}).get("sdc_id", ""))
     order = sorted(tracks, key=lambda k: str(k) != sdc)  # stable: ego first, rest in dict order
     n_steps = int(raw.get("length") or len(next(iter(tracks.values()))["state"]["valid"]))
@@ -60,7 +63,7 @@ def _tracks(raw: dict, path: Path) -> tuple[AgentTracks, int]:
         state = track["state"]
         ok = np.asarray(state["valid"]).reshape(-1).astype(bool)
         if len(ok) != n_steps:
-            raise ValueError(f"{path.name}: track {key} has {len(ok)} steps, the scenario {n_steps}")
+            raise ValueError(f"{path}: track {key} has {len(ok)} steps, the scenario {n_steps}")
         valid[a] = ok
         xy[a] = np.where(ok[:, None], np.asarray(state["position"], dtype=np.float64)[:, :2], 0.0)
         yaw[a] = np.where(ok, np.asarray(state["heading"], dtype=np.float64).reshape(-1), 0.0)
@@ -73,7 +76,7 @@ def _tracks(raw: dict, path: Path) -> tuple[AgentTracks, int]:
             extent[a] = _box(float(np.median(length)), float(np.median(width)), types[a])
     ids = np.asarray([str(k) for k in order], dtype=np.str_)
     agents = AgentTracks(ids=ids, types=types, xy=xy, yaw=yaw, speed=speed, extent=extent, valid=valid)
-    return agents, (0 if order and str(order[0]) == sdc else -1)
+    return finite_tracks(agents), (0 if order and str(order[0]) == sdc else -1)
 
 
 def _box(length_m: float, width_m: float, kind: int) -> tuple[float, float]:
@@ -188,27 +191,43 @@ def _drivable(
 def load_scenarionet(path: Path, drivable_dir: Path | None = None) -> Scene:
     """Read one ScenarioNet scenario pickle as a :class:`Scene` (see the module docstring).
 
-    The drivable raster covers the valid agent positions plus ``DRIVABLE_MARGIN_M``.
+    The drivable raster covers the valid agent positions plus ``DRIVABLE_MARGIN_M``; a state with a
+    NaN or infinite value is invalid at its step. The scene keeps the file's time step (``sample_rate``,
+    else the spacing of ``ts``; :func:`ctgpp.data.timebase.conform_scene` resamples it).
     Raises :class:`ctgpp.data.safe_pickle.UnsafePickleError` for pickles that could run code and
-    ``ValueError`` for files that are not ScenarioNet scenarios.
+    ``ValueError`` naming the file for files that are not readable ScenarioNet scenarios.
     """
     path = Path(path)
     raw = safe_load(path)
     if not isinstance(raw, dict) or not {"tracks", "map_features", "metadata"} <= raw.keys():
-        raise ValueError(
-            f"{path.name} is not a ScenarioNet scenario (expected a dict with tracks, map_features)"
-        )
-    meta = raw["metadata"]
-    agents, ego = _tracks(raw, path)
-    lanes, polygons = _lanes(raw["map_features"])
-    map_name = str(meta.get("map", ""))
+        raise ValueError(f"{path} is not a ScenarioNet scenario (expected a dict with tracks, map_features)")
+    try:
+        meta = raw["metadata"]
+        agents, ego = _tracks(raw, path)
+        if not agents.valid.any():
+            raise ValueError(f"{path}: no agent of the scenario has a valid, finite position")
+        lanes, polygons = _lanes(raw["map_features"])
+        map_name = str(meta.get("map", ""))
+        dt_s = _dt_s(meta)
+        drivable = _drivable(agents, lanes, polygons, map_name, drivable_dir)
+    except (KeyError, TypeError, IndexError, AttributeError) as err:
+        raise ValueError(f"{path}: malformed ScenarioNet scenario ({type(err).__name__}: {err})") from None
+    check_dt(dt_s, str(path))
     return Scene(
         id=str(raw.get("id") or meta.get("scenario_id") or path.stem),
         map_name=map_name,
         dataset=str(meta.get("dataset", "scenarionet")),
-        dt_s=float(meta.get("sample_rate", 0.1)),
+        dt_s=dt_s,
         agents=agents,
         lanes=lanes,
-        drivable=_drivable(agents, lanes, polygons, map_name, drivable_dir),
+        drivable=drivable,
         ego=ego,
     )
+
+
+def _dt_s(meta: dict) -> float:
+    """The scenario's time step in s: ``sample_rate``, else the median spacing of ``ts``, else 0.1."""
+    if meta.get("sample_rate") is not None:
+        return float(meta["sample_rate"])
+    ts = np.asarray(meta.get("ts", []), dtype=np.float64).reshape(-1)
+    return float(np.median(np.diff(ts))) if len(ts) > 1 else SIM_DT_S

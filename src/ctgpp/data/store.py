@@ -10,16 +10,20 @@ from __future__ import annotations
 
 import json
 import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
 
+from ctgpp.data.timebase import finite_tracks
 from ctgpp.io.atomic import atomic_path
 from ctgpp.scene.types import AgentTracks, DrivableArea, LaneGraph, Scene
 
 FORMAT = "ctgpp-scene"
 FORMAT_VERSION = 1
 SUFFIX = ".npz"
+# what reading a damaged archive member raises: a bad CRC, a cut deflate stream, a short read
+_DAMAGED = (KeyError, ValueError, zipfile.BadZipFile, zlib.error, EOFError, OSError)
 
 
 class SceneFormatError(ValueError):
@@ -29,7 +33,7 @@ class SceneFormatError(ValueError):
 def save_scene(scene: Scene, path: Path) -> Path:
     """Write ``scene`` to ``path`` (an ``.npz``) atomically."""
     a, lanes, area = scene.agents, scene.lanes, scene.drivable
-    xy_valid = a.xy[a.valid]
+    xy_valid = a.xy[a.valid & np.isfinite(a.xy).all(axis=-1)]
     origin = np.floor(xy_valid.min(axis=0)) if len(xy_valid) else np.zeros(2)
     header = {
         "format": FORMAT,
@@ -75,13 +79,16 @@ def read_header(path: Path) -> dict:
 
 
 def load_scene(path: Path) -> Scene:
-    """Load a scene written by :func:`save_scene`."""
+    """Load a scene written by :func:`save_scene`; a NaN or infinite state is invalid at its step.
+
+    Raises :class:`SceneFormatError` (a ValueError) naming ``path`` for a file that is not a
+    complete ctgpp scene file (another format, truncated, damaged)."""
     with _open(path) as data:
         header = _header(data, path)
         try:
             origin = data["origin"]
             valid = data["agent_valid"].astype(bool)
-            agents = AgentTracks(
+            agents = finite_tracks(AgentTracks(
                 ids=data["agent_ids"],
                 types=data["agent_types"].astype(np.int8),
                 xy=np.where(valid[..., None], data["agent_xy"].astype(np.float64) + origin, 0.0),
@@ -89,7 +96,7 @@ def load_scene(path: Path) -> Scene:
                 speed=data["agent_speed"].astype(np.float64),
                 extent=data["agent_extent"].astype(np.float64),
                 valid=valid,
-            )
+            ))
             lanes = LaneGraph(
                 ids=data["lane_ids"],
                 points=data["lane_points"].astype(np.float64) + origin,
@@ -103,8 +110,8 @@ def load_scene(path: Path) -> Scene:
             h, w = header["mask_shape"]
             mask = np.unpackbits(data["drivable_bits"], count=h * w).reshape(h, w).astype(bool)
             drivable = DrivableArea(mask, data["drivable_origin"], float(header["resolution_m"]))
-        except (KeyError, ValueError) as err:
-            raise SceneFormatError(f"{path}: malformed scene file ({err})") from err
+        except _DAMAGED as err:
+            raise SceneFormatError(f"{path}: damaged scene file ({err})") from None
     return Scene(
         id=header["id"],
         map_name=header["map_name"],
@@ -127,8 +134,8 @@ def _open(path: Path) -> np.lib.npyio.NpzFile:
 def _header(data: np.lib.npyio.NpzFile, path: Path) -> dict:
     try:
         header = json.loads(bytes(data["header"]).decode("utf-8"))
-    except (KeyError, ValueError) as err:
-        raise SceneFormatError(f"{path}: not a ctgpp scene file (no header)") from err
+    except _DAMAGED as err:
+        raise SceneFormatError(f"{path}: not a ctgpp scene file (no readable header: {err})") from None
     if header.get("format") != FORMAT:
         raise SceneFormatError(f"{path}: not a ctgpp scene file")
     if header.get("version") != FORMAT_VERSION:

@@ -7,6 +7,7 @@ rule with its parameters for ``ctgpp rules``, and ``CompositeLoss`` joins severa
 from __future__ import annotations
 
 import inspect
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -18,6 +19,7 @@ from ctgpp.guidance.base import GuidanceLoss, registered_losses
 from ctgpp.guidance.scope import LossScope
 
 UNIT_SUFFIXES = ("_mps2", "_mps", "_m", "_s", "_rad")
+MAX_SPEED_MPS = 40.0  # 144 km/h: a speed a user asks for above this is refused, not clipped
 
 
 class CompositeLoss(GuidanceLoss):
@@ -136,6 +138,22 @@ def _coerce(value: Any, annotation: Any, name: str) -> Any:
     return value
 
 
+def check_quantity(what: str, value: Any, unit: str) -> None:
+    """Raise ValueError starting with ``what`` when a number (or a list of numbers) given by the user
+    is NaN or infinite, or, for a speed (``unit`` m/s), outside 0..``MAX_SPEED_MPS``."""
+    values = value if isinstance(value, list | tuple) else [value]
+    for v in values:
+        if isinstance(v, bool) or not isinstance(v, int | float):
+            continue
+        if not math.isfinite(v):
+            raise ValueError(f"{what} is {v}: expected a finite number")
+        if unit == "m/s" and not 0.0 <= v <= MAX_SPEED_MPS:
+            raise ValueError(
+                f"{what} is {v:g} m/s: speeds must be 0 to {MAX_SPEED_MPS:g} m/s "
+                f"({MAX_SPEED_MPS * 3.6:g} km/h)"
+            )
+
+
 def make_loss(name: str, **params: Any) -> GuidanceLoss:
     """Build the registered loss ``name`` with ``params``.
 
@@ -157,6 +175,9 @@ def make_loss(name: str, **params: Any) -> GuidanceLoss:
                 f"rule {name!r} has no parameter {given!r}; its parameters are: {', '.join(valid)}"
             )
         kwargs[full] = _coerce(value, sig.parameters[full].annotation, full)
+        if isinstance(value, str):  # a value typed by the user: refused when out of physical range
+            unit = getattr(factory, "param_doc", {}).get(full, ("", ""))[0]
+            check_quantity(f"rule {name!r}: parameter {full!r}", kwargs[full], unit)
     empty = inspect.Parameter.empty
     missing = [p for p, spec in sig.parameters.items() if spec.default is empty and p not in kwargs]
     if missing:
@@ -164,4 +185,12 @@ def make_loss(name: str, **params: Any) -> GuidanceLoss:
     return factory(**kwargs)
 
 
-__all__ = ["CompositeLoss", "ParamInfo", "RuleInfo", "describe_rules", "make_loss"]
+__all__ = [
+    "MAX_SPEED_MPS",
+    "CompositeLoss",
+    "ParamInfo",
+    "RuleInfo",
+    "check_quantity",
+    "describe_rules",
+    "make_loss",
+]

@@ -1,9 +1,11 @@
-"""Atomic file writes: write to a temporary file beside the target, then rename over it."""
+"""Atomic file writes: write to a temporary file beside the target, then rename over it; a set of
+output files staged in a temporary directory and moved into place only when all of them are done."""
 
 from __future__ import annotations
 
 import contextlib
 import os
+import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -29,6 +31,54 @@ def atomic_path(target: Path) -> Iterator[Path]:
     finally:
         if tmp_path.exists():
             tmp_path.unlink()
+
+
+def check_output_dir(path: Path, option: str = "--out") -> None:
+    """Raise a one-line error naming ``option`` when ``path`` cannot become an output directory: it
+    is an existing file, or the nearest existing folder above it is not a writable directory."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise FileExistsError(f"{option} {path} is an existing file, not a directory")
+    parent = path
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise NotADirectoryError(f"{option} {path}: {parent} is a file, not a directory")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise PermissionError(f"{option} {path}: {parent} is not writable")
+
+
+class StagedFiles:
+    """Files written into ``staging`` that :func:`staged_dir` moves into ``target`` at the end."""
+
+    def __init__(self, staging: Path, target: Path) -> None:
+        self.staging = staging
+        self.target = target
+
+    def path(self, name: str) -> Path:
+        """Where to write the output file ``name`` now (inside the staging directory)."""
+        return self.staging / name
+
+    def final(self, written: Path) -> Path:
+        """The path a file written into the staging directory will have in the target directory."""
+        return self.target / Path(written).name
+
+
+@contextlib.contextmanager
+def staged_dir(target: Path) -> Iterator[StagedFiles]:
+    """Stage a command's output files: they are written into a temporary directory beside ``target``
+    and moved into ``target`` (created) only when the block succeeds; on an exception nothing of them
+    reaches ``target`` and the temporary directory is removed."""
+    target = Path(target)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent))
+    try:
+        yield StagedFiles(staging, target)
+        target.mkdir(exist_ok=True)
+        for item in sorted(staging.iterdir()):
+            os.replace(item, target / item.name)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
 
 
 def write_text_atomic(target: Path, text: str) -> Path:

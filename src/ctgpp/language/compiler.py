@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from ctgpp.guidance import CompositeLoss, GuidanceLoss, make_loss
+from ctgpp.guidance.composite import check_quantity
 from ctgpp.guidance.rules_relative import ForVehicles, SteerOnly
 from ctgpp.language.compiler_families import Context, PartSpec, QueryError, recognise
 from ctgpp.language.compiler_patterns import EXAMPLES, Clause, analyse, split_points
@@ -171,6 +172,16 @@ def _check_vehicles(spec: PartSpec, num_vehicles: int, text: str) -> None:
             raise VehicleOutOfRange(f"vehicle {v} does not exist in {text.strip()!r}: this scene has {valid}")
 
 
+def _check_quantities(spec: PartSpec, text: str) -> None:
+    """Refuse numbers out of physical range (a speed above 40 m/s, NaN, infinity): never clipped."""
+    for key, value in spec.params.items():
+        what = f"{'speed' if key.endswith('_mps') else key} in {text.strip()!r}"
+        try:
+            check_quantity(what, value, "m/s" if key.endswith("_mps") else "")
+        except ValueError as err:
+            raise QueryError(str(err)) from None
+
+
 _VEHICLE_PARAMS = {"vehicle", "vehicle_a", "vehicle_b", "follower", "leader", "other", "target", "ahead_of"}
 
 
@@ -190,6 +201,7 @@ def compile_query(query: str, num_vehicles: int) -> CompiledQuery:
         text = query[clause.start : clause.end]
         for spec in handler(clause, Context(subject, joined)):
             _check_vehicles(spec, num_vehicles, text)
+            _check_quantities(spec, text)
             parts.append(QueryPart(spec.rule, dict(spec.params), text.strip(), (clause.start, clause.end),
                                    spec.family, spec.only, spec.steers))
         if clause.vehicles:

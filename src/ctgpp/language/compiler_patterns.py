@@ -12,7 +12,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
-NUM = r"-?\d+(?:\.\d+)?"
+NUM = r"-?\d+(?:\.\d+)?(?:e[+-]?\d+)?"  # 12, -3.5, 1e12 (read whole: never as 12 of 1e12)
 _VEHICLE_LIST = re.compile(r"\b(?:vehicles|cars|agents)\s+(#?\d+(?:\s*(?:,|and|&|or)\s*#?\d+)+)")
 _VEHICLE = re.compile(
     r"\b(?:vehicle|car|agent|truck|veh\.?)\s*(?:#|no\.?\s*|number\s+)?(\d+)\b"

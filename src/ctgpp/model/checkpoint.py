@@ -16,6 +16,8 @@ import json
 from pathlib import Path
 from typing import Any
 
+import torch
+from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 from torch import nn
 
@@ -62,7 +64,12 @@ def read_header(path_dir: Path) -> dict[str, Any]:
     config_path = Path(path_dir) / CONFIG_NAME
     if not config_path.is_file():
         raise CheckpointError(f"checkpoint {path_dir} has no {CONFIG_NAME}")
-    header = json.loads(config_path.read_text(encoding="utf-8"))
+    try:
+        header = json.loads(config_path.read_text(encoding="utf-8"))
+    except (ValueError, OSError) as err:
+        raise CheckpointError(f"{config_path} is not a readable checkpoint config ({err})") from None
+    if not isinstance(header, dict):
+        raise CheckpointError(f"{config_path} is not a {FORMAT} v{FORMAT_VERSION} config")
     if header.get("format") != FORMAT or header.get("version") != FORMAT_VERSION:
         raise CheckpointError(f"{config_path} is not a {FORMAT} v{FORMAT_VERSION} config")
     header.setdefault("kind", DEFAULT_KIND)
@@ -80,11 +87,18 @@ def load_config(path_dir: Path) -> tuple[ModelConfig, dict[str, Any]]:
 
 
 def load_weights(path_dir: Path, model: nn.Module, device: str = "cpu") -> None:
-    """Load ``path_dir``'s safetensors weights into ``model``, checking names and shapes."""
+    """Load ``path_dir``'s safetensors weights into ``model``, checking names, shapes and that every
+    value is finite (a damaged file is refused with :class:`CheckpointError`, never half-loaded)."""
     weights_path = Path(path_dir) / WEIGHTS_NAME
     if not weights_path.is_file():
         raise CheckpointError(f"checkpoint {path_dir} has no {WEIGHTS_NAME}")
-    state = load_file(str(weights_path), device=device)
+    try:
+        state = load_file(str(weights_path), device=device)
+    except (SafetensorError, OSError, ValueError, RuntimeError) as err:
+        reason = str(err).splitlines()[0] if str(err) else type(err).__name__
+        raise CheckpointError(
+            f"{weights_path} is not a readable safetensors file (truncated or damaged: {reason})"
+        ) from None
     expected = model.state_dict()
     missing = sorted(set(expected) - set(state))
     unexpected = sorted(set(state) - set(expected))
@@ -95,6 +109,9 @@ def load_weights(path_dir: Path, model: nn.Module, device: str = "cpu") -> None:
     wrong = [n for n, t in state.items() if t.shape != expected[n].shape]
     if wrong:
         raise CheckpointError(f"{weights_path} has tensors of the wrong shape: {wrong}")
+    broken = [n for n, t in state.items() if t.is_floating_point() and not bool(torch.isfinite(t).all())]
+    if broken:
+        raise CheckpointError(f"{weights_path} is damaged: tensors with NaN or infinite values: {broken[:5]}")
     model.load_state_dict(state)
 
 
