@@ -121,7 +121,7 @@ def test_good_program_accepted_in_round_1(server: CannedServer, checker: LossChe
     server.replies = [reply(GOOD)]
     result = generate_loss(QUERY, server.client(), *scene, cache=False, checker=checker)
     assert result.rounds == 1 and result.errors == () and result.path == "llm" and not result.cached
-    assert result.code == GOOD and result.cls.__name__ == "CollisionLoss"
+    assert result.code == GOOD and result.name == "CollisionLoss"
     assert result.report.output_shape == (scene[1].shape[1],)
     (request,) = server.requests
     assert request["model"] == MODEL and request["temperature"] == 0.0

@@ -27,7 +27,8 @@ from ctgpp.guidance.scope import LossScope
 from ctgpp.io.atomic import check_output_dir, staged_dir, write_text_atomic
 from ctgpp.io.strict_json import dumps_strict, json_safe
 from ctgpp.language.client import LLMConfig
-from ctgpp.language.query import QueryLoss, resolve_query
+from ctgpp.language.query import QueryLoss, fall_back, resolve_query
+from ctgpp.language.remote import GeneratedLossError
 from ctgpp.language.satisfaction import check_satisfied
 from ctgpp.metrics.rules import fail_excluding
 from ctgpp.scene.types import Scene
@@ -127,13 +128,19 @@ def run_simulate(args: argparse.Namespace) -> int:
     policy = make_policy(args.policy, args.checkpoint, sampling_config(args), loss, guide, guards, scope)
     if losses and args.policy != "ctgpp":
         print(f"policy {args.policy} is not guided: the rules and the query are only measured")
-    with tqdm(total=20, desc=f"simulating {scene.id}", unit="plan") as bar:
-
-        def on_replan(done: int, total: int) -> None:
-            bar.total = total
-            bar.update(done - bar.n)
-
-        rollout = simulate(scene, policy, start, seed=args.seed, on_replan=on_replan)
+    try:
+        rollout = _episode(scene, policy, start, args.seed)
+    except GeneratedLossError as err:  # the model's loss was stopped: nothing is written yet
+        assert query is not None
+        query = fall_back(query, err)  # the compiler's loss, or a one-line QueryError (exit 2)
+        print(f"  note: {query.notes[-1]}")
+        losses[-1] = query.loss
+        loss = losses[0] if len(losses) == 1 else CompositeLoss([(item, 1.0) for item in losses])
+        policy = make_policy(args.policy, args.checkpoint, sampling_config(args), loss, guide, guards, scope)
+        rollout = _episode(scene, policy, start, args.seed)
+    finally:
+        if query is not None:
+            query.close()
     metrics = compute_metrics(rollout)
     record = {
         "scene": scene.id,
@@ -184,6 +191,17 @@ def run_simulate(args: argparse.Namespace) -> int:
     for f in files:
         print(f"wrote {f}")
     return 0
+
+
+def _episode(scene: Scene, policy: Policy, start: float, seed: int) -> Rollout:
+    """The closed-loop episode, with a progress bar over its re-plans."""
+    with tqdm(total=20, desc=f"simulating {scene.id}", unit="plan") as bar:
+
+        def on_replan(done: int, total: int) -> None:
+            bar.total = total
+            bar.update(done - bar.n)
+
+        return simulate(scene, policy, start, seed=seed, on_replan=on_replan)
 
 
 def _rules(args: argparse.Namespace, scene: Scene, step: int) -> list[RuleSpec]:

@@ -1,8 +1,11 @@
 """A query becomes a checked guidance loss through a language model (DESIGN.md, Language interface).
 
-prompt -> reply -> extract the code -> sandbox -> checks on the real scene batch; on failure the
+prompt -> reply -> extract the code -> sandbox -> the trial on the real scene batch; on failure the
 error goes back to the model as a user message, for at most ``max_repairs`` more rounds. Accepted
-programs are cached by (query, model, prompt version); a cached program is checked again before use.
+programs are cached by (query, model, prompt version); a cached program is tried again the same way
+before use, and evicted when it fails. Here the program is only parsed and allow-listed: it is
+executed only in the worker process (:mod:`ctgpp.language.checks`), for its trial and — through
+:meth:`GeneratedLoss.build` — for every call of sampling (:class:`ctgpp.language.remote.RemoteLoss`).
 """
 
 from __future__ import annotations
@@ -14,13 +17,13 @@ from typing import Protocol
 
 from torch import Tensor
 
-from ctgpp.guidance.base import GuidanceLoss
 from ctgpp.guidance.context import GuidanceBatch
 from ctgpp.language.cache import LossCache
 from ctgpp.language.checks import CheckReport, LossChecker, LossCheckError
 from ctgpp.language.extract import ExtractionError, extract_code
 from ctgpp.language.prompt import Message, build_messages, repair_message
-from ctgpp.language.sandbox import SandboxError, load_loss_class
+from ctgpp.language.remote import CALL_TIME_LIMIT_S, RemoteLoss
+from ctgpp.language.sandbox import SandboxError, check_source
 
 __all__ = ["ChatModel", "GeneratedLoss", "GenerationFailed", "generate_loss"]
 
@@ -35,17 +38,24 @@ class ChatModel(Protocol):
 
 @dataclass(frozen=True)
 class GeneratedLoss:
-    """An accepted program: its code, the loaded class (build it with ``cls()``), how many model
-    replies it took (0 when it came from the cache), the check report and the earlier refusals."""
+    """An accepted program: its code, its loss class's name, how many model replies it took (0 when
+    it came from the cache), the trial's report and the earlier refusals. :meth:`build` makes the
+    loss that steers sampling."""
 
     code: str
-    cls: type[GuidanceLoss]
+    name: str
     rounds: int
     report: CheckReport
     model: str
     cached: bool = False
     errors: tuple[str, ...] = ()
     path: str = "llm"
+
+    def build(self, worker: LossChecker | None = None,
+              call_time_limit_s: float = CALL_TIME_LIMIT_S) -> RemoteLoss:
+        """The program as a guidance loss whose every call runs in ``worker`` (taken over; None starts
+        one), each within ``call_time_limit_s`` and the worker's memory limit."""
+        return RemoteLoss(self.code, worker, call_time_limit_s)
 
 
 class GenerationFailed(RuntimeError):
@@ -64,10 +74,11 @@ def _model_name(llm: ChatModel) -> str:
 
 
 def _accept(code: str, batch: GuidanceBatch, x: Tensor, checker: LossChecker,
-            time_limit_s: float) -> tuple[type[GuidanceLoss], CheckReport]:
-    """Sandbox and check ``code``; raises SandboxError or LossCheckError."""
-    cls = load_loss_class(code)
-    return cls, checker.check(cls, batch, x, time_limit_s)
+            time_limit_s: float) -> CheckReport:
+    """Allow-list ``code`` here (parsing only) and try it in the worker; raises SandboxError or
+    LossCheckError."""
+    check_source(code)
+    return checker.check(code, batch, x, time_limit_s)
 
 
 def generate_loss(
@@ -95,8 +106,8 @@ def generate_loss(
     try:
         if store is not None and (cached := store.get(query, model)) is not None:
             try:
-                cls, report = _accept(cached, batch, x, checker, time_limit_s)
-                return GeneratedLoss(cached, cls, 0, report, model, cached=True)
+                report = _accept(cached, batch, x, checker, time_limit_s)
+                return GeneratedLoss(cached, report.name, 0, report, model, cached=True)
             except (SandboxError, LossCheckError) as err:
                 log.warning("the cached loss for %r fails the checks (%s); asking the model", query, err)
                 store.discard(query, model)
@@ -116,7 +127,7 @@ def _rounds(query: str, llm: ChatModel, batch: GuidanceBatch, x: Tensor, max_rep
         messages.append({"role": "assistant", "content": reply})
         try:
             code = extract_code(reply)
-            cls, report = _accept(code, batch, x, checker, time_limit_s)
+            report = _accept(code, batch, x, checker, time_limit_s)
         except (ExtractionError, SandboxError, LossCheckError) as err:
             log.info("round %d for %r refused: %s", round_no, query, err)
             errors.append(f"round {round_no}: {err}")
@@ -124,5 +135,5 @@ def _rounds(query: str, llm: ChatModel, batch: GuidanceBatch, x: Tensor, max_rep
             continue
         if store is not None:
             store.put(query, model, code, round_no)
-        return GeneratedLoss(code, cls, round_no, report, model, errors=tuple(errors))
+        return GeneratedLoss(code, report.name, round_no, report, model, errors=tuple(errors))
     raise GenerationFailed(query, errors)

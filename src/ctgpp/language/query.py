@@ -1,8 +1,10 @@
 """A user's sentence becomes the loss that steers a simulation (issue 5, the main command).
 
 Offline by default: the project's query compiler. With a language model configured: the model's
-program, sandboxed and checked on the episode's real scene batch; when every round of it is refused
-(or the model cannot be reached) the compiler takes over, and the user is told.
+program, sandboxed and tried on the episode's real scene batch, then run for every call of sampling in
+its limited worker process (:class:`ctgpp.language.remote.RemoteLoss`); when every round of it is
+refused (or the model cannot be reached) the compiler takes over, and the user is told. A program
+stopped during sampling is evicted from the cache and :func:`fall_back` gives the compiler's loss.
 """
 
 from __future__ import annotations
@@ -17,9 +19,12 @@ from ctgpp.data.windows import WindowConfig, build_window
 from ctgpp.guidance.base import GuidanceLoss
 from ctgpp.guidance.context import build_guidance_batch
 from ctgpp.guidance.scope import LossScope
+from ctgpp.language.cache import LossCache
+from ctgpp.language.checks import LossChecker
 from ctgpp.language.client import LLMClient, LLMConfig, LLMError
 from ctgpp.language.compiler import CompiledQuery, QueryError, compile_query
 from ctgpp.language.generate import GenerationFailed, generate_loss
+from ctgpp.language.remote import GeneratedLossError
 from ctgpp.sim.policy import Observation
 
 log = logging.getLogger(__name__)
@@ -28,13 +33,22 @@ log = logging.getLogger(__name__)
 @dataclass(frozen=True, eq=False)
 class QueryLoss:
     """The loss for a query, where it came from (``path``), its code, and the compiled query when
-    the compiler understands the query (the independent satisfaction check needs it)."""
+    the compiler understands the query (the independent satisfaction check needs it); ``query`` and
+    ``model`` name the cache entry of a language model's program."""
 
     loss: GuidanceLoss
     code: str
     path: str
     compiled: CompiledQuery | None
     notes: list[str] = field(default_factory=list)
+    query: str = ""
+    model: str | None = None
+
+    def close(self) -> None:
+        """Stop the worker process of a language model's loss (nothing for other losses)."""
+        close = getattr(self.loss, "close", None)
+        if callable(close):
+            close()
 
     @property
     def scope(self) -> LossScope:
@@ -66,9 +80,14 @@ def resolve_query(query: str, obs: Observation, llm: LLMConfig | None, max_repai
             assert compile_error is not None
             raise compile_error
         return QueryLoss(compiled.loss, compiled.code, "offline query compiler", compiled)
+    checker = LossChecker()
+    checker.start()  # the worker imports torch while the model answers
     try:
-        generated = generate_loss(query, LLMClient(llm), build_guidance_batch(obs), probe_x(obs), max_repairs)
-    except (GenerationFailed, LLMError) as err:
+        generated = generate_loss(query, LLMClient(llm), build_guidance_batch(obs), probe_x(obs), max_repairs,
+                                  checker=checker)
+        loss = generated.build(checker)  # every call of sampling runs in the worker, limited
+    except (GenerationFailed, LLMError, GeneratedLossError) as err:
+        checker.close()
         if compiled is None:
             raise QueryError(
                 f"the language model could not produce a loss that passes the checks ({err}), and the "
@@ -78,4 +97,22 @@ def resolve_query(query: str, obs: Observation, llm: LLMConfig | None, max_repai
         log.warning("%s; falling back to the offline compiler", note)
         return QueryLoss(compiled.loss, compiled.code, "offline query compiler (fallback)", compiled, [note])
     source = "cache" if generated.cached else f"{generated.rounds} round(s)"
-    return QueryLoss(generated.cls(), generated.code, f"language model {llm.model} ({source})", compiled)
+    return QueryLoss(loss, generated.code, f"language model {llm.model} ({source})", compiled, [], query,
+                     llm.model)
+
+
+def fall_back(failed: QueryLoss, err: GeneratedLossError) -> QueryLoss:
+    """What follows when ``failed``'s generated loss was stopped during sampling (``err``): its worker
+    is stopped and its cached program evicted; returns the offline compiler's loss for the query,
+    with a note, or raises :class:`QueryError` (one line) when the compiler does not support it."""
+    failed.close()
+    if failed.model is not None:
+        LossCache().discard(failed.query, failed.model)
+    if failed.compiled is None:
+        raise QueryError(f"{err}; the offline compiler does not support the query either, so the "
+                         "simulation stopped (nothing was written)")
+    note = f"{err}; the episode was simulated again with the offline compiler's loss"
+    log.warning("%s", note)
+    compiled = failed.compiled
+    return QueryLoss(compiled.loss, compiled.code, "offline query compiler (fallback)", compiled,
+                     [*failed.notes, note])

@@ -1,9 +1,21 @@
-"""The loss-checking worker process of :class:`ctgpp.language.checks.LossChecker`.
+"""The worker process that runs generated code (:class:`ctgpp.language.checks.LossChecker`,
+:class:`ctgpp.language.remote.RemoteLoss`): the main process never executes it.
 
-It imports torch, caps its own address space (``RLIMIT_AS``), says it is ready, then answers jobs
-``((kind, payload), batch, x, time_limit_s)`` one at a time with JSON bytes. ``kind`` "source":
-``payload`` is generated code, checked and loaded again here by the sandbox; "class": a library
-class. Python code of a job is interrupted by ``SIGALRM`` at its time limit.
+It imports torch, caps its own address space (``RLIMIT_AS``), says it is ready, then answers one
+message at a time, each a pickled tuple from the parent whose first item names the kind:
+
+- ``("check", job, batch, x, time_limit_s)``: the trial (:func:`ctgpp.language.trial.run_trial`) of
+  ``job`` = ("source", generated code, checked and loaded again here by the sandbox) or ("class", a
+  library class);
+- ``("load", source, time_limit_s)``: load the program and build the instance that sampling calls;
+- ``("scene", scene, sdf)`` then ``("batch", batch)``: the ``data_batch`` of the next calls (the scene
+  and its SDF are sent once, the batch once per re-plan without them);
+- ``("call", x, agt_mask, weights, want_grad, time_limit_s)``: one call of the instance, checked by
+  :class:`ctgpp.language.session.LossSession`.
+
+Answers are JSON bytes; a successful call adds one raw message: the cost, then the gradient, as
+x's dtype (the parent never unpickles anything from here). Python code of a job is interrupted by
+``SIGPROF`` when it has used its time limit in CPU seconds; a job that fails leaves no instance behind.
 """
 
 from __future__ import annotations
@@ -14,6 +26,7 @@ import resource
 import signal
 import sys
 import traceback
+from dataclasses import replace
 from multiprocessing.connection import Connection
 from typing import Any
 
@@ -46,41 +59,108 @@ def _describe(err: BaseException) -> str:
     lines = [f.lineno for f in traceback.extract_tb(err.__traceback__) if f.filename == GENERATED_FILENAME]
     if lines:
         text += f" (at line {lines[-1]} of the program)"
+    text = " ".join(text.split())
     return text if len(text) <= MAX_ERROR_CHARS else text[: MAX_ERROR_CHARS - 3] + "..."
 
 
-def run_job(job: tuple[str, Any], batch: Any, x: Any, time_limit_s: float) -> dict[str, Any]:
-    """Load the class of ``job`` and run the checks under a time limit; a JSON-able answer."""
-    from ctgpp.language.checks import LossCheckError, run_probes
-    from ctgpp.language.sandbox import SandboxError, load_loss_class
+def _reason(err: BaseException, time_limit_s: float) -> str:
+    """The one-line reason a job failed."""
+    from ctgpp.language.checks import LossCheckError
+    from ctgpp.language.sandbox import SandboxError
+    from ctgpp.language.session import RECURSION_FRAMES
 
-    kind, payload = job
-    signal.setitimer(signal.ITIMER_REAL, max(time_limit_s, 0.01))
-    try:
+    if isinstance(err, TimeoutError):
+        return f"the loss did not finish within the time limit of {time_limit_s:g} s (CPU time)"
+    if isinstance(err, MemoryError) or (isinstance(err, RuntimeError) and "allocate" in str(err)):
+        return f"the loss ran out of memory (the worker's memory limit): {_describe(err)}"
+    if isinstance(err, RecursionError):
+        return f"RecursionError: the loss recursed deeper than {RECURSION_FRAMES} frames"
+    if isinstance(err, SandboxError | LossCheckError):
+        return " ".join(str(err).split())
+    return _describe(err)
+
+
+class Worker:
+    """The state between messages: the instance that sampling calls, the scene of its batches."""
+
+    def __init__(self) -> None:
+        self.session: Any = None
+        self.scene: Any = None
+        self.sdf: Any = None
+
+    def handle(self, message: tuple[Any, ...]) -> tuple[dict[str, Any], bytes | None]:
+        """Answer one message: (JSON-able header, raw payload or None)."""
+        kind = message[0]
+        if kind == "scene":
+            _, self.scene, self.sdf = message
+            return {"ok": True}, None
+        if kind == "batch":
+            if self.session is None:
+                return {"ok": False, "error": "no loss is loaded"}, None
+            batch = message[1]
+            if self.scene is not None and getattr(batch, "scene", 0) is None:
+                batch = replace(batch, scene=self.scene, sdf=self.sdf, memo={})
+            self.session.set_batch(batch)
+            return {"ok": True}, None
+        limit = float(message[-1])
+        signal.setitimer(signal.ITIMER_PROF, max(limit, 0.01))
+        try:
+            if kind == "check":
+                return self._check(*message[1:3], message[3]), None
+            if kind == "load":
+                return self._load(message[1]), None
+            if kind == "call":
+                return self._call(*message[1:5])
+            return {"ok": False, "error": f"unknown message {kind!r}"}, None
+        except BaseException as err:  # anything the loss raised: reported back, the worker lives on
+            if kind != "check":
+                self.session = None
+            return {"ok": False, "error": _reason(err, limit)}, None
+        finally:
+            signal.setitimer(signal.ITIMER_PROF, 0.0)
+
+    def _check(self, job: tuple[str, Any], batch: Any, x: Any) -> dict[str, Any]:
+        from ctgpp.language.sandbox import load_loss_class
+        from ctgpp.language.trial import run_trial
+
+        kind, payload = job
         cls = load_loss_class(payload) if kind == "source" else payload
-        return run_probes(cls, batch, x)
-    except TimeoutError:
-        return {"ok": False, "error": f"the loss did not finish within the time limit of {time_limit_s:g} s"}
-    except (SandboxError, LossCheckError) as err:
-        return {"ok": False, "error": str(err)}
-    except MemoryError:
-        return {"ok": False, "error": "the loss ran out of memory (the check's memory limit)"}
-    except Exception as err:  # anything the loss raised: reported back, the worker lives on
-        return {"ok": False, "error": _describe(err)}
-    finally:
-        signal.setitimer(signal.ITIMER_REAL, 0.0)
+        return run_trial(cls, batch, x)
+
+    def _load(self, source: str) -> dict[str, Any]:
+        from ctgpp.language.sandbox import load_loss_class
+        from ctgpp.language.session import LossSession
+
+        self.session = None
+        cls = load_loss_class(source)
+        self.session = LossSession.build(cls, None)
+        couples = bool(getattr(cls, "couples_agents", False))
+        return {"ok": True, "name": cls.__name__, "couples_agents": couples}
+
+    def _call(self, x: Any, agt_mask: Any, weights: Any, want_grad: bool) -> tuple[dict[str, Any], bytes]:
+        if self.session is None:
+            return {"ok": False, "error": "no loss is loaded"}, b""
+        out, grad = self.session.call(x, want_grad=bool(want_grad), agt_mask=agt_mask, weights=weights)
+        parts = [out.to(x.dtype).contiguous()]
+        if grad is not None:
+            parts.append(grad.to(x.dtype).contiguous())
+        payload = b"".join(p.numpy().tobytes() for p in parts)
+        header = {"ok": True, "shape": list(out.shape), "grad": grad is not None, "calls": self.session.calls}
+        return header, payload
 
 
 def worker_main(jobs: Connection, answers: Connection, memory_limit_mb: int) -> None:
-    """Serve jobs from ``jobs`` until it closes, answering on ``answers``."""
+    """Serve messages from ``jobs`` until it closes, answering on ``answers``."""
     import torch
 
     import ctgpp.language.sandbox  # noqa: F401  (import before the memory cap)
+    import ctgpp.language.trial  # noqa: F401
 
     torch.set_num_threads(1)
-    signal.signal(signal.SIGALRM, _on_alarm)
+    signal.signal(signal.SIGPROF, _on_alarm)
     _cap_memory(memory_limit_mb)
     answers.send_bytes(json.dumps({"ready": True}).encode())
+    worker = Worker()
     while True:
         try:
             message = jobs.recv_bytes()
@@ -88,15 +168,17 @@ def worker_main(jobs: Connection, answers: Connection, memory_limit_mb: int) -> 
             return
         try:
             # the parent's own objects over a private pipe (trusted), never the generated code's
-            job, batch, x, time_limit_s = pickle.loads(message)  # noqa: S301
+            request = pickle.loads(message)  # noqa: S301
         except Exception:
-            answers.send_bytes(json.dumps({"ok": False, "error": "could not read the job"}).encode())
+            answers.send_bytes(json.dumps({"ok": False, "error": "could not read the message"}).encode())
             continue
         try:
-            answer = run_job(job, batch, x, time_limit_s)
+            header, payload = worker.handle(request)
         except BaseException:  # e.g. the alarm firing just after the job returned
-            answer = {"ok": False, "error": f"the loss did not finish within {time_limit_s:g} s"}
-        answers.send_bytes(json.dumps(answer).encode())
+            header, payload = {"ok": False, "error": "the loss did not finish within its time limit"}, None
+        answers.send_bytes(json.dumps(header).encode())
+        if header.get("ok") and payload is not None:
+            answers.send_bytes(payload)
 
 
 if __name__ == "__main__":
