@@ -145,7 +145,7 @@ def cases() -> list[Case]:
 def run_case(case: Case, work: Path) -> tuple[int, str, str]:
     """(exit code, message, what is at the output path afterwards)."""
     cmd = [sys.executable, "-m", "ctgpp.cli.main", *case.args]
-    done = subprocess.run(cmd, cwd=work, capture_output=True, text=True, timeout=900)
+    done = subprocess.run(cmd, cwd=work, capture_output=True, text=True, timeout=3600)
     lines = [line for line in done.stderr.splitlines() if line.strip() and "\r" not in line]
     if case.refused:
         message = " / ".join(lines) if lines else "(nothing on stderr)"
