@@ -7,7 +7,8 @@ above what the worker uses after importing torch) and whose Python code is inter
 at each job's time limit; if the worker does not answer within the time limit plus ``GRACE_S`` (a
 runaway C loop, say), it is killed (and restarted for the next job). Time limits are CPU seconds of
 the worker (``ITIMER_PROF``; the parent reads ``/proc/PID/stat``), so that a loss is not charged for
-a loaded machine, with a wall-clock backstop of ``WALL_FACTOR`` times the limit; on an idle machine
+a loaded machine, with a wall-clock backstop of ``WALL_FACTOR`` times the limit plus a minute (generated
+code cannot block, so a worker that uses no CPU is starved by other processes); on an idle machine
 the two agree. The worker loads generated
 classes from their source with the sandbox, and answers with JSON (and raw numbers): the parent never
 unpickles anything from it.
@@ -38,7 +39,7 @@ from ctgpp.guidance.context import GuidanceBatch
 __all__ = ["CheckReport", "LossCheckError", "LossChecker", "check_loss"]
 
 GRACE_S = 1.0  # beyond the time limit: transfer of the batch and process scheduling
-WALL_FACTOR = 10.0  # a worker that uses no CPU (starved, blocked) is stopped after this many limits
+WALL_FACTOR = 60.0  # a worker that uses no CPU (starved, blocked) is stopped after this many limits + 60 s
 POLL_S = 0.02
 CLOCK_TICKS = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
 MAX_REPLY_BYTES = 1 << 20
@@ -187,11 +188,12 @@ class LossChecker:
 
     def _wait(self, timeout_s: float) -> bool:
         """Wait for an answer until the worker has used ``timeout_s`` CPU seconds since now, or
-        ``WALL_FACTOR`` · ``timeout_s`` seconds have passed; True when an answer (or EOF) is there."""
+        ``WALL_FACTOR`` · ``timeout_s`` + 60 seconds have passed; True when an answer (or EOF) is there."""
         assert self._recv is not None
         cpu0, wall0 = self.cpu_seconds(), time.monotonic()
         while not self._recv.poll(POLL_S):
-            if self.cpu_seconds() - cpu0 > timeout_s or time.monotonic() - wall0 > WALL_FACTOR * timeout_s:
+            waited = time.monotonic() - wall0
+            if self.cpu_seconds() - cpu0 > timeout_s or waited > WALL_FACTOR * timeout_s + 60.0:
                 return False
         return True
 
