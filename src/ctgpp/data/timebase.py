@@ -28,7 +28,7 @@ def finite_tracks(agents: AgentTracks) -> AgentTracks:
     finite = np.isfinite(agents.xy).all(axis=-1) & np.isfinite(agents.yaw) & np.isfinite(agents.speed)
     finite &= np.isfinite(agents.extent).all(axis=-1)[:, None]
     valid = agents.valid & finite  # (A, T)
-    if valid.sum() == agents.valid.sum():
+    if valid.sum() == agents.valid.sum() and np.isfinite(agents.extent).all():
         return agents
     return replace(
         agents,
