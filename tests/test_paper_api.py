@@ -29,6 +29,7 @@ from ctgpp.language.prompt import Message, examples
 from ctgpp.language.sandbox import SandboxError, load_loss_class
 from tests.test_guidance_helpers import logged_x, real_observation
 
+TIME_LIMIT_S = 60.0  # generous: the trial's speed is not what these tests are about
 LANES_SCENE = "scene-0553"  # scene-0103 at step 30 has no lane beside anyone's; this one has both sides
 
 
@@ -470,7 +471,7 @@ def test_paper_style_program_is_accepted(name: str, checker: LossChecker,
     fixture, code = PAPER_PROGRAMS[name]
     batch, x = request.getfixturevalue(fixture)
     cls = load_loss_class(code)
-    report = checker.check(cls, batch, x)
+    report = checker.check(cls, batch, x, time_limit_s=TIME_LIMIT_S)
     assert report.output_shape in ((x.shape[0], x.shape[1]), (x.shape[1],))
     assert report.grad_abs_sum > 0 and math.isfinite(report.grad_abs_sum)
     # the same program in this process: finite values, finite gradients, and agt_mask all-true = None
@@ -547,6 +548,7 @@ class Canned:
 
     def complete(self, messages: Sequence[Message]) -> str:
         self.seen.append([dict(m) for m in messages])
+        assert self.replies, f"no reply left; the last message: {messages[-1]['content']}"
         return self.replies.pop(0)
 
 
@@ -555,7 +557,7 @@ def test_repair_message_asks_for_defaults(checker: LossChecker, scene_0103) -> N
     fixed = NEEDS_ARGUMENTS.replace("self, acc_limit, target_ind=1", "self, acc_limit=2.0, target_ind=1")
     llm = Canned([f"```python\n{NEEDS_ARGUMENTS}```", f"```python\n{fixed}```"])
     result = generate_loss("vehicle 1 should accelerate below 2 m/s²", llm, batch, x * 3.0, cache=False,
-                           checker=checker)
+                           checker=checker, time_limit_s=TIME_LIMIT_S)
     assert result.rounds == 2 and loss_class_name(result.code) == "AccLimitLoss"
     repair = llm.seen[1][-1]
     assert repair["role"] == "user"
@@ -600,3 +602,12 @@ def test_multi_class_program_is_refused(name: str) -> None:
     with pytest.raises(SandboxError) as refused:
         load_loss_class(code)
     assert reason in str(refused.value)
+
+
+def test_helpers_refuse_rows_that_are_not_the_vehicles(scene_0103) -> None:
+    batch, x = scene_0103
+    some = x[:3]  # e.g. x[agt_mask] with vehicles left out: rows no longer match the vehicles' frames
+    for fn in (transform_coord_agents_to_world, get_current_lane_projection, get_left_lane_projection,
+               get_right_lane_projection):
+        with pytest.raises(ValueError, match=f"B = {x.shape[0]} vehicles"):
+            fn(some[..., :2], some[..., 3:4], batch)

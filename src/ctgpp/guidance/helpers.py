@@ -32,6 +32,14 @@ __all__ = [
 ]
 
 
+def _check_rows(pos_pred: Tensor, data_batch: GuidanceBatch, helper: str) -> None:
+    """Refuse a tensor whose rows are not the scene's vehicles (e.g. ``x[agt_mask]`` with some left
+    out): its rows would be paired with the wrong vehicles' frames."""
+    if pos_pred.dim() < 2 or pos_pred.shape[0] != data_batch.num_vehicles:
+        raise ValueError(f"{helper} expects pos_pred of shape (B, N, T, 2) with B = {data_batch.num_vehicles}"
+                         f" vehicles (one row per vehicle), got {tuple(pos_pred.shape)}")
+
+
 def transform_coord_agents_to_world(
     pos_pred: Tensor, yaw_pred: Tensor, data_batch: GuidanceBatch
 ) -> tuple[Tensor, Tensor]:
@@ -41,6 +49,7 @@ def transform_coord_agents_to_world(
     ``(pos_world, yaw_world)``: (B, N, T, 2) m and (B, N, T, 1) rad in the world frame (yaw not
     wrapped: the agent yaw plus the vehicle's current world yaw).
     """
+    _check_rows(pos_pred, data_batch, "transform_coord_agents_to_world")
     pose = data_batch.pose.to(pos_pred)  # (B, 3)
     origin, yaw0 = pose[:, None, None, :2], pose[:, None, None, 2]  # (B, 1, 1, 2), (B, 1, 1)
     pos_world = local_to_world(pos_pred, origin, yaw0)
@@ -91,6 +100,7 @@ def get_current_lane_projection(pos_pred: Tensor, yaw_pred: Tensor, data_batch: 
     ``pos_pred - proj[..., :2]`` is the (differentiable) offset from the lane. A vehicle that is on
     no lane gets its own positions and yaws back (zero offset).
     """
+    _check_rows(pos_pred, data_batch, "get_current_lane_projection")
     lines = [get_current_lane(data_batch, i) for i in range(pos_pred.shape[0])]
     return _lane_projection(pos_pred, yaw_pred, data_batch, lines)
 
@@ -100,6 +110,7 @@ def get_left_lane_projection(pos_pred: Tensor, yaw_pred: Tensor, data_batch: Gui
     lane (same driving direction) (helper 5): pos_pred (B, N, T, 2), yaw_pred (B, N, T, 1) -> (B, N,
     T, 3). A vehicle with no left lane gets its own positions and yaws back (zero offset, so a loss
     on it is zero for that vehicle)."""
+    _check_rows(pos_pred, data_batch, "get_left_lane_projection")
     lines = [get_adjacent_lane(data_batch, i, "left") for i in range(pos_pred.shape[0])]
     return _lane_projection(pos_pred, yaw_pred, data_batch, lines)
 
@@ -109,5 +120,6 @@ def get_right_lane_projection(pos_pred: Tensor, yaw_pred: Tensor, data_batch: Gu
     current lane (same driving direction) (helper 6): pos_pred (B, N, T, 2), yaw_pred (B, N, T, 1)
     -> (B, N, T, 3). A vehicle with no right lane gets its own positions and yaws back (zero
     offset)."""
+    _check_rows(pos_pred, data_batch, "get_right_lane_projection")
     lines = [get_adjacent_lane(data_batch, i, "right") for i in range(pos_pred.shape[0])]
     return _lane_projection(pos_pred, yaw_pred, data_batch, lines)
