@@ -33,8 +33,8 @@ from ctgpp.dynamics import clip_actions, rollout
 from ctgpp.geometry import local_to_world
 from ctgpp.guidance.base import GuidanceLoss
 from ctgpp.guidance.context import build_guidance_batch
+from ctgpp.interfaces import Observation, Plan
 from ctgpp.model.checkpoint import CheckpointError
-from ctgpp.sim.policy import Observation, Plan
 
 
 @dataclass(frozen=True)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import weakref
 from dataclasses import dataclass, fields
+from typing import Any
 
 import numpy as np
 import torch
@@ -22,8 +23,8 @@ from torch import Tensor
 from ctgpp.data.batch import SceneBatch, WindowDataset, collate
 from ctgpp.data.windows import SceneWindow
 from ctgpp.geometry import local_to_world, world_to_local
+from ctgpp.interfaces import Observation
 from ctgpp.scene.types import AgentTracks, LaneGraph, Scene
-from ctgpp.sim.policy import Observation
 
 CHANNELS = ("drivable", "lane", "lane_cos", "lane_sin", "agents", "trails")
 _BOX_GRID = (9, 5)  # sample points along the length and the width of each box
@@ -190,7 +191,7 @@ class RasterWindowDataset(WindowDataset):
     (half the memory: a training run revisits every window many times, and rasterizing costs more
     than the model's step on a CPU)."""
 
-    def __init__(self, *args, raster: RasterConfig = RasterConfig(), **kwargs) -> None:  # type: ignore[no-untyped-def]
+    def __init__(self, *args: Any, raster: RasterConfig = RasterConfig(), **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self.raster = raster
         self._rasters: dict[int, np.ndarray] = {}

@@ -17,8 +17,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ctgpp.interfaces import Observation
 from ctgpp.scene.types import DrivableArea, Scene
-from ctgpp.sim.policy import Observation
 
 
 @dataclass(frozen=True, eq=False)

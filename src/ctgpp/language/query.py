@@ -19,13 +19,13 @@ from ctgpp.data.windows import WindowConfig, build_window
 from ctgpp.guidance.base import GuidanceLoss
 from ctgpp.guidance.context import build_guidance_batch
 from ctgpp.guidance.scope import LossScope
+from ctgpp.interfaces import Observation
 from ctgpp.language.cache import LossCache
 from ctgpp.language.checks import LossChecker
 from ctgpp.language.client import LLMClient, LLMConfig, LLMError
 from ctgpp.language.compiler import CompiledQuery, QueryError, compile_query
 from ctgpp.language.generate import GenerationFailed, generate_loss
 from ctgpp.language.remote import GeneratedLossError
-from ctgpp.sim.policy import Observation
 
 log = logging.getLogger(__name__)
 

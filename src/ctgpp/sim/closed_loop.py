@@ -2,15 +2,15 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
+from ctgpp.interfaces import Observation, Policy, Rollout
 from ctgpp.scene.types import AgentTracks, Scene
 from ctgpp.scene.vehicles import controlled_vehicles
-from ctgpp.sim.policy import Observation, Policy
-from ctgpp.sim.rollout import Rollout
 
 STATIONARY_SPEED_MPS = 0.5
 
@@ -21,12 +21,50 @@ class EpisodeError(ValueError):
 
 @dataclass(frozen=True)
 class SimConfig:
-    """history_steps includes the current step; duration_steps are simulated after it."""
+    """history_steps includes the current step; duration_steps are simulated after it (0.1 s steps);
+    :func:`episode_config` fits them to a scene."""
 
     history_steps: int = 31
     duration_steps: int = 100
     replan_every: int = 5
     horizon_steps: int = 52
+
+
+HISTORY_S = 3.0  # the log an episode starts from: the model's whole history window
+MIN_HISTORY_S = 1.0  # the least history a short scene may give its episode
+DURATION_S = 10.0
+
+
+def episode_config(
+    scene: Scene, duration_s: float = DURATION_S, history_s: float | None = None
+) -> SimConfig:
+    """The episode of ``duration_s`` simulated seconds that ``scene`` can host.
+
+    ``history_s`` is the logged history before the start (the policy still looks 3 s back; steps
+    before the scene's first are missing to it). None: 3 s, or less where the scene is too short for
+    3 s and the duration, down to 1 s. ValueError for a duration or history that is not positive, or
+    a scene too short for the episode, saying what would fit.
+    """
+    if not (math.isfinite(duration_s) and duration_s > 0):
+        raise ValueError(f"--duration must be positive (got {duration_s:g})")
+    if history_s is not None and not (math.isfinite(history_s) and history_s >= 0):
+        raise ValueError(f"--history must be ≥ 0 (got {history_s:g})")
+    dt = scene.dt_s
+    duration_steps = int(round(duration_s / dt))
+    if duration_steps < 1:
+        raise ValueError(f"--duration {duration_s:g} is shorter than one step ({dt:g} s)")
+    room = scene.agents.num_steps - 1 - duration_steps  # steps of log before the start
+    if history_s is None:
+        history = min(int(round(HISTORY_S / dt)), room)
+        if history < int(round(MIN_HISTORY_S / dt)):
+            raise EpisodeError(
+                f"{scene.id} is {scene.duration_s:.1f} s long: too short for {MIN_HISTORY_S:g} s of history "
+                f"and {duration_steps * dt:.1f} s of simulation (--duration "
+                f"{max(scene.duration_s - MIN_HISTORY_S, 0):.1f} would fit)"
+            )
+    else:
+        history = int(round(history_s / dt))
+    return SimConfig(history_steps=history + 1, duration_steps=duration_steps)
 
 
 def episode_bounds(scene: Scene, config: SimConfig = SimConfig()) -> tuple[float, float]:

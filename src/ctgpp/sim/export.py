@@ -9,9 +9,9 @@ import pyarrow as pa
 import pyarrow.csv as pacsv
 import pyarrow.parquet as pq
 
+from ctgpp.interfaces import Rollout
 from ctgpp.io.atomic import atomic_path
 from ctgpp.scene.types import AgentType
-from ctgpp.sim.rollout import Rollout
 
 
 def rollout_table(rollout: Rollout) -> pa.Table:

@@ -1,55 +1,15 @@
-"""The policy interface of the closed-loop simulator, and the two simple policies."""
+"""The two simple policies of the closed-loop simulator: log replay and constant velocity.
+
+The policy interface (:class:`Observation`, :class:`Plan`, :class:`Policy`) lives in
+:mod:`ctgpp.interfaces` and is re-exported here under its old path."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Protocol
-
 import numpy as np
 
-from ctgpp.scene.types import AgentTracks, Scene
+from ctgpp.interfaces import Observation, Plan, Policy
 
-
-@dataclass(frozen=True, eq=False)
-class Observation:
-    """What a policy sees when it re-plans.
-
-    tracks: every agent over the whole (padded) scene time; controlled vehicles are valid only up
-    to ``step`` (their simulated past), other agents hold the log. controlled: (V,) agent indices in
-    displayed order. horizon_steps: how many future steps to plan. held: the controlled vehicles the
-    simulator keeps still whatever is planned for them (stationary at the start, with a policy that
-    ``hold_stationary``), agent indices: a policy may plan them as standing still and spend nothing on
-    them.
-    """
-
-    scene: Scene
-    tracks: AgentTracks
-    step: int
-    controlled: np.ndarray
-    horizon_steps: int
-    rng: np.random.Generator
-    held: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
-
-
-@dataclass(frozen=True, eq=False)
-class Plan:
-    """Planned world states of the controlled vehicles for the next ``horizon_steps`` steps.
-
-    states: (V, F, 4) x m, y m, speed m/s, yaw rad. valid: (V, F) bool — an invalid step removes the
-    vehicle from the scene at that step (used by log replay when a track ends).
-    """
-
-    states: np.ndarray
-    valid: np.ndarray
-
-
-class Policy(Protocol):
-    """Plans the next seconds for every controlled vehicle from the simulated history."""
-
-    name: str
-    hold_stationary: bool  # whether the simulator keeps vehicles that are stationary at the start still
-
-    def plan(self, obs: Observation) -> Plan: ...
+__all__ = ["ConstantVelocityPolicy", "Observation", "Plan", "Policy", "ReplayPolicy"]
 
 
 class ReplayPolicy:

@@ -1,0 +1,110 @@
+"""The types every layer shares: what a policy observes and plans (:class:`Observation`,
+:class:`Plan`), the :class:`Policy` protocol, and the :class:`Rollout` of an episode.
+
+They live here, apart from the simulator (:mod:`ctgpp.sim`), so that guidance, language, baselines,
+metrics and pictures can name them without importing the simulator; ``ctgpp.sim.policy`` and
+``ctgpp.sim.rollout`` re-export them under their old paths. Only NumPy and the scene types are
+imported.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from ctgpp.scene.types import AgentTracks, Scene
+
+__all__ = ["Observation", "Plan", "Policy", "Rollout"]
+
+
+@dataclass(frozen=True, eq=False)
+class Observation:
+    """What a policy sees when it re-plans.
+
+    tracks: every agent over the whole (padded) scene time; controlled vehicles are valid only up
+    to ``step`` (their simulated past), other agents hold the log. controlled: (V,) agent indices in
+    displayed order. horizon_steps: how many future steps to plan. held: the controlled vehicles the
+    simulator keeps still whatever is planned for them (stationary at the start, with a policy that
+    ``hold_stationary``), agent indices: a policy may plan them as standing still and spend nothing on
+    them.
+    """
+
+    scene: Scene
+    tracks: AgentTracks
+    step: int
+    controlled: np.ndarray
+    horizon_steps: int
+    rng: np.random.Generator
+    held: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+
+
+@dataclass(frozen=True, eq=False)
+class Plan:
+    """Planned world states of the controlled vehicles for the next ``horizon_steps`` steps.
+
+    states: (V, F, 4) x m, y m, speed m/s, yaw rad. valid: (V, F) bool — an invalid step removes the
+    vehicle from the scene at that step (used by log replay when a track ends).
+    """
+
+    states: np.ndarray
+    valid: np.ndarray
+
+
+class Policy(Protocol):
+    """Plans the next seconds for every controlled vehicle from the simulated history."""
+
+    name: str
+    hold_stationary: bool  # whether the simulator keeps vehicles that are stationary at the start still
+
+    def plan(self, obs: Observation) -> Plan: ...
+
+
+@dataclass(frozen=True, eq=False)
+class Rollout:
+    """One simulated episode of a scene.
+
+    The episode's window covers scene steps ``[first_step, first_step + num_steps)``; index
+    ``current`` of the window is the simulation start (t = 0 s), earlier indices are the logged
+    history, later ones the simulated future. ``sim`` holds every agent of the scene over the window
+    (controlled vehicles simulated, the others replayed from the log). ``controlled``: (A,) bool.
+    ``number``: (A,) int, the displayed vehicle number of controlled agents, -1 for the others.
+    """
+
+    scene: Scene
+    first_step: int
+    current: int
+    sim: AgentTracks
+    controlled: np.ndarray
+    number: np.ndarray
+    policy: str
+
+    @property
+    def log(self) -> AgentTracks:
+        """The logged tracks over the same window."""
+        a = self.scene.agents
+        window = slice(self.first_step, self.first_step + self.sim.num_steps)
+        return AgentTracks(
+            ids=a.ids,
+            types=a.types,
+            xy=a.xy[:, window],
+            yaw=a.yaw[:, window],
+            speed=a.speed[:, window],
+            extent=a.extent,
+            valid=a.valid[:, window],
+        )
+
+    @property
+    def dt_s(self) -> float:
+        return self.scene.dt_s
+
+    @property
+    def start_s(self) -> float:
+        """Scene time of the simulation start in seconds."""
+        return (self.first_step + self.current) * self.scene.dt_s
+
+    @property
+    def future(self) -> slice:
+        """Window indices of the simulated future (t > 0)."""
+        return slice(self.current + 1, self.sim.num_steps)
