@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import json
+import math
+from dataclasses import asdict
 from pathlib import Path
 
 import pytest
 import torch
 
-from ctgpp.bench.report import paired_difference, scenario_table
+from ctgpp.bench.report import paired_difference, scenario_table, write_report
 from ctgpp.bench.scaling import tiled_batch
 from ctgpp.bench.scenarios import EpisodeTiming, PresetResult
 from ctgpp.cli.main import main
@@ -53,7 +55,7 @@ def test_bench_times_a_guided_scenario_and_the_curves(tmp_path: Path) -> None:
     argv = ["bench", "--presets", "fast,ddim2-n1", "--episodes", "1", "--seeds", "0,3"]
     argv += ["--agents", "4,8", "--scenes", "1,2"]
     assert main([*argv, "--repeats", "1", "--out", str(out)]) == 0
-    report = json.loads((out / "bench.json").read_text())
+    report = json.loads((out / "bench.json").read_text(), parse_constant=_no_constant)
     fast, cheap = report["scenarios"]  # each in its own process, the same episodes interleaved
     assert cheap["preset"] == "ddim2-n1" and cheap["peak_rss_mib"] > 0
     assert [(e["start_s"], e["seed"]) for e in cheap["episodes"]] == [
@@ -76,6 +78,24 @@ def test_bench_times_a_guided_scenario_and_the_curves(tmp_path: Path) -> None:
 )
 def test_bench_mistakes_exit_2(argv: list[str], tmp_path: Path) -> None:
     assert main(["bench", *argv, "--out", str(tmp_path)]) == 2
+
+
+def _no_constant(name: str) -> None:
+    raise AssertionError(f"bench.json holds the bare constant {name}: not JSON")
+
+
+def test_bench_json_is_strict_json(tmp_path: Path) -> None:
+    """Undefined figures (no moving vehicle: real NaN; an infinite one) are null, never bare NaN."""
+    episodes = [_episode(3.0, 0, 0.1, math.nan), _episode(4.0, 0, math.inf, 0.3)]
+    result = PresetResult("fast", "", episodes, 1.0, 1)
+    report = {"scenarios": [asdict(result)], "mean_real": result.mean("real"), "worst": -math.inf}
+    path, _ = write_report(tmp_path / "bench", report, "# bench\n")
+    stored = json.loads(path.read_text(), parse_constant=_no_constant)
+    first, second = stored["scenarios"][0]["episodes"]
+    assert first["real"] is None and first["fail"] == 0.1
+    assert second["fail"] is None and second["real"] == 0.3
+    assert stored["mean_real"] == 0.3 and stored["worst"] is None
+    assert (tmp_path / "bench" / "bench.md").read_text() == "# bench\n"
 
 
 def _episode(start_s: float, seed: int, fail: float, real: float) -> EpisodeTiming:

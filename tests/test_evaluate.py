@@ -3,6 +3,8 @@ paper's table, the realism histograms, and the checkpoints of the ablations."""
 
 from __future__ import annotations
 
+import json
+import math
 from pathlib import Path
 
 import pytest
@@ -10,6 +12,7 @@ import pytest
 from ctgpp.cli.common import split_spec
 from ctgpp.data.catalog import Catalog
 from ctgpp.eval.realism_plot import read_histograms
+from ctgpp.eval.records import append_json_lines, metric_cell, read_json_lines
 from ctgpp.eval.runner import KEY, METRICS, EvalSet, plan_episodes, read_records, run_episodes
 from ctgpp.eval.table import markdown_table, summarize
 from ctgpp.guidance.base import GuidanceLoss
@@ -109,6 +112,27 @@ def test_parallel_run_resumes_without_recomputing(catalog: Catalog, tmp_path: Pa
     for e in entries:  # replay is the log: its histograms are the log's
         same = all(h["sim"] == h["log"] for s in e["histograms"].values() for h in s.values())
         assert same or e["method"] != "replay"
+
+
+def _no_constant(name: str) -> None:
+    raise AssertionError(f"a results line holds the bare constant {name}: not JSON")
+
+
+def test_results_are_strict_json_and_undefined_metrics_empty_cells(tmp_path: Path) -> None:
+    """realism.jsonl lines are strict JSON (null for NaN and infinities, nested too); an undefined
+    metric in episodes.csv is an empty cell, not "nan" or "inf"."""
+    path = tmp_path / "realism.jsonl"
+    with append_json_lines(path) as write:
+        write({"scene": "scene-0103", "real": math.nan, "counts": [1, 2], "by": {"jerk": [math.inf, 0.5]}})
+        write({"scene": "scene-0916", "real": 0.25, "worst": -math.inf})
+    lines = [json.loads(line, parse_constant=_no_constant) for line in path.read_text().splitlines()]
+    assert lines == [
+        {"scene": "scene-0103", "real": None, "counts": [1, 2], "by": {"jerk": [None, 0.5]}},
+        {"scene": "scene-0916", "real": 0.25, "worst": None},
+    ]
+    assert read_json_lines(path) == lines
+    assert [metric_cell(v) for v in (0.125, math.nan, math.inf, -math.inf)] == ["0.125000", "", "", ""]
+    assert metric_cell(1.23456, 3) == "1.235"
 
 
 def test_a_failing_worker_names_its_episode(catalog: Catalog, tmp_path: Path) -> None:

@@ -12,7 +12,8 @@ from matplotlib.figure import Figure
 from ctgpp.bench.scaling import CallTiming
 from ctgpp.bench.scenarios import PresetResult
 from ctgpp.eval.table import MOVING_COLUMNS as EVAL_MOVING_COLUMNS
-from ctgpp.io.atomic import atomic_path
+from ctgpp.io.atomic import atomic_path, write_text_atomic
+from ctgpp.io.strict_json import dumps_strict
 from ctgpp.metrics.moving import POOL_WEIGHT, pooled_mean
 
 REFERENCE_PRESET = "paper"
@@ -137,3 +138,11 @@ def plot_agent_curve(curve: Sequence[CallTiming], path: Path) -> Path:
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=120)
     return path
+
+
+def write_report(out: Path, report: dict[str, object], markdown: str) -> tuple[Path, Path]:
+    """``bench.json`` (strict JSON: an undefined figure, NaN or infinite, is ``null``) and ``bench.md``
+    in ``out``, each written atomically."""
+    out.mkdir(parents=True, exist_ok=True)
+    record = write_text_atomic(out / "bench.json", dumps_strict(report, indent=2) + "\n")
+    return record, write_text_atomic(out / "bench.md", markdown)

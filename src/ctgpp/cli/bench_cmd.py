@@ -3,13 +3,19 @@
 from __future__ import annotations
 
 import argparse
-import json
 from dataclasses import asdict
 from pathlib import Path
 
 import torch
 
-from ctgpp.bench.report import agent_table, batching_table, moving_table, plot_agent_curve, scenario_table
+from ctgpp.bench.report import (
+    agent_table,
+    batching_table,
+    moving_table,
+    plot_agent_curve,
+    scenario_table,
+    write_report,
+)
 from ctgpp.bench.scaling import agent_curve, scene_batching
 from ctgpp.bench.scenarios import BenchJob, time_presets
 from ctgpp.cli.common import add_data_arg, open_catalog
@@ -18,7 +24,6 @@ from ctgpp.data.windows import SceneWindow, build_window
 from ctgpp.diffusion import CosineSchedule
 from ctgpp.eval.rule_setup import evaluation_rules
 from ctgpp.eval.runner import NO_RULE, Episode, plan_episodes
-from ctgpp.io.atomic import write_text_atomic
 from ctgpp.model.config import ModelConfig
 from ctgpp.scene.vehicles import controlled_vehicles
 from ctgpp.sim.closed_loop import STATIONARY_SPEED_MPS, episode_starts, start_step
@@ -129,9 +134,7 @@ def run_bench(args: argparse.Namespace) -> int:
             report["batching"] = [{**asdict(t), "separate_ms": s} for t, s in rows]
             text += ["## Several scenes in one call\n", batching_table(rows)]
 
-    args.out.mkdir(parents=True, exist_ok=True)
-    write_text_atomic(args.out / "bench.json", json.dumps(report, indent=2) + "\n")
-    write_text_atomic(args.out / "bench.md", "\n".join(text))
+    write_report(args.out, report, "\n".join(text))
     print("\n".join(text))
     print(f"wrote {args.out / 'bench.md'}, bench.json" + (", agents.png" if agents else ""))
     return 0

@@ -8,13 +8,13 @@ them, ``metrics.moving``) and the histograms of the realism statistics behind ``
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from ctgpp.data.catalog import Catalog
+from ctgpp.eval.records import metric_cell
 from ctgpp.eval.rule_setup import RuleSpec, setup_rule
 from ctgpp.guidance.base import GuidanceLoss
 from ctgpp.metrics import MOVING_COUNTS, MOVING_METRICS, compute_metrics, moving_counts
@@ -138,7 +138,7 @@ def run_episode(scene: Scene, ep: Episode, make_policy: PolicyMaker) -> EpisodeR
     row["vehicles"] = str(int(rollout.controlled.sum()))
     row.update({k: str(v) for k, v in moving_counts(rollout).items()})
     metrics.update(compute_metrics(rollout, MOVING_METRICS))
-    row.update({k: "" if math.isnan(v) else f"{v:.6f}" for k, v in metrics.items()})
+    row.update({k: metric_cell(v) for k, v in metrics.items()})  # undefined: empty
     return EpisodeResult(row, realism_histograms(rollout))
 
 

@@ -22,7 +22,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from ctgpp.data.catalog import Catalog
-from ctgpp.eval.records import append_records, read_records, record_key
+from ctgpp.eval.records import append_records, metric_cell, read_records, record_key
 from ctgpp.guidance.base import GuidanceLoss
 from ctgpp.language.compiler import CompiledQuery
 from ctgpp.language.query import resolve_query
@@ -99,7 +99,7 @@ def _compile(scene: Scene, case: QueryCase) -> CompiledQuery:
 
 
 def _fmt(value: float) -> str:
-    return "" if math.isnan(value) else f"{value:.6f}"
+    return metric_cell(value)
 
 
 def _measure(rollout: Rollout, compiled: CompiledQuery, side: str) -> dict[str, str]:

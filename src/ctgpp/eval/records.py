@@ -1,18 +1,23 @@
 """Resumable result files: one line per finished unit of work, appended and flushed in one call.
 
-CSV rows (:func:`append_records`, :func:`read_records`) and JSON lines (:func:`append_json_lines`,
-:func:`read_json_lines`). A killed run loses at most the line in flight; readers drop a torn last
-line and writers cut it off before appending, so a re-run skips exactly the work already in the file.
+CSV rows (:func:`append_records`, :func:`read_records`; an undefined metric is an empty cell,
+:func:`metric_cell`) and JSON lines (:func:`append_json_lines`, :func:`read_json_lines`; strict JSON,
+an undefined value is ``null``). A killed run loses at most the line in flight; readers drop a torn
+last line and writers cut it off before appending, so a re-run skips exactly the work already in the
+file.
 """
 
 from __future__ import annotations
 
 import csv
 import json
+import math
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
+
+from ctgpp.io.strict_json import dumps_strict
 
 
 def read_records(path: Path, required: Sequence[str]) -> list[dict[str, str]]:
@@ -23,6 +28,11 @@ def read_records(path: Path, required: Sequence[str]) -> list[dict[str, str]]:
     with path.open(newline="", encoding="utf-8") as f:
         rows = list(csv.DictReader(f))
     return [r for r in rows if None not in r.values() and all(r.get(k) for k in required)]
+
+
+def metric_cell(value: float, digits: int = 6) -> str:
+    """A metric as a results-CSV cell: ``digits`` decimals, empty when undefined (NaN or infinite)."""
+    return f"{value:.{digits}f}" if math.isfinite(value) else ""
 
 
 def record_key(record: dict[str, str], key: Sequence[str]) -> tuple[str, ...]:
@@ -78,13 +88,14 @@ def read_json_lines(path: Path) -> list[dict[str, Any]]:
 @contextmanager
 def append_json_lines(path: Path) -> Iterator[Callable[[dict[str, Any]], None]]:
     """Open ``path`` for appending JSON objects, a torn last line cut off first; yields ``write(obj)``,
-    which writes one line (compact JSON) and flushes it."""
+    which writes one line (compact, strict JSON: an undefined value, NaN or infinite, is ``null``) and
+    flushes it."""
     path.parent.mkdir(parents=True, exist_ok=True)
     _drop_torn_line(path)
     with path.open("a", encoding="utf-8") as f:
 
         def write(item: dict[str, Any]) -> None:
-            f.write(json.dumps(item, separators=(",", ":")) + "\n")
+            f.write(dumps_strict(item, separators=(",", ":")) + "\n")
             f.flush()
 
         yield write
