@@ -14,6 +14,7 @@ from ctgpp.data.context import ContextConfig, Role, select_context, training_rol
 from ctgpp.data.windows import build_window
 from ctgpp.model import Denoiser, ModelConfig
 from ctgpp.scene.types import AgentTracks, AgentType, Scene
+from ctgpp.scene.vehicles import controlled_vehicles
 from ctgpp.sim.closed_loop import SimConfig, initial_observation, simulate
 from ctgpp.sim.diffusion_policy import DiffusionPolicy, SamplingConfig
 
@@ -120,3 +121,29 @@ def test_sampling_never_changes_held_or_replayed_futures(scene_0103: Scene) -> N
     others = np.setdiff1d(np.arange(a.num_agents), obs.controlled)
     np.testing.assert_array_equal(sim.xy[others], log.xy[others])
     np.testing.assert_array_equal(sim.valid[others], log.valid[others])
+
+
+def test_a_vehicle_at_rest_that_the_log_moves_on_is_never_held_in_training(scene_0103: Scene) -> None:
+    """A held vehicle stands still in the window; one whose log drives off within the future would
+    stand where the others' logged futures drive: it is sampled instead."""
+    a = scene_0103.agents
+    every = ContextConfig(held_prob=1.0, replay_prob=0.0)
+    moved_on = kept = 0
+    for step in range(30, a.num_steps - 60, 5):
+        _, held = training_roles(scene_0103, step, 64, every, future_steps=52)
+        for v in held:
+            t = np.arange(step + 1, step + 53)
+            gap = np.linalg.norm(a.xy[v, t][a.valid[v, t]] - a.xy[v, step], axis=-1)
+            assert gap.max() <= 1.0
+        vehicles = controlled_vehicles(scene_0103, step)
+        rest = vehicles[a.speed[vehicles, step] < 0.5]
+        for v in rest:
+            t = np.arange(step + 1, step + 53)
+            gap = np.linalg.norm(a.xy[v, t][a.valid[v, t]] - a.xy[v, step], axis=-1)
+            if gap.size and gap.max() > 1.0:
+                moved_on += 1
+                assert v not in held
+            elif gap.size:
+                kept += 1
+                assert v in held
+    assert moved_on > 0 and kept > 0  # the scene has both kinds

@@ -329,3 +329,44 @@ def test_context_of_several_scenes_expands_scene_major(scene_0103: Scene) -> Non
         batch = collate(windows)
         expanded = model(x, k, batch, model.encode_context(batch).expand(2))
     torch.testing.assert_close(expanded, repeated)
+
+
+def test_lane_segment_tokens_see_only_their_own_stretch() -> None:
+    """With G segments each lane token pools its own P / G consecutive points: bending the path
+    beyond the first stretch changes the later tokens only; one segment pools the whole lane."""
+    from ctgpp.model.lane_encoder import LaneEncoder
+
+    torch.manual_seed(0)
+    encoder = LaneEncoder(16, 16, segments=4)
+    x = torch.linspace(0.0, 39 * 2.5, 40)
+    straight = torch.stack([x, torch.zeros(40), torch.ones(40), torch.zeros(40)], dim=-1)[None, None, None]
+    bent = straight.clone()
+    bent[..., 20:, 1] = (x[20:] - x[19]) * 0.5  # the path turns left halfway along
+    valid = torch.ones(1, 1, 1, 40, dtype=torch.bool)
+    with torch.no_grad():
+        a, a_valid = encoder(straight, valid)
+        b, _ = encoder(bent, valid)
+    assert a.shape == (1, 1, 4, 16) and a_valid.all()
+    assert torch.equal(a[..., :2, :], b[..., :2, :])  # points 0..19: the first two stretches
+    assert (a[..., 2:, :] - b[..., 2:, :]).abs().amax() > 1e-3
+    whole = LaneEncoder(16, 16, segments=1)
+    whole.load_state_dict(encoder.state_dict())  # the same parameters, one token per lane
+    with torch.no_grad():
+        one, _ = whole(straight, valid)
+    assert one.shape == (1, 1, 1, 16)
+    part = valid.clone()
+    part[..., 10:] = False  # only the first stretch is mapped: the later tokens are invalid, zero
+    with torch.no_grad():
+        c, c_valid = encoder(straight, part)
+    assert c_valid[0, 0].tolist() == [True, False, False, False] and (c[..., 1:, :] == 0).all()
+    with pytest.raises(ValueError, match="segments"):
+        LaneEncoder(16, 16, segments=3)(straight, valid)
+
+
+def test_lane_segments_legacy_default_and_checks() -> None:
+    assert ModelConfig().lane_segments == 8 and ModelConfig().tokens_per_lane == 8
+    old = {k: v for k, v in TINY.to_dict().items() if k != "lane_segments"}
+    assert ModelConfig.from_dict(old).lane_segments == 1  # a checkpoint from before keeps one token
+    assert ModelConfig(context=None, map=None).tokens_per_lane == 1
+    with pytest.raises(ValueError, match="lane_segments"):
+        ModelConfig(lane_segments=3)  # 40 points do not split into 3 stretches

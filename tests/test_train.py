@@ -135,3 +135,34 @@ def test_the_shipped_checkpoint_loads_and_plans() -> None:
         plan.states[moving, -1, :2] - obs.tracks.xy[obs.controlled[moving], obs.step], axis=-1
     )
     assert (travelled > 5.0).all()
+
+
+def test_a_new_run_starts_from_the_weights_it_is_given(
+    scene_0103: Scene, trained: tuple[Path, dict], tmp_path: Path
+) -> None:
+    """``init_from``: the new run's first state holds the given weights moved by its own steps only
+    (a learning rate of 1e-9 leaves them there); a run from scratch starts elsewhere."""
+    out, _ = trained
+    cfg = TrainConfig(1, batch_scenes=1, lr=1e-9, stride=40, val_every=1, val_windows=1, max_agents=4)
+    given = load_file(str(out / "model.safetensors"))
+    train([scene_0103], [scene_0103], TINY, replace(cfg, init_from=str(out)), tmp_path / "warm", progress=False)
+    scratch = train([scene_0103], [scene_0103], TINY, cfg, tmp_path / "cold", progress=False)
+    warm = load_file(str(tmp_path / "warm" / "train_state.safetensors"))
+    cold = load_file(str(tmp_path / "cold" / "train_state.safetensors"))
+    for name, tensor in given.items():
+        assert torch.allclose(warm[f"model.{name}"], tensor, atol=1e-6), name
+    assert any(not torch.allclose(cold[f"model.{n}"], t, atol=1e-3) for n, t in given.items())
+    assert scratch["steps"] == 1
+
+
+def test_init_from_a_checkpoint_of_another_shape_is_refused_before_training(
+    trained: tuple[Path, dict], tmp_path: Path
+) -> None:
+    out, _ = trained  # 1 block of d_model 32: not the default 2 of 64
+    done = subprocess.run(
+        [sys.executable, "-m", "ctgpp.cli.main", "train", "--out", str(tmp_path / "x"), "--init-from", str(out)],
+        capture_output=True, text=True, timeout=120,
+    )
+    assert done.returncode != 0 and "does not match the model" in done.stderr
+    assert "Traceback" not in done.stderr and len(done.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "x" / "train_state.safetensors").exists()

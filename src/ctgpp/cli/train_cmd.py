@@ -8,9 +8,11 @@ import math
 from pathlib import Path
 
 from ctgpp.baselines.config import BaselineConfig, BITSConfig, CTGConfig
+from ctgpp.baselines.kinds import kind_of
 from ctgpp.cli.common import split_spec
 from ctgpp.data.catalog import Catalog
 from ctgpp.io.atomic import check_output_dir
+from ctgpp.model.checkpoint import load_weights
 from ctgpp.model.config import ModelConfig
 from ctgpp.scene.types import Scene
 from ctgpp.train.loop import TrainConfig, train
@@ -70,6 +72,14 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--val-every", type=int, default=TrainConfig.val_every, help="steps between validations")
     p.add_argument("--val-windows", type=int, default=TrainConfig.val_windows, help="validation windows")
+    p.add_argument(
+        "--init-from",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="start a new run from the weights of checkpoint DIR (the same parameters; a fresh "
+        "optimizer); ignored when OUT holds a training state, which resumes (default: random weights)",
+    )
     p.set_defaults(run=run_train)
 
 
@@ -110,6 +120,8 @@ def run_train(args: argparse.Namespace) -> int:
         raise ValueError(f"--lr {args.lr}: expected a positive number")
     check_output_dir(args.out)
     model_config = model_config_of(args)
+    if args.init_from is not None:  # checked before the data loads: names and shapes must match
+        load_weights(args.init_from, kind_of(model_config).build(model_config))
     specs = args.train or ["mini_train"]
     train_scenes = [s for spec in specs for s in load_split(spec)]
     val_scenes = load_split(args.val)
@@ -122,6 +134,7 @@ def run_train(args: argparse.Namespace) -> int:
         val_every=args.val_every,
         val_windows=args.val_windows,
         max_agents=args.max_agents,
+        init_from=None if args.init_from is None else str(args.init_from),
     )
     note = f"train {' + '.join(specs)} ({len(train_scenes)} scenes), val {args.val}, "
     note += f"variant {args.variant}" if args.model == "ctgpp" else f"model {args.model}"

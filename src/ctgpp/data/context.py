@@ -8,9 +8,12 @@ near them whose future the simulator knows:
   log): their logged future.
 
 Training presents the same kinds of scene (:func:`training_roles`): vehicles at rest at the window's
-start are held (standing still) half of the time and sampled otherwise, so the model learns both to
-drive around parked cars and to start from rest; a few moving vehicles are replayed from the log, as
-vehicles that enter an episode later are; every other agent type is replayed.
+start that the log keeps there over the window's future are held (standing still) half of the time
+and sampled otherwise, so the model learns both to drive around parked cars and to start from rest;
+a vehicle at rest that the log moves on within the future is never held, as a held vehicle that the
+logged futures of the others drive through would teach the model to drive through held vehicles; a
+few moving vehicles are replayed from the log, as vehicles that enter an episode later are; every
+other agent type is replayed.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ from ctgpp.scene.types import AgentType, Scene
 from ctgpp.scene.vehicles import controlled_vehicles
 
 AT_REST_MPS = 0.5  # the simulator holds vehicles slower than this at the start (sim.closed_loop)
+STAYS_WITHIN_M = 1.0  # a training window holds a vehicle at rest only if its log stays this close
 
 
 class Role(enum.IntEnum):
@@ -76,23 +80,41 @@ class ContextAgents:
 
 
 def training_roles(
-    scene: Scene, step: int, max_sampled: int, config: ContextConfig = ContextConfig()
+    scene: Scene,
+    step: int,
+    max_sampled: int,
+    config: ContextConfig = ContextConfig(),
+    future_steps: int = 52,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Roles of a training window at ``step``: (sampled (M,), held (K,)) agent indices.
 
-    Vehicles present at ``step`` in displayed order; at rest: held with ``held_prob``, else sampled;
-    moving: replayed with ``replay_prob``, else sampled; sampled beyond ``max_sampled`` are replayed.
-    Every agent neither sampled nor held is replayed. The draws are fixed by the scene id and step,
-    so a window is the same in every epoch and after a resumed training.
+    Vehicles present at ``step`` in displayed order; at rest and kept there by the log over the next
+    ``future_steps`` (:func:`stays_put`): held with ``held_prob``, else sampled; at rest but moving on:
+    sampled; moving: replayed with ``replay_prob``, else sampled; sampled beyond ``max_sampled`` are
+    replayed. Every agent neither sampled nor held is replayed. The draws are fixed by the scene id
+    and step, so a window is the same in every epoch and after a resumed training.
     """
     rng = np.random.default_rng([zlib.crc32(scene.id.encode()), step])
     vehicles = controlled_vehicles(scene, step)
     at_rest = scene.agents.speed[vehicles, step] < AT_REST_MPS
     draw = rng.random(len(vehicles))
-    held = at_rest & (draw < config.held_prob)
+    held = at_rest & stays_put(scene, vehicles, step, future_steps) & (draw < config.held_prob)
     replayed = ~at_rest & (draw < config.replay_prob)
     sampled = vehicles[~held & ~replayed][:max_sampled]
     return sampled, vehicles[held]
+
+
+def stays_put(scene: Scene, vehicles: np.ndarray, step: int, future_steps: int) -> np.ndarray:
+    """(V,) bool: whether the log keeps each vehicle within ``STAYS_WITHIN_M`` of where it is at
+    ``step`` over its logged steps among the next ``future_steps`` (False with none logged)."""
+    a = scene.agents
+    t = np.arange(step + 1, min(step + 1 + future_steps, a.num_steps))
+    if len(vehicles) == 0 or len(t) == 0:
+        return np.zeros(len(vehicles), dtype=bool)
+    gap = np.linalg.norm(a.xy[vehicles][:, t] - a.xy[vehicles, step][:, None], axis=-1)  # (V, T)
+    logged = a.valid[vehicles][:, t]
+    far = np.where(logged, gap, 0.0).max(axis=1) > STAYS_WITHIN_M
+    return logged.any(axis=1) & ~far
 
 
 def select_context(

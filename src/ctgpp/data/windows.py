@@ -98,7 +98,7 @@ def build_window(
     if agent_index is not None:
         idx = np.asarray(agent_index)
     elif config.context is not None:
-        idx, held = training_roles(scene, step, config.max_agents, config.context)
+        idx, held = training_roles(scene, step, config.max_agents, config.context, config.future_steps)
     else:
         idx = controlled_vehicles(scene, step)
     idx = idx[: config.max_agents]

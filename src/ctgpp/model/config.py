@@ -38,6 +38,10 @@ class ModelConfig:
     Model); None for checkpoints from before the context existed, which see the sampled vehicles only.
     map: the driving map (:class:`~ctgpp.data.map_inputs.MapConfig`: lanes ahead, drivable grid);
     None for the nearest lanes of the first checkpoints.
+    lane_segments: lane tokens per lane slot of the driving map, each pooled from a stretch of
+    consecutive points (:class:`~ctgpp.model.lane_encoder.LaneEncoder`; 8 stretches of 12.5 m with
+    the default map); 1, one token per lane, for checkpoints from before (``LEGACY``). Without a map
+    (the nearest lanes) every lane is one token.
     """
 
     d_model: int = 64
@@ -62,10 +66,22 @@ class ModelConfig:
     context: ContextConfig | None = ContextConfig()
     map: MapConfig | None = MapConfig()
     grid_patch: int = 6
+    lane_segments: int = 8
 
     def __post_init__(self) -> None:
         if self.d_model % self.heads != 0:
             raise ValueError(f"d_model {self.d_model} is not divisible by heads {self.heads}")
+        points = self.map.lane_points if self.map is not None else self.lane_segments  # no map: unused
+        if self.lane_segments < 1 or points % self.lane_segments:
+            raise ValueError(
+                f"ModelConfig.lane_segments {self.lane_segments} must be positive and split the map's "
+                f"{points} lane points evenly"
+            )
+
+    @property
+    def tokens_per_lane(self) -> int:
+        """Lane tokens per lane: ``lane_segments`` with the driving map, 1 with the nearest lanes."""
+        return self.lane_segments if self.map is not None else 1
         lengths = {"action_mean": 2, "action_std": 2, "state_mean": 4, "state_std": 4}
         for name, n in lengths.items():
             value = tuple(float(v) for v in getattr(self, name))
@@ -115,4 +131,5 @@ class ModelConfig:
         return cls(**values)
 
 
-LEGACY: dict[str, Any] = {"context": None, "map": None}  # fields added after the first checkpoints
+# fields added after the first checkpoints, with the value those checkpoints were trained with
+LEGACY: dict[str, Any] = {"context": None, "map": None, "lane_segments": 1}

@@ -142,7 +142,7 @@ class Denoiser(nn.Module):
         self.edge_mlp = nn.Sequential(
             nn.Linear(7, config.edge_dim), nn.GELU(), nn.Linear(config.edge_dim, config.edge_dim)
         )
-        self.lane_encoder = LaneEncoder(d, config.lane_hidden)
+        self.lane_encoder = LaneEncoder(d, config.lane_hidden, config.tokens_per_lane)
         if config.context is not None:
             self.agent_emb = AgentEmbedding(d)
             self.context_encoder = ContextEncoder(d, config.heads, config.ffn_mult)
@@ -163,9 +163,9 @@ class Denoiser(nn.Module):
         edges = self.edge_mlp(raw_edges)  # (S, T, A, K, E)
         if not cfg.use_edges:
             edges = torch.zeros_like(edges)
-        lane_tokens, lane_valid = self.lane_encoder(inputs.lanes, inputs.lanes_valid)  # (S, A, L, d)
-        if cfg.map is not None:
-            lane_tokens = lane_tokens + self.slot_emb  # (S, A, L, d)
+        lane_tokens, lane_valid = self.lane_encoder(inputs.lanes, inputs.lanes_valid)  # (S, A, L·G, d)
+        if cfg.map is not None:  # each lane's G segment tokens carry its slot's embedding
+            lane_tokens = lane_tokens + self.slot_emb.repeat_interleave(cfg.tokens_per_lane, dim=0)
             grid_tokens = self.grid_encoder(batch.drivable)  # (S, A, N, d)
             lane_tokens = torch.cat([lane_tokens, grid_tokens], dim=2)
             grid_valid = inputs.agent_mask[..., None].expand(-1, -1, grid_tokens.shape[2])

@@ -26,7 +26,7 @@ from ctgpp.baselines.kinds import LossFn, kind_of
 from ctgpp.data.batch import SceneBatch
 from ctgpp.data.windows import WindowConfig
 from ctgpp.diffusion import CosineSchedule
-from ctgpp.model.checkpoint import save_checkpoint
+from ctgpp.model.checkpoint import load_weights, save_checkpoint
 from ctgpp.model.config import ModelConfig
 from ctgpp.model.loss import training_loss
 from ctgpp.scene.types import Scene
@@ -49,6 +49,7 @@ class TrainConfig:
     val_every: int = 250
     val_windows: int = 32
     max_agents: int = 32
+    init_from: str | None = None  # a checkpoint directory whose weights a new run starts from
 
 
 def _world() -> tuple[int, int]:
@@ -117,10 +118,13 @@ def train(
     val_batches = [kind.collate([val_set[i] for i in val_idx[j : j + 4]]) for j in range(0, n_val, 4)]
 
     model = kind.build(model_config).to(device)
+    out = Path(out)
+    if config.init_from is not None and not has_train_state(out):
+        load_weights(Path(config.init_from), model)  # the same names and shapes, or a clear error
+        log.info("starting from the weights of %s", config.init_from)
     ema = copy.deepcopy(model).eval()
     optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
     schedule = kind.schedule(model_config)
-    out = Path(out)
     state: dict[str, Any] = {"step": 0, "history": [], "wall_s": 0.0}
     for stale in out.glob(".*.tmp*"):  # a temporary file of a write that a kill interrupted
         stale.unlink()
