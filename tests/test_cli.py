@@ -139,7 +139,7 @@ def test_filtration_flag_reaches_the_guidance_config(command: str) -> None:
     from ctgpp.cli.common import guidance_config
     from ctgpp.cli.main import build_parser
 
-    parser = build_parser()
+    parser = build_parser(command)
     assert guidance_config(parser.parse_args([command])).compose
     chosen = guidance_config(parser.parse_args([command, "--filtration", "scene", "--guide-lr", "0.3"]))
     assert (chosen.compose, chosen.lr) == (False, 0.3)

@@ -1,18 +1,28 @@
 """Angle wrapping and rigid 2-D frame transforms, for numpy arrays and torch tensors alike.
 
 A pose is (x, y, yaw) in metres and radians. A frame's local coordinates have x forward along the
-frame's heading and y to its left (DESIGN.md, Data).
+frame's heading and y to its left (DESIGN.md, Data). torch is not imported here: a value can only be
+a tensor once torch is loaded, so NumPy callers (``ctgpp scenes``, ``ctgpp show``) start without it.
 """
 
 from __future__ import annotations
 
 import math
-from typing import TypeVar
+import sys
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
-import torch
 
-ArrayT = TypeVar("ArrayT", np.ndarray, torch.Tensor)
+if TYPE_CHECKING:
+    import torch
+
+ArrayT = TypeVar("ArrayT", np.ndarray, "torch.Tensor")
+
+
+def _torch_of(value: Any) -> Any:
+    """The torch module when ``value`` is a tensor, else None (without importing torch)."""
+    torch = sys.modules.get("torch")
+    return torch if torch is not None and isinstance(value, torch.Tensor) else None
 
 
 def wrap_angle(angle: ArrayT) -> ArrayT:
@@ -20,8 +30,9 @@ def wrap_angle(angle: ArrayT) -> ArrayT:
     return (angle + math.pi) % (2 * math.pi) - math.pi
 
 
-def _cos_sin(yaw: ArrayT) -> tuple[ArrayT, ArrayT]:
-    if isinstance(yaw, torch.Tensor):
+def _cos_sin(yaw: ArrayT) -> tuple[Any, Any]:  # of yaw's kind: a tensor for a tensor
+    torch = _torch_of(yaw)
+    if torch is not None:
         return torch.cos(yaw), torch.sin(yaw)
     return np.cos(yaw), np.sin(yaw)
 
@@ -56,7 +67,8 @@ def rotate(vec: ArrayT, yaw: ArrayT) -> ArrayT:
     return _stack(x, y, like=vec)
 
 
-def _stack(x: ArrayT, y: ArrayT, like: ArrayT) -> ArrayT:
-    if isinstance(like, torch.Tensor):
+def _stack(x: ArrayT, y: ArrayT, like: ArrayT) -> Any:  # of like's kind: a tensor for a tensor
+    torch = _torch_of(like)
+    if torch is not None:
         return torch.stack([x, y], dim=-1)
     return np.stack([x, y], axis=-1)

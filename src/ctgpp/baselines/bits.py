@@ -13,6 +13,7 @@ the unicycle; trained with the logged goal (teacher forcing) on the loss form of
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import cast
 
 import torch
 import torch.nn.functional as F
@@ -120,7 +121,7 @@ def bits_loss(
     """Goal cross-entropy + goal-offset L2 (in cells) + action and state L2 (normalized, as the
     diffusion loss) of the policy driven to the logged goal. ``scheduler`` and ``generator`` are unused
     (the signature is the training loop's). Returns the scalar loss and its parts as floats."""
-    core: BITSModel = getattr(model, "module", model)  # unwrap DistributedDataParallel
+    core = cast(BITSModel, getattr(model, "module", model))  # unwrap DistributedDataParallel
     cfg, norm = core.config, core.normalizer
     goal = batch.fut[..., -1, :2]  # (S, A, 2) m, the logged position at the horizon end
     ctx, actions = model(batch, goal[:, :, None])  # through the DDP wrapper, so gradients sync

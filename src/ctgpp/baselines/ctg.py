@@ -11,6 +11,7 @@ loss of :func:`ctgpp.model.loss.training_loss`), and the same call signature as
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
+from typing import cast
 
 import torch
 import torch.nn.functional as F
@@ -94,14 +95,16 @@ class TemporalUNet(nn.Module):
 
     def forward(self, x: Tensor, cond: Tensor) -> Tensor:
         skips = []
-        for level, (first, second) in enumerate(self.down):
+        for level, pair in enumerate(self.down):
+            first, second = cast(nn.ModuleList, pair)
             x = second(first(x, cond), cond)
             skips.append(x)
             if level < _LEVELS - 1:
                 x = self.pool[level](x)  # (N, c, L) -> (N, c, L/2)
         for block in self.mid:
             x = block(x, cond)
-        for up, (first, second) in zip(self.up, self.up_blocks, strict=True):
+        for up, pair in zip(self.up, self.up_blocks, strict=True):
+            first, second = cast(nn.ModuleList, pair)
             x = second(first(torch.cat([x, skips.pop()], dim=1), cond), cond)  # same length as the skip
             x = up(x)  # (N, c, L) -> (N, c, 2L)
         return self.out(x)

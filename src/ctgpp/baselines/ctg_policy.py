@@ -3,14 +3,17 @@ agent-level CTG denoiser, each re-plan's rasters bound to the model."""
 
 from __future__ import annotations
 
+from typing import cast
+
 from torch import Tensor, nn
 
+from ctgpp.baselines.config import CTGConfig
 from ctgpp.baselines.ctg import CTGContext, CTGDenoiser
 from ctgpp.baselines.raster import observation_raster, with_raster
 from ctgpp.data.batch import SceneBatch
+from ctgpp.interfaces import Observation
 from ctgpp.model.denoiser import Denoiser
 from ctgpp.sim.diffusion_policy import DiffusionPolicy
-from ctgpp.sim.policy import Observation
 
 
 class RasterBound(nn.Module):
@@ -44,5 +47,5 @@ class CTGPolicy(DiffusionPolicy):
 
     def denoiser_for(self, obs: Observation) -> Denoiser:
         """The CTG denoiser with this observation's rasters bound to it."""
-        raster = observation_raster(obs, self.model.config.raster())
+        raster = observation_raster(obs, cast(CTGConfig, self.model.config).raster())  # a CTG model
         return RasterBound(self.model, raster)  # type: ignore[arg-type,return-value]

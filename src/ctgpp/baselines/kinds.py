@@ -14,7 +14,6 @@ from typing import Any
 
 import torch
 from torch import Tensor, nn
-from torch.utils.data import Dataset
 
 from ctgpp.baselines.bits import BITSModel, bits_loss
 from ctgpp.baselines.config import BITSConfig, CTGConfig
@@ -29,9 +28,9 @@ from ctgpp.model.denoiser import Denoiser
 from ctgpp.model.loss import training_loss
 from ctgpp.scene.types import Scene
 
-LossFn = Callable[
-    [nn.Module, "CosineSchedule | None", SceneBatch, "torch.Generator | None"], tuple[Tensor, dict]
-]
+# loss(model, schedule, batch, generator): the schedule is the kind's own (``ModelKind.schedule``: a
+# CosineSchedule for the diffusion models, None for BITS), so each loss types it as it needs
+LossFn = Callable[[nn.Module, Any, SceneBatch, "torch.Generator | None"], tuple[Tensor, dict]]
 
 
 @dataclass(frozen=True)
@@ -44,10 +43,10 @@ class ModelKind:
     """
 
     name: str
-    config_type: type
+    config_type: Any  # a frozen config dataclass class with to_dict() / from_dict()
     build: Callable[[Any], nn.Module]
     loss: LossFn
-    dataset: Callable[[list[Scene], WindowConfig, int, Any], Dataset]
+    dataset: Callable[[list[Scene], WindowConfig, int, Any], WindowDataset]
     collate: Callable[[list[Any]], SceneBatch]
     schedule: Callable[[Any], CosineSchedule | None]
 
@@ -56,7 +55,7 @@ def _diffusion_schedule(config: Any) -> CosineSchedule:
     return CosineSchedule(config.diffusion_steps, config.cosine_s)
 
 
-def _raster_dataset(scenes: list[Scene], windows: WindowConfig, stride: int, config: Any) -> Dataset:
+def _raster_dataset(scenes: list[Scene], windows: WindowConfig, stride: int, config: Any) -> WindowDataset:
     return RasterWindowDataset(scenes, windows, stride=stride, raster=config.raster())
 
 

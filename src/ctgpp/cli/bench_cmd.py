@@ -42,7 +42,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         "--rule", default="no_collision", help=f"guidance rule: {', '.join(evaluation_rules())}, none"
     )
     p.add_argument("--split", default="mini_val", help="episodes of this split (default: mini_val)")
-    p.add_argument("--scene", default=None, help="only this scene of the split")
+    p.add_argument("--scene", default=None, help="only this scene of the split (default: every scene)")
     p.add_argument("--spacing", type=float, default=2.0, metavar="SEC", help="seconds between episode starts")
     p.add_argument(
         "--episodes", type=int, default=6, help="episode starts per preset, spread over the scenes"
@@ -56,7 +56,13 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--scenes", default="1,2,4,8", help="scene batch sizes ('' to skip)")
     p.add_argument("--repeats", type=int, default=5, help="calls per point of the curves (median)")
-    p.add_argument("--checkpoint", type=Path, default=None, metavar="DIR", help="CTG++ checkpoint directory")
+    p.add_argument(
+        "--checkpoint",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="CTG++ checkpoint directory (default: the one shipped with ctgpp)",
+    )
     p.add_argument("--out", type=Path, default=Path("ctgpp-bench"), metavar="DIR", help="results directory")
     add_data_arg(p)
     p.set_defaults(run=run_bench)

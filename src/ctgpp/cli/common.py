@@ -1,15 +1,22 @@
-"""Arguments and helpers shared by several sub-commands."""
+"""Arguments and helpers shared by several sub-commands.
+
+The model's, sampler's and guards' configuration classes import torch: they are imported inside the
+functions that need them, so that the light commands (``scenes``, ``show``, ``rules``) start without it."""
 
 from __future__ import annotations
 
 import argparse
 import math
+from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ctgpp.data.catalog import Catalog
-from ctgpp.diffusion.guided import GuidanceConfig
-from ctgpp.guidance.guards import GUARD_NAMES, GuardConfig
-from ctgpp.sim.diffusion_policy import SamplingConfig
+
+if TYPE_CHECKING:
+    from ctgpp.diffusion.guided import GuidanceConfig
+    from ctgpp.guidance.guards import GuardConfig
+    from ctgpp.sim.diffusion_policy import SamplingConfig
 
 
 def add_data_arg(parser: argparse.ArgumentParser) -> None:
@@ -24,6 +31,8 @@ def add_data_arg(parser: argparse.ArgumentParser) -> None:
 
 def add_model_args(parser: argparse.ArgumentParser) -> None:
     """Checkpoint and sampler options of the ctgpp policy."""
+    from ctgpp.sim.diffusion_policy import SamplingConfig
+
     parser.add_argument(
         "--checkpoint",
         type=Path,
@@ -50,6 +59,8 @@ def add_model_args(parser: argparse.ArgumentParser) -> None:
 
 def add_guidance_args(parser: argparse.ArgumentParser) -> None:
     """Guidance strength of Algorithm 2: the inner Adam steps and their learning rate."""
+    from ctgpp.diffusion.guided import GuidanceConfig
+
     parser.add_argument(
         "--guide-lr", type=float, default=GuidanceConfig.lr, help="guidance Adam learning rate"
     )
@@ -71,6 +82,8 @@ def add_guidance_args(parser: argparse.ArgumentParser) -> None:
 def add_guard_args(parser: argparse.ArgumentParser, default: str) -> None:
     """The realism guards (``--guards``, ``--no-guards``): ``default`` "on" for simulate, "off" for
     the paper's protocol."""
+    from ctgpp.guidance.guards import GUARD_NAMES
+
     parser.add_argument(
         "--guards",
         default=default,
@@ -86,6 +99,8 @@ def add_guard_args(parser: argparse.ArgumentParser, default: str) -> None:
 
 def guard_config(args: argparse.Namespace) -> GuardConfig:
     """The ``--guards`` choice (ValueError naming the guards for an unknown one)."""
+    from ctgpp.guidance.guards import GuardConfig
+
     try:
         return GuardConfig.parse(args.guards)
     except ValueError as err:
@@ -93,6 +108,8 @@ def guard_config(args: argparse.Namespace) -> GuardConfig:
 
 
 def guidance_config(args: argparse.Namespace) -> GuidanceConfig:
+    from ctgpp.diffusion.guided import GuidanceConfig
+
     if args.guide_steps < 0 or not (math.isfinite(args.guide_lr) and args.guide_lr > 0):
         raise ValueError(
             "--guide-steps must be ≥ 0 and --guide-lr positive "
@@ -102,6 +119,8 @@ def guidance_config(args: argparse.Namespace) -> GuidanceConfig:
 
 
 def sampling_config(args: argparse.Namespace) -> SamplingConfig:
+    from ctgpp.sim.diffusion_policy import SamplingConfig
+
     if (args.steps is not None and args.steps < 1) or args.samples < 1:
         raise ValueError("--steps and --samples must be positive")
     if args.steps is None:
@@ -122,7 +141,7 @@ def split_spec(spec: str, default_root: Path | None = None) -> tuple[Path | None
     return (Path(root) if root else default_root), split
 
 
-def print_table(header: list[str], rows: list[list[object]]) -> None:
+def print_table(header: list[str], rows: Sequence[Sequence[object]]) -> None:
     """A plain aligned text table on stdout."""
     cells = [header] + [[_fmt(c) for c in row] for row in rows]
     widths = [max(len(r[i]) for r in cells) for i in range(len(header))]

@@ -4,6 +4,7 @@ evaluation sets, resumable and optionally over worker processes."""
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
 from ctgpp.cli.common import (
@@ -21,6 +22,7 @@ from ctgpp.eval.rule_setup import evaluation_rules
 from ctgpp.eval.runner import NO_RULE, EvalSet, plan_sets, run_episodes
 from ctgpp.eval.table import markdown_table, moving_table, summarize
 from ctgpp.io.atomic import write_text_atomic
+from ctgpp.sim.closed_loop import DURATION_S
 from ctgpp.sim.factory import MODEL_NAMES, POLICY_NAMES, PolicyFactory
 
 
@@ -58,6 +60,14 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--seeds", type=int, default=1, help="number of seeds (0, 1, ...)")
     p.add_argument("--spacing", type=float, default=1.0, metavar="SEC", help="seconds between episode starts")
+    p.add_argument(
+        "--duration",
+        type=float,
+        default=DURATION_S,
+        metavar="SEC",
+        help="simulated seconds per episode; the history before the start shrinks from 3 s to 1 s where "
+        "a scene is short, shorter scenes are left out (one duration per --out directory)",
+    )
     p.add_argument("--workers", type=int, default=1, help="worker processes that run episodes (default: 1)")
     p.add_argument(
         "--out",
@@ -117,7 +127,9 @@ def run_evaluate(args: argparse.Namespace) -> int:
     )
     factory.check(methods)  # a missing checkpoint fails now, not in the middle of the run
     sets = evaluation_sets(args.split, args.data)
-    episodes, catalogs = plan_sets(sets, methods, range(args.seeds), args.spacing, rules)
+    if not (math.isfinite(args.duration) and args.duration > 0):
+        raise ValueError(f"--duration must be positive (got {args.duration:g})")
+    episodes, catalogs = plan_sets(sets, methods, range(args.seeds), args.spacing, rules, args.duration)
     results, histograms = args.out / "episodes.csv", args.out / "realism.jsonl"
     records = run_episodes(catalogs, episodes, factory, results, workers=args.workers, realism=histograms)
     names = [s.name for s in sets]

@@ -1,4 +1,9 @@
-"""``ctgpp``: entry point, sub-command parsing and user-facing error handling."""
+"""``ctgpp``: entry point, sub-command parsing and user-facing error handling.
+
+Only the module of the command being run is imported (with what it needs): ``ctgpp --help``,
+``ctgpp scenes``, ``ctgpp show`` and ``ctgpp rules`` start without torch. The other commands appear in
+the parser by name and one-line help (``COMMANDS``) until one of them is run.
+"""
 
 from __future__ import annotations
 
@@ -7,18 +12,9 @@ import logging
 import os
 import sys
 from collections.abc import Sequence
+from importlib import import_module
 
 from ctgpp import __version__
-from ctgpp.cli import (
-    bench_cmd,
-    data_cmd,
-    evaluate_cmd,
-    queries_cmd,
-    rules_cmd,
-    scenes_cmd,
-    simulate_cmd,
-    train_cmd,
-)
 
 # Mistakes a user can make (bad paths, ids, times, files): reported in one line, exit code 2.
 USER_ERRORS = (
@@ -31,23 +27,95 @@ USER_ERRORS = (
     KeyError,
 )
 
+# command -> (the module of ctgpp.cli that defines it, its one-line help); in the order of --help.
+# The module's add_parsers gives the same help (tests/test_api.py checks).
+COMMANDS: dict[str, tuple[str, str]] = {
+    "scenes": ("scenes_cmd", "list the scenes of a data directory"),
+    "show": ("scenes_cmd", "draw a scene with every vehicle's number (the numbers queries use)"),
+    "simulate": ("simulate_cmd", "simulate a scene in closed loop (10 s, re-plan at 2 Hz)"),
+    "rules": ("rules_cmd", "list the guidance rules with their parameters, defaults and units"),
+    "evaluate": (
+        "evaluate_cmd",
+        "closed-loop metrics of methods × rules over evaluation sets (the paper's Table 1)",
+    ),
+    "evaluate-queries": (
+        "queries_cmd",
+        "query benchmark: is each query satisfied guided vs unguided, with fail rates",
+    ),
+    "train": (
+        "train_cmd",
+        "train the CTG++ denoiser or a baseline (resumes when OUT holds a training state)",
+    ),
+    "data": ("data_cmd", "data management"),
+    "bench": ("bench_cmd", "time guided closed-loop scenarios per sampler preset, and scaling"),
+}
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+
+# commands that import torch before their first output (seconds; more on a busy machine): they say so
+# in one line first
+SLOW_START = ("simulate", "rules", "evaluate", "evaluate-queries", "train", "bench")
+
+
+class DefaultsFormatter(argparse.HelpFormatter):
+    """Help that shows every option's default: "(default: X)" is added to a help text that does not
+    already say its default; flags and options without a default (None) are left as written."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        if "default" in text.lower() or action.default is None or action.default is False:
+            return text
+        if action.default == argparse.SUPPRESS or (isinstance(action.default, list) and not action.default):
+            return text
+        if not action.option_strings and action.nargs not in (argparse.OPTIONAL, argparse.ZERO_OR_MORE):
+            return text
+        if isinstance(action, argparse._StoreConstAction | argparse._HelpAction | argparse._VersionAction):
+            return text
+        return text + " (default: %(default)s)"
+
+
+class Parser(argparse.ArgumentParser):
+    """The parser of ``ctgpp`` and of each sub-command: defaults in every ``--help``."""
+
+    def __init__(self, *args: object, **kwargs: object) -> None:
+        kwargs.setdefault("formatter_class", DefaultsFormatter)
+        super().__init__(*args, **kwargs)  # type: ignore[arg-type]
+
+
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The ``ctgpp`` parser, in full for ``command`` (its module imported) and by name for the others;
+    ``command`` "all" builds every command in full (tests)."""
+    parser = Parser(
         prog="ctgpp",
         description="Language-guided traffic simulation with scene-level diffusion (CTG++) on real logs.",
     )
     parser.add_argument("--version", action="version", version=f"ctgpp {__version__}")
     parser.add_argument("-v", "--verbose", action="store_true", help="log progress details")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    commands = (scenes_cmd, simulate_cmd, rules_cmd, evaluate_cmd, queries_cmd, train_cmd, data_cmd)
-    for module in (*commands, bench_cmd):
-        module.add_parsers(sub)
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=Parser)
+    wanted = set(COMMANDS) if command == "all" else {command}
+    modules = dict.fromkeys(module for name, (module, _) in COMMANDS.items() if name in wanted)
+    for module in modules:
+        import_module(f"ctgpp.cli.{module}").add_parsers(sub)
+    for name, (_, help_text) in COMMANDS.items():
+        if name not in sub.choices:
+            sub.add_parser(name, help=help_text, add_help=False)
     return parser
 
 
+def _command_of(argv: Sequence[str]) -> str | None:
+    """The sub-command named in ``argv``: its first word that is not an option (the top-level options
+    take no value)."""
+    for word in argv:
+        if not word.startswith("-"):
+            return word if word in COMMANDS else None
+    return None
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    command = _command_of(argv)
+    if command in SLOW_START and not {"-h", "--help"} & set(argv):
+        print(f"ctgpp {command}: loading torch and the model code...", flush=True)
+    parser = build_parser(command)
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s: %(message)s"

@@ -12,7 +12,9 @@ from ctgpp.sim.closed_loop import episode_bounds
 def add_parsers(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("scenes", help="list the scenes of a data directory")
     add_data_arg(p)
-    p.add_argument("--split", default=None, help="only scenes of this split (e.g. mini_val)")
+    p.add_argument(
+        "--split", default=None, help="only scenes of this split, e.g. mini_val (default: every split)"
+    )
     p.set_defaults(run=run_scenes)
 
     p = sub.add_parser("show", help="draw a scene with every vehicle's number (the numbers queries use)")
@@ -22,10 +24,16 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         type=float,
         default=None,
         metavar="SEC",
-        help="time to show in seconds (default: the first episode start, 3 s)",
+        help="time to show in seconds (default: the first episode start, 3 s, or the end of a shorter scene)",
     )
     p.add_argument("--out", type=Path, default=None, metavar="FILE", help="picture file (default: SCENE.png)")
-    p.add_argument("--radius", type=float, default=None, metavar="M", help="half-size of the view in metres")
+    p.add_argument(
+        "--radius",
+        type=float,
+        default=None,
+        metavar="M",
+        help="half-size of the view in metres (default: fitted to the vehicles)",
+    )
     add_data_arg(p)
     p.set_defaults(run=run_show)
 
@@ -42,15 +50,17 @@ def run_scenes(args: argparse.Namespace) -> int:
 
 
 def run_show(args: argparse.Namespace) -> int:
-    from ctgpp.viz import plot_scene
-
     catalog = open_catalog(args)
     scene = catalog.load(args.scene)
-    t = episode_bounds(scene)[0] if args.start is None else args.start
+    first = min(episode_bounds(scene)[0], round(scene.duration_s, 6))  # a short scene: its last step
+    t = first if args.start is None else args.start
     step = int(round(t / scene.dt_s))
     if not 0 <= step < scene.agents.num_steps:
         raise ValueError(f"--start {t:g} is outside {scene.id} (0-{scene.duration_s:.1f} s)")
     out = args.out or Path(f"{scene.id}.png")
+    print(f"drawing {scene.id} at {t:g} s ...", flush=True)  # matplotlib's drawing takes seconds
+    from ctgpp.viz import plot_scene
+
     plot_scene(scene, step, out, radius_m=args.radius)
     print(f"wrote {out}")
     return 0

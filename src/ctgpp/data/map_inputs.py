@@ -231,7 +231,7 @@ def _not_duplicate(xy: np.ndarray, valid: np.ndarray, owner: np.ndarray, tol_m: 
     gap = np.hypot(*np.moveaxis(xy[i] - xy[j], -1, 0))  # (Q, P)
     shared = both.sum(axis=1)
     retrace = (shared > 0) & (shared >= 0.9 * valid[j].sum(axis=1)) & ~(both & (gap > tol_m)).any(axis=1)
-    keep = valid.any(axis=1)
+    keep = np.asarray(valid.any(axis=1))
     keep[j[retrace]] = False
     return keep
 

@@ -171,7 +171,8 @@ def _drivable(
     if png is not None and png.is_file():
         return nuscenes_drivable(png, extent[0] - DRIVABLE_MARGIN_M, extent[1] + DRIVABLE_MARGIN_M)
     lo, hi = extent[0] - DRIVABLE_MARGIN_M - 10.0, extent[1] + DRIVABLE_MARGIN_M + 10.0
-    rings, lines = [], []
+    rings: list[np.ndarray] = []
+    lines: list[np.ndarray] = []
     for i, poly in enumerate(polygons):
         src = poly if poly is not None else lanes.lane(i)
         if np.any(src.max(axis=0) < lo) or np.any(src.min(axis=0) > hi):

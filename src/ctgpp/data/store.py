@@ -46,7 +46,7 @@ def save_scene(scene: Scene, path: Path) -> Path:
         "mask_shape": list(area.mask.shape),
         "resolution_m": area.resolution_m,
     }
-    arrays = {
+    arrays: dict[str, np.ndarray] = {
         "header": np.frombuffer(json.dumps(header).encode("utf-8"), dtype=np.uint8),
         "origin": origin.astype(np.float64),
         "agent_ids": np.asarray(a.ids, dtype=np.str_),
@@ -68,7 +68,8 @@ def save_scene(scene: Scene, path: Path) -> Path:
         "drivable_origin": np.asarray(area.origin_xy, dtype=np.float64),
     }
     with atomic_path(Path(path)) as tmp:
-        np.savez_compressed(tmp, **arrays)
+        # numpy's stub reads a **dict as possibly naming allow_pickle (bool); these keys are array names
+        np.savez_compressed(tmp, **arrays)  # type: ignore[arg-type]
     return Path(path)
 
 

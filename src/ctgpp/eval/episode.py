@@ -17,6 +17,7 @@ from ctgpp.data.catalog import Catalog
 from ctgpp.eval.records import metric_cell
 from ctgpp.eval.rule_setup import RuleSpec, setup_rule
 from ctgpp.guidance.base import GuidanceLoss
+from ctgpp.interfaces import Policy, Rollout
 from ctgpp.metrics import MOVING_COUNTS, MOVING_METRICS, compute_metrics, moving_counts
 from ctgpp.metrics.realism import (
     FEATURES,
@@ -27,9 +28,7 @@ from ctgpp.metrics.realism import (
 )
 from ctgpp.scene.types import Scene
 from ctgpp.scene.vehicles import controlled_vehicles
-from ctgpp.sim.closed_loop import simulate, start_step
-from ctgpp.sim.policy import Policy
-from ctgpp.sim.rollout import Rollout
+from ctgpp.sim.closed_loop import DURATION_S, SimConfig, episode_config, simulate, start_step
 
 NO_RULE = "none"
 KEY = ("set", "method", "rule", "scene", "start_s", "seed")
@@ -65,7 +64,9 @@ class EvalSet:
 
 @dataclass(frozen=True)
 class Episode:
-    """One closed-loop episode: ``start_s`` in s from the scene's first step; ``set`` names its EvalSet."""
+    """One closed-loop episode: ``start_s`` in s from the scene's first step, ``duration_s`` simulated
+    seconds (the history before the start fitted to the scene: ``closed_loop.episode_config``); ``set``
+    names its EvalSet. The duration is the run's: it is not part of the key."""
 
     method: str
     rule: str
@@ -73,6 +74,7 @@ class Episode:
     start_s: float
     seed: int
     set: str = ""
+    duration_s: float = DURATION_S
 
     @property
     def key(self) -> tuple[str, ...]:
@@ -80,9 +82,10 @@ class Episode:
         return (self.set, self.method, self.rule, self.scene, f"{self.start_s:.1f}", str(self.seed))
 
     def describe(self) -> str:
+        length = "" if self.duration_s == DURATION_S else f" for {self.duration_s:g} s"
         return (
             f"episode {self.method} / rule {self.rule} / {self.scene} of {self.set or 'the data'} "
-            f"from {self.start_s:.1f} s, seed {self.seed}"
+            f"from {self.start_s:.1f} s{length}, seed {self.seed}"
         )
 
 
@@ -94,11 +97,13 @@ class EpisodeResult:
     histograms: dict[str, Any]
 
 
-def episode_rule(scene: Scene, start_s: float, rule: str) -> RuleSpec | None:
+def episode_rule(
+    scene: Scene, start_s: float, rule: str, config: SimConfig = SimConfig()
+) -> RuleSpec | None:
     """The rule of an episode from its log (None for no rule, or when the episode does not qualify)."""
     if rule == NO_RULE:
         return None
-    step = start_step(scene, start_s)
+    step = start_step(scene, start_s, config)
     return setup_rule(rule, scene, step, controlled_vehicles(scene, step))
 
 
@@ -127,9 +132,10 @@ def run_episode(scene: Scene, ep: Episode, make_policy: PolicyMaker) -> EpisodeR
     ``rule_violation`` is the rule's measure (appendix E); the figures over the moving vehicles count
     every one of them, that pair too.
     """
-    spec = episode_rule(scene, ep.start_s, ep.rule)
+    config = episode_config(scene, ep.duration_s)
+    spec = episode_rule(scene, ep.start_s, ep.rule, config)
     policy = make_policy(ep.method, None if spec is None else spec.loss)
-    rollout = simulate(scene, policy, ep.start_s, seed=ep.seed)
+    rollout = simulate(scene, policy, ep.start_s, seed=ep.seed, config=config)
     metrics = compute_metrics(rollout, METRICS[:-1])
     if spec is not None:
         metrics["fail"] = spec.fail(rollout)

@@ -14,7 +14,7 @@ import os
 import queue
 import signal
 import traceback
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Generator, Mapping, Sequence
 from dataclasses import dataclass
 from multiprocessing.process import BaseProcess
 from pathlib import Path
@@ -57,7 +57,7 @@ def parallel_results(
     roots: Mapping[str, Path],
     make_policy: PolicyMaker,
     workers: int,
-) -> Iterator[EpisodeResult]:
+) -> Generator[EpisodeResult, None, None]:
     """Run ``todo`` on ``workers`` processes and yield each result as it arrives.
 
     ``roots`` maps each set name to its data directory; ``make_policy`` must be picklable (a
@@ -98,7 +98,7 @@ def parallel_results(
             p.join()
 
 
-def _next_result(results: mp.Queue, procs: list[BaseProcess]) -> EpisodeResult | EpisodeFailed:
+def _next_result(results: mp.Queue, procs: Sequence[BaseProcess]) -> EpisodeResult | EpisodeFailed:
     """The next finished episode; a clear error when a worker died (killed, out of memory) instead."""
     while True:
         try:

@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from matplotlib.artist import Artist
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
@@ -100,7 +101,7 @@ def plot_realism(entries: Iterable[dict[str, Any]], out: Path, sets: Sequence[st
             ax.grid(alpha=0.3)
             if col == 0:
                 ax.set_ylabel("share of samples", fontsize=8)
-    handles = [Patch(color="0.8", label="log")]
+    handles: list[Artist] = [Patch(color="0.8", label="log")]
     handles += [Line2D([], [], color=f"C{k}", lw=1.4, label=m) for k, m in enumerate(methods)]
     fig.legend(handles=handles, loc="upper center", ncol=len(handles), fontsize=8, frameon=False)
     fig.tight_layout(rect=(0, 0, 1, 1 - 0.5 / fig.get_figheight()))

@@ -8,7 +8,7 @@ episodes run in worker processes (:mod:`ctgpp.eval.parallel`) and this process a
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Iterator, Mapping, Sequence
+from collections.abc import Generator, Iterable, Mapping, Sequence
 from contextlib import closing, nullcontext
 from pathlib import Path
 
@@ -34,7 +34,7 @@ from ctgpp.eval.parallel import parallel_results
 from ctgpp.eval.records import append_json_lines, append_records, record_key
 from ctgpp.eval.records import read_records as read_csv_records
 from ctgpp.scene.types import Scene
-from ctgpp.sim.closed_loop import episode_starts
+from ctgpp.sim.closed_loop import DURATION_S, EpisodeError, SimConfig, episode_config, episode_starts
 
 __all__ = [
     "KEY",
@@ -58,9 +58,11 @@ def plan_episodes(
     spacing_s: float,
     rules: Iterable[str] = (NO_RULE,),
     set_name: str | None = None,
+    duration_s: float = DURATION_S,
 ) -> list[Episode]:
     """Every method × rule × scene of ``split`` × start time (``spacing_s`` apart) × seed, leaving
-    out the episodes a rule skips (no qualifying pair, no moving vehicle). The episodes belong to set
+    out the scenes too short for ``duration_s`` simulated seconds (with at least 1 s of history) and
+    the episodes a rule skips (no qualifying pair, no moving vehicle). The episodes belong to set
     ``set_name`` (default: the split's name)."""
     scene_ids = catalog.ids(split)
     if not scene_ids:
@@ -72,16 +74,30 @@ def plan_episodes(
     episodes = []
     for scene_id in scene_ids:
         scene = catalog.load(scene_id)
+        config = _episode_config(scene, duration_s)
+        if config is None:
+            continue
         for rule in rules:
             starts = [
                 t
-                for t in episode_starts(scene, spacing_s)
-                if rule == NO_RULE or episode_rule(scene, t, rule) is not None
+                for t in episode_starts(scene, spacing_s, config)
+                if rule == NO_RULE or episode_rule(scene, t, rule, config) is not None
             ]
             episodes += [
-                Episode(m, rule, scene_id, t, s, name) for m in methods for s in seeds for t in starts
+                Episode(m, rule, scene_id, t, s, name, duration_s)
+                for m in methods
+                for s in seeds
+                for t in starts
             ]
     return episodes
+
+
+def _episode_config(scene: Scene, duration_s: float) -> SimConfig | None:
+    """The episodes ``scene`` hosts (None when it is too short for them)."""
+    try:
+        return episode_config(scene, duration_s)
+    except EpisodeError:
+        return None
 
 
 def plan_sets(
@@ -90,8 +106,10 @@ def plan_sets(
     seeds: Iterable[int],
     spacing_s: float,
     rules: Iterable[str] = (NO_RULE,),
+    duration_s: float = DURATION_S,
 ) -> tuple[list[Episode], dict[str, Catalog]]:
-    """The episodes of every set (:func:`plan_episodes`), and each set's catalog by set name."""
+    """The episodes of every set (:func:`plan_episodes`, ``duration_s`` simulated seconds each), and
+    each set's catalog by set name."""
     names = [s.name for s in sets]
     clash = sorted({n for n in names if names.count(n) > 1})
     if clash:
@@ -101,7 +119,9 @@ def plan_sets(
     episodes = [
         ep
         for s in sets
-        for ep in plan_episodes(catalogs[s.name], s.split, methods, seeds, spacing_s, rules, s.name)
+        for ep in plan_episodes(
+            catalogs[s.name], s.split, methods, seeds, spacing_s, rules, s.name, duration_s
+        )
     ]
     return episodes, catalogs
 
@@ -160,7 +180,7 @@ def run_episodes(
 
 def _sequential_results(
     todo: Sequence[Episode], catalogs: Mapping[str, Catalog], make_policy: PolicyMaker
-) -> Iterator[EpisodeResult]:
+) -> Generator[EpisodeResult, None, None]:
     """The episodes run one after the other in this process, each scene loaded once in a row."""
     loaded: tuple[tuple[str, str], Scene] | None = None
     for ep in todo:

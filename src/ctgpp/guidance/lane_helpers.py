@@ -204,7 +204,7 @@ def lane_path_distance(pos_world: Tensor, paths: list[list[Tensor]]) -> tuple[Te
     has = torch.tensor([len(p) > 0 for p in paths], device=pos_world.device)
     if not rows:
         return pos_world.new_zeros(n_b, *rest), has
-    lines = [line.to(pos_world) for p in paths for line in p]
+    lines: list[Tensor | None] = [line.to(pos_world) for p in paths for line in p]
     points = pos_world[rows]  # (R, ..., 2): each vehicle's positions once per path
     flat = points.reshape(len(rows), 1, -1, 2)  # (R, ..., 2) -> (R, 1, Q, 2)
     foot, _ = project_onto_polylines(flat, flat[..., :1], lines)

@@ -126,7 +126,7 @@ class LLMClient:
         return str(content)
 
 
-def _message(e: Exception) -> str:
+def _message(e: BaseException) -> str:
     text = str(getattr(e, "message", "") or e)
     return text if len(text) <= 300 else text[:297] + "..."
 

@@ -105,15 +105,22 @@ class RemoteLoss(GuidanceLoss):
             self.worker.kill()
         return GeneratedLossError(self.failure)
 
-    def _request(self, message: tuple[Any, ...], timeout_s: float,
-                 max_payload: int = 0) -> dict[str, Any] | tuple[dict[str, Any], bytes | None]:
+    def _request(self, message: tuple[Any, ...], timeout_s: float) -> dict[str, Any]:
+        """The worker's answer header to ``message`` (a request that expects no payload)."""
+        return self._exchange(message, timeout_s, 0)[0]
+
+    def _exchange(
+        self, message: tuple[Any, ...], timeout_s: float, max_payload: int
+    ) -> tuple[dict[str, Any], bytes | None]:
+        """The worker's answer to ``message``: its header and a payload of at most ``max_payload``
+        bytes; a failed or refused request stops the loss."""
         try:
             header, payload = self.worker.request(message, timeout_s, max_payload)
         except (LossCheckError, RuntimeError) as err:
             raise self._stop(str(err)) from None
         if not header.get("ok"):
             raise self._stop(str(header.get("error", "unknown error")))
-        return (header, payload) if max_payload else header
+        return header, payload
 
     def _send_batch(self, batch: Any) -> None:
         """Hand ``batch`` to the worker unless it already has it: a :class:`GuidanceBatch`'s scene and
@@ -127,7 +134,8 @@ class RemoteLoss(GuidanceLoss):
         if self._scene is None or self._scene[0]() is not batch.scene or self._scene[1]() is not batch.sdf:
             self._request(("scene", batch.scene, batch.sdf), TRANSFER_TIME_LIMIT_S)
             self._scene = (weakref.ref(batch.scene), weakref.ref(batch.sdf))
-        stub = replace(batch, scene=None, sdf=batch.sdf[:0], memo={})
+        # the worker already holds the scene and the SDF: the batch travels without them
+        stub = replace(batch, scene=None, sdf=batch.sdf[:0], memo={})  # type: ignore[arg-type]
         self._request(("batch", stub), TRANSFER_TIME_LIMIT_S)
         self._batch = weakref.ref(batch)
 
@@ -146,8 +154,8 @@ class RemoteLoss(GuidanceLoss):
         w = None if weights is None else weights.detach().cpu()
         size = DTYPES[x.dtype]
         limit = (x.shape[0] * x.shape[1] + (x.numel() if want_grad else 0)) * size
-        header, payload = self._request(("call", xc, mask, w, bool(want_grad), self.call_time_limit_s),
-                                        self.call_time_limit_s + GRACE_S, max_payload=max(limit, 1))
+        header, payload = self._exchange(("call", xc, mask, w, bool(want_grad), self.call_time_limit_s),
+                                         self.call_time_limit_s + GRACE_S, max(limit, 1))
         shape = tuple(int(d) for d in header.get("shape", ()))
         n_out = int(torch.Size(shape).numel())
         expected = (n_out + (x.numel() if want_grad else 0)) * size

@@ -24,7 +24,7 @@ import sys
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import fields
-from types import BuiltinFunctionType, FunctionType, ModuleType
+from types import BuiltinFunctionType, FrameType, FunctionType, ModuleType
 from typing import Any
 
 import numpy as np
@@ -112,7 +112,7 @@ def _filled(cell: Any) -> bool:
 def recursion_cap(frames: int = RECURSION_FRAMES) -> Iterator[None]:
     """Allow at most ``frames`` Python frames above the current one while the block runs."""
     depth = 0
-    frame = sys._getframe()
+    frame: FrameType | None = sys._getframe()
     while frame is not None:
         depth, frame = depth + 1, frame.f_back
     before = sys.getrecursionlimit()

@@ -106,7 +106,7 @@ class Worker:
         signal.setitimer(signal.ITIMER_PROF, max(limit, 0.01))
         try:
             if kind == "check":
-                return self._check(*message[1:3], message[3]), None
+                return self._check(message[1], message[2], message[3]), None
             if kind == "load":
                 return self._load(message[1]), None
             if kind == "call":

@@ -98,7 +98,7 @@ def collided_vehicles(rollout: Rollout) -> tuple[np.ndarray, np.ndarray]:
     """
     agents = controlled_vehicle_indices(rollout)
     hits = collision_steps(rollout.sim, agents, rollout.future)  # (C, T_future)
-    return agents, hits.any(axis=1)
+    return agents, np.asarray(hits.any(axis=1))
 
 
 @register_metric("collision_rate")

@@ -74,7 +74,7 @@ def offroad_vehicles(rollout: Rollout) -> tuple[np.ndarray, np.ndarray]:
     Returns (agents (C,) int, offroad (C,) bool).
     """
     agents = controlled_vehicle_indices(rollout)
-    return agents, offroad_steps(rollout, agents).any(axis=1)
+    return agents, np.asarray(offroad_steps(rollout, agents).any(axis=1))
 
 
 def failed_vehicles(rollout: Rollout) -> tuple[np.ndarray, np.ndarray]:

@@ -6,6 +6,8 @@ L = masked mean over valid future steps of the per-channel normalized squared er
 
 from __future__ import annotations
 
+from typing import cast
+
 import torch
 from torch import Tensor, nn
 
@@ -25,7 +27,7 @@ def training_loss(
     ``fut_valid & agent_mask``; a batch without a valid future step gives a zero loss. ``model`` may be
     a DistributedDataParallel wrapper of a :class:`Denoiser` (its forward is called, so gradients sync).
     """
-    core: Denoiser = getattr(model, "module", model)  # unwrap DistributedDataParallel
+    core = cast(Denoiser, getattr(model, "module", model))  # unwrap DistributedDataParallel
     norm = core.normalizer
     device = batch.fut_actions.device
     n_scenes = batch.num_scenes

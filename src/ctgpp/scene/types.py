@@ -11,7 +11,6 @@ from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
-from scipy import ndimage
 
 
 class AgentType(enum.IntEnum):
@@ -139,6 +138,8 @@ class DrivableArea:
     @cached_property
     def sdf_m(self) -> np.ndarray:
         """(H, W) float32 signed distance to the drivable boundary in m, negative inside (drivable)."""
+        from scipy import ndimage  # here: listing scenes needs no scipy (0.4 s of start)
+
         inside = ndimage.distance_transform_edt(self.mask)
         outside = ndimage.distance_transform_edt(~self.mask)
         return ((outside - inside) * self.resolution_m).astype(np.float32)

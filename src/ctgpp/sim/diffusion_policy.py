@@ -19,9 +19,9 @@ from ctgpp.dynamics import clip_actions, rollout
 from ctgpp.geometry import local_to_world
 from ctgpp.guidance.base import GuidanceLoss
 from ctgpp.guidance.context import build_guidance_batch
+from ctgpp.interfaces import Observation, Plan
 from ctgpp.model.checkpoint import load_checkpoint
 from ctgpp.model.denoiser import Denoiser
-from ctgpp.sim.policy import Observation, Plan
 
 DEFAULT_TIMESTEPS = (99, 75, 40, 0)  # the fast preset's DDIM grid (BENCHMARKS.md, Choosing the default)
 
@@ -181,7 +181,7 @@ class DiffusionPolicy:
         if objective is None:
             return PlanSamples(actions, current, traj, None, torch.zeros(v, dtype=torch.long))
         loss = loss_fn(traj, data_batch)  # objective(x0), on the trajectories just rolled out
-        coupled = bool(self.guidance.couples_agents) or loss.ndim == 1
+        coupled = bool(loss_fn.couples_agents) or loss.ndim == 1
         chosen = filtration(loss, coupled, v)
         if coupled and self.guidance_config.compose:
             chosen = compose(traj, lambda scenes: loss_fn(scenes, data_batch), chosen)

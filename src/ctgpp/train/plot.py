@@ -18,7 +18,8 @@ def plot_curve(history: list[dict[str, Any]], out: Path, title: str = "training"
     ax = fig.add_subplot()
     steps = [h["step"] for h in history]
     ax.plot(steps, [h["train_loss"] for h in history], "-o", ms=3, label="train (mean since last point)")
-    ax.plot(steps, [h.get("val_loss") for h in history], "-s", ms=3, label="validation (EMA weights)")
+    val = [float("nan") if h.get("val_loss") is None else h["val_loss"] for h in history]  # gaps: unmeasured
+    ax.plot(steps, val, "-s", ms=3, label="validation (EMA weights)")
     ax.set_yscale("log")
     ax.set_xlabel("step")
     ax.set_ylabel("loss (normalized actions + states)")
