@@ -25,6 +25,7 @@ from ctgpp.guidance import CompositeLoss
 from ctgpp.guidance.guards import GuardConfig, guard_report
 from ctgpp.guidance.scope import LossScope
 from ctgpp.io.atomic import check_output_dir, staged_dir, write_text_atomic
+from ctgpp.io.export import EXPORT_KINDS, check_export_kind, export, export_name
 from ctgpp.io.strict_json import dumps_strict, json_safe
 from ctgpp.language.client import LLMConfig
 from ctgpp.language.query import QueryLoss, fall_back, resolve_query
@@ -89,6 +90,15 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         default="gif",
         help="animation format (mp4 needs ffmpeg; falls back to gif)",
     )
+    p.add_argument(
+        "--export",
+        action="append",
+        default=[],
+        choices=EXPORT_KINDS,
+        metavar="KIND",
+        help="also write the episode as a scenario other simulators replay (repeatable; default: none): "
+        "scenarionet (ScenarioNet/MetaDrive pickle) or commonroad (CommonRoad XML, needs commonroad-io)",
+    )
     p.add_argument("--llm-model", default=None, help="language model name (env CTGPP_LLM_MODEL)")
     p.add_argument("--llm-base-url", default=None, help="OpenAI-compatible endpoint (env OPENAI_BASE_URL)")
     add_data_arg(p)
@@ -101,6 +111,8 @@ def run_simulate(args: argparse.Namespace) -> int:
     from ctgpp.viz.events import rollout_events
 
     check_output_dir(args.out)  # every bad input is reported before any work starts
+    for kind in args.export:
+        check_export_kind(kind)  # commonroad-io missing: one line, before the episode runs
     scene = open_catalog(args).load(args.scene)
     start = episode_bounds(scene)[0] if args.start is None else args.start
     step0 = start_step(scene, start)
@@ -173,6 +185,8 @@ def run_simulate(args: argparse.Namespace) -> int:
         files.append(plot_scene(scene, step, picture, rollout=rollout, events=events, title=title))
         if args.animation != "none":
             files.append(animate_rollout(rollout, stage.path(f"rollout.{args.animation}"), events=events))
+        for kind in dict.fromkeys(args.export):
+            files.append(export(rollout, kind, stage.path(export_name(kind, scene.id))))
         files = [stage.final(f) for f in files]
     print(f"{scene.id} from {start:g} s, {record['controlled_vehicles']} vehicles, policy {policy.name}")
     print("  " + "  ".join(f"{k} {_fmt(v)}" for k, v in metrics.items() if k not in MOVING_METRICS))
