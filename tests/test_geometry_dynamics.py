@@ -211,3 +211,26 @@ def test_speed_clipped_at_zero_matches_the_recursion_in_values_and_gradients() -
     grads_slow = torch.autograd.grad((slow_t * weights).sum(), [actions, state0])
     for a, b in zip(grads_fast, grads_slow, strict=True):
         torch.testing.assert_close(a, b)
+
+
+def test_restartable_rollout_keeps_the_values_and_lets_a_stopped_plan_start() -> None:
+    """A vehicle at rest whose plan keeps braking: the exact gradient of where it ends up is zero for
+    every acceleration (the speed is clipped at 0 throughout); the restartable rollout has the same
+    states and a gradient dt·dt·(T − k) per acceleration k, as if the speed were not clipped."""
+    acts = torch.zeros(1, 10, 2, dtype=torch.float64)
+    acts[..., 0] = -0.5
+    state0 = torch.zeros(1, 4, dtype=torch.float64)
+    exact_in, free_in = acts.clone().requires_grad_(), acts.clone().requires_grad_()
+    exact, free = rollout(state0, exact_in, 0.1), rollout(state0, free_in, 0.1, restartable=True)
+    torch.testing.assert_close(exact, free)
+    assert (exact[..., 2] == 0).all()
+    (g_exact,) = torch.autograd.grad(exact[0, -1, 0], exact_in)
+    (g_free,) = torch.autograd.grad(free[0, -1, 0], free_in)
+    assert (g_exact == 0).all()
+    want = 0.01 * torch.arange(10, 0, -1, dtype=torch.float64)  # x_T = Σ_t v_t·dt, v_t = Σ_{k≤t} a_k·dt
+    torch.testing.assert_close(g_free[0, :, 0], want)
+    moving = torch.tensor([[0.0, 0.0, 5.0, 0.0]], dtype=torch.float64)  # never clipped: gradients agree
+    a, b = acts.clone().requires_grad_(), acts.clone().requires_grad_()
+    (ga,) = torch.autograd.grad(rollout(moving, a, 0.1)[0, -1, :2].sum(), a)
+    (gb,) = torch.autograd.grad(rollout(moving, b, 0.1, restartable=True)[0, -1, :2].sum(), b)
+    torch.testing.assert_close(ga, gb)

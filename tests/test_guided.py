@@ -316,3 +316,19 @@ def test_a_guided_sample_lowers_the_rule_loss(scene_0103: Scene, name: str, samp
     guided = losses(DiffusionPolicy(model, sampling, loss), loss, scene_0103)
     assert float(unguided.sum()) > 0
     assert float(guided.sum()) < 0.9 * float(unguided.sum())
+
+
+def test_guidance_starts_a_vehicle_that_the_sample_keeps_at_rest() -> None:
+    """A plan that keeps a stopped vehicle braking, guided to be 5 m further along: Algorithm 2's
+    Adam steps raise its accelerations and it moves (the exact clipped-speed gradient is zero)."""
+    current = torch.zeros(1, 4)  # at rest
+
+    def objective(x: Tensor) -> Tensor:  # actions (N, V, F, 2) -> how far short of 5 m it ends
+        traj = action_trajectories(x, current, 0.1)
+        return torch.relu(5.0 - traj[..., -1, 0])
+
+    mean = torch.zeros(1, 1, 20, 2)
+    mean[..., 0] = -0.3
+    assert objective(mean).item() == pytest.approx(5.0)
+    moved = guide_mean(mean, objective, 1.0, GuidanceConfig(inner_steps=3, lr=0.9))
+    assert (moved[..., 0] > mean[..., 0]).all() and objective(moved).item() < 5.0

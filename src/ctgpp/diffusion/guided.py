@@ -135,10 +135,12 @@ def action_trajectories(actions: Tensor, current: Tensor, dt_s: float) -> Tensor
     bounds); current (V, 4) each vehicle's current state (0, 0, v, 0) in its own frame.
     Returns (V, N, F, 6): (x m, y m, vel m/s, yaw rad, acc m/s², yawvel rad/s) in each vehicle's frame;
     yawvel is the yaw rate the vehicle turns at, within the curvature limit of its speed
-    (:func:`ctgpp.dynamics.bound_yaw_rate`), so that yawvel·dt sums to the yaw.
+    (:func:`ctgpp.dynamics.bound_yaw_rate`), so that yawvel·dt sums to the yaw. The speeds pass their
+    gradient through a standstill (``rollout(restartable=True)``), so that guidance can start a
+    vehicle that the sample stops.
     """
     acts = clip_actions(actions)
-    states = rollout(current[None].to(acts.dtype), acts, dt_s)  # (N, V, F, 4)
+    states = rollout(current[None].to(acts.dtype), acts, dt_s, restartable=True)  # (N, V, F, 4)
     yaw_rate = bound_yaw_rate(acts[..., 1], states[..., 2])  # (N, V, F)
     x = torch.cat([states, acts[..., :1], yaw_rate[..., None]], dim=-1)  # (N, V, F, 6)
     return x.transpose(0, 1)  # (N, V, F, 6) -> (V, N, F, 6)

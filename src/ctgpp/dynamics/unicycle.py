@@ -62,15 +62,24 @@ def step(state: Tensor, action: Tensor, dt_s: float) -> Tensor:
     return torch.stack([x, y, speed, yaw], dim=-1)
 
 
-def rollout(state0: Tensor, actions: Tensor, dt_s: float) -> Tensor:
+def rollout(state0: Tensor, actions: Tensor, dt_s: float, restartable: bool = False) -> Tensor:
     """Roll actions out from an initial state.
 
     state0 (..., 4), actions (..., T, 2) -> states (..., T, 4), the state after each action.
     Differentiable with respect to both arguments. The speed clip makes the speed recursive; the
     speeds come first, then the yaw rates bounded by them (:func:`bound_yaw_rate`), and the heading
     and positions are cumulative sums.
+
+    restartable: the speeds' gradient is that of the unclipped running sum v_0 + Σ a_k·dt (a
+    straight-through estimate; the values stay the clipped ones). The exact gradient of a speed
+    clipped at 0 is zero for every acceleration up to the standstill, so for a plan that brakes to a
+    stop and stays there it is zero for all of them: guidance could never start the vehicle again.
+    With it, a loss that wants the vehicle further along raises its accelerations.
     """
     speed_t = _speeds(state0[..., 2], actions[..., 0], dt_s)  # (..., T)
+    if restartable:
+        free = state0[..., 2:3] + torch.cumsum(actions[..., 0] * dt_s, dim=-1)  # (..., T) unclipped
+        speed_t = free + (speed_t - free).detach()
     yaw_rate_t = bound_yaw_rate(actions[..., 1], speed_t)  # (..., T)
     yaw_t = state0[..., 3:4] + torch.cumsum(yaw_rate_t, dim=-1) * dt_s  # (..., T)
     x_t = state0[..., 0:1] + torch.cumsum(speed_t * torch.cos(yaw_t), dim=-1) * dt_s
