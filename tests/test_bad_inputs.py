@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ctgpp.cli import simulate_cmd
+from ctgpp.api import episode as api_episode
 from ctgpp.cli.main import main
 from ctgpp.data.catalog import Catalog, CatalogEntry, default_data_dir, write_index
 from ctgpp.data.safe_pickle import safe_load
@@ -44,7 +44,7 @@ def no_simulation(monkeypatch: pytest.MonkeyPatch) -> None:
     def refuse(*args: object, **kwargs: object) -> None:
         raise AssertionError("a simulation started for an input that must be refused first")
 
-    monkeypatch.setattr(simulate_cmd, "simulate", refuse)
+    monkeypatch.setattr(api_episode, "run_closed_loop", refuse)
 
 
 def refused(argv: list[str], capsys: pytest.CaptureFixture[str], *names: str) -> str:
@@ -177,7 +177,7 @@ def test_damaged_scene_file(tmp_path: Path, capsys: pytest.CaptureFixture[str], 
         blob[middle : middle + 10] = bytes(10)
     path.write_bytes(bytes(blob))
     out = tmp_path / "out"
-    refused([*SIM, "--data", str(data), "--out", str(out)], capsys, str(path))
+    refused([*SIM, "--data", str(data), "--scene", "0103", "--out", str(out)], capsys, str(path))
     assert not out.exists()
 
 
