@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from ctgpp.eval.rule_setup import setup_rule
 from ctgpp.guidance import CompositeLoss, GuidanceBatch, build_guidance_batch, describe_rules, make_loss
 from ctgpp.guidance.base import registered_losses
 from ctgpp.guidance.rules import TargetSpeed
@@ -31,6 +32,8 @@ def _active_params(batch: GuidanceBatch) -> dict[str, dict]:
     return {
         "speed_limit": {"limit_mps": 1.0},
         "target_speed": {"speed_mps": 0.0},
+        "stop": {},
+        "reach_speed": {"speed_mps": 20.0, "bound": "above"},
         "acceleration_limit": {"max_mps2": 0.05},
         "no_offroad": {"margin_m": 20.0},
         "goal_waypoint": {"vehicle": 0, "x": far[0], "y": far[1], "target_speed_mps": 3.0},
@@ -39,7 +42,7 @@ def _active_params(batch: GuidanceBatch) -> dict[str, dict]:
         "no_collision": {"buffer_m": 20.0},
         "keep_distance": {"follower": 0, "leader": 1, "min_m": 100.0, "max_m": 200.0},
         "collision": {"vehicle_a": 0, "vehicle_b": 1},
-        "lane_change": {"vehicle": 0, "side": "left"},
+        "lane_change": {"vehicle": 2, "side": "left"},  # on scene-0553 (:data:`ON_0553`)
         "move_to_rightmost_lane": {"vehicle": 0},
         "turn_at_next_intersection": {"vehicle": 0, "direction": "right"},
         "follow_lane": {"vehicle": None},
@@ -57,9 +60,15 @@ def test_every_rule_is_covered(batch: GuidanceBatch) -> None:
     assert {info.name for info in describe_rules()} == set(registered_losses())
 
 
+ON_0553 = {"lane_change"}  # scene-0103 has no same-direction neighbour lane to change to
+
+
 @pytest.mark.parametrize("name", sorted(registered_losses()))
 def test_contract_shape_and_gradients(name: str, batch: GuidanceBatch, x: torch.Tensor) -> None:
     loss = make_loss(name, **_active_params(batch)[name])
+    if name in ON_0553:
+        obs = real_observation("scene-0553", 30)
+        batch, x = build_guidance_batch(obs), logged_x(obs)[0]
     xg = x.clone().requires_grad_(True)
     cost = loss(xg, batch)
     expected = (x.shape[1],) if loss.couples_agents else tuple(x.shape[:2])
@@ -70,6 +79,19 @@ def test_contract_shape_and_gradients(name: str, batch: GuidanceBatch, x: torch.
     if not loss.couples_agents:  # agt_mask removes vehicles
         mask = torch.zeros(x.shape[0], dtype=torch.bool)
         assert float(loss(x, batch, mask).abs().sum()) == 0.0
+
+
+def test_reach_speed_by_hand(batch: GuidanceBatch) -> None:
+    x = _still(2, 1, 4, 5.0)
+    x[0, 0, :, 2] = torch.tensor([3.0, 6.0, 7.0, 4.0])
+    below = make_loss("reach_speed", speed_mps=5.0, bound="below", margin_mps=0.5)(x, batch)
+    assert torch.allclose(below, torch.tensor([[(0 + 1.5 + 2.5 + 0) / 4], [0.5]]))  # excess over 4.5 m/s
+    one = replace(batch, speed=torch.tensor([2.0, 9.0]), memo={})
+    x[..., 4] = torch.tensor([1.0, 1.0, 1.0, 1.0])  # speeds without the clip: now + 0.1, 0.2, ... m/s
+    above = make_loss("reach_speed", speed_mps=2.0, bound="above", margin_mps=0.0)(x, one)
+    assert torch.allclose(above, torch.zeros(2, 1))  # 2.1-2.4 and 9.1-9.4 m/s: over 2 everywhere
+    above = make_loss("reach_speed", speed_mps=2.3, bound="above", margin_mps=0.0)(x, one)
+    assert torch.allclose(above, torch.tensor([[(0.2 + 0.1) / 4], [0.0]]), atol=1e-6)
 
 
 def _still(b: int, n: int, t: int, speed: float) -> torch.Tensor:
@@ -87,12 +109,14 @@ def test_speed_limit_by_hand(batch: GuidanceBatch) -> None:
     assert torch.allclose(cost, torch.tensor([[0.75], [0.0]]))
 
 
-def test_target_speed_from_log(batch: GuidanceBatch, x: torch.Tensor) -> None:
-    rule = TargetSpeed.from_log(batch, 0.5)
-    target = rule.targets(x, batch)
+def test_evaluation_rule_5_targets_half_the_logged_speed(batch: GuidanceBatch, x: torch.Tensor) -> None:
+    spec = setup_rule("target_speed", batch.scene, batch.step, np.asarray(batch.agent_index))
+    assert spec is not None and isinstance(spec.loss, TargetSpeed)
+    target = spec.loss.targets(x, batch)
     log = batch.scene.agents
-    logged = torch.from_numpy(0.5 * log.speed[batch.agent_index[0], 31:34]).float()
-    assert torch.allclose(target[0, :3], logged)
+    step = batch.step
+    logged = torch.from_numpy(0.5 * log.speed[batch.agent_index[0], step + 1 : step + 4]).float()
+    assert torch.allclose(target[0, :3], logged)  # future step t is scene step step + 1 + t
 
 
 def test_keep_distance_by_hand(batch: GuidanceBatch) -> None:

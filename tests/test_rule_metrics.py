@@ -9,10 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from ctgpp.behaviours import RuleMeasure, rule_violation
 from ctgpp.cli.main import main
 from ctgpp.cli.rules_cmd import parse_rule_arg
 from ctgpp.eval.rule_setup import custom_rule, evaluation_rules, select_pair, setup_rule
-from ctgpp.metrics.rules import RuleMeasure, fail_excluding, rule_violation
+from ctgpp.metrics.rules import fail_excluding
 from ctgpp.scene.types import AgentTracks, DrivableArea, LaneGraph, Scene
 from ctgpp.scene.vehicles import controlled_vehicles
 from ctgpp.sim.closed_loop import simulate
@@ -149,7 +150,7 @@ def test_rule_arguments_parse_and_fail_clearly(scene_0103: Scene) -> None:
             parse_rule_arg(bad)
     ctrl = controlled_vehicles(scene_0103, 30)
     spec = custom_rule("speed_limit", {"limit": "3"}, scene_0103, 30, ctrl)
-    assert spec.measure.params == {"limit_mps": 3.0}
+    assert spec.measure.params == {"limit_mps": 3.0, "margin_mps": 0.0}  # defaults filled in
     for name, params, message in [
         ("speed_limt", {}, "unknown rule"),
         ("speed_limit", {"limt": "3"}, "no parameter"),

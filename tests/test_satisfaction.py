@@ -2,16 +2,16 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from ctgpp.data.catalog import Catalog
+from ctgpp.guidance.lane_paths import same_direction_neighbour
 from ctgpp.language.compiler import compile_query
 from ctgpp.language.satisfaction import check_satisfied
-from ctgpp.scene.lanes import lane_points_ahead, left_lane, nearest_lane
+from ctgpp.scene.lanes import lane_points_ahead, nearest_lane
 from ctgpp.scene.types import AgentTracks
 from ctgpp.sim.closed_loop import simulate
 from ctgpp.sim.policy import ReplayPolicy
@@ -93,7 +93,9 @@ def test_a_vehicle_driven_into_another_collides_from_behind(replay: Rollout) -> 
         "vehicle 1 collides with vehicle 0, vehicle 1 stays within 15 m of vehicle 0, "
         "vehicle 1 drives in the same direction as vehicle 0",
     ) == [False, True, True]
-    assert _verdicts(follow, "vehicle 0 cuts in ahead of vehicle 1") == [True]
+    # ahead of vehicle 1 all along, never entering its lane, while vehicle 1 (its logged speeds) stops:
+    # no cut-in (tests/test_behaviours.py builds one that is)
+    assert _verdicts(follow, "vehicle 0 cuts in ahead of vehicle 1") == [False]
     assert _verdicts(follow, "vehicle 1 cuts in ahead of vehicle 0") == [False]
     left = np.stack([-np.sin(lead_yaw), np.cos(lead_yaw)], axis=-1)
     beside = _edited(replay, 1, lead_xy + 4.0 * left, lead_yaw, speed)
@@ -102,7 +104,7 @@ def test_a_vehicle_driven_into_another_collides_from_behind(replay: Rollout) -> 
     ) == [True, False]
 
 
-def test_stop_region_reach_and_turn(replay: Rollout) -> None:
+def test_stop_region_and_reach(replay: Rollout) -> None:
     xy, yaw, speed = _future(replay, 2)
     stop_at = xy[-1]
     speed[-10:] = 0.0
@@ -112,43 +114,48 @@ def test_stop_region_reach_and_turn(replay: Rollout) -> None:
     assert _verdicts(stopped, f"vehicle 2 should stop at ({x:.1f}, {y:.1f})") == [True]
     assert _verdicts(stopped, f"vehicle 2 should stop at ({x + 30:.1f}, {y:.1f})") == [False]
     assert _verdicts(stopped, f"vehicle 2 should reach ({x + 1:.1f}, {y:.1f})") == [True]
-    # a quarter circle to the left: +90°
-    t = np.linspace(0.0, math.pi / 2, len(yaw))
-    arc_xy = xy[0] + 20.0 * np.stack([np.sin(t), 1 - np.cos(t)], axis=-1)
-    turned = _edited(replay, 2, arc_xy, t, np.full(len(t), 5.0))
-    assert _verdicts(
-        turned,
-        "vehicle 2 turns left at the next intersection, vehicle 2 turns right at the next intersection",
-    ) == [True, False]
-    # the same heading change while standing still is no turn
-    spun = _edited(replay, 2, np.repeat(xy[:1], len(t), axis=0), t, np.zeros(len(t)))
-    assert _verdicts(spun, "vehicle 2 turns left at the next intersection") == [False]
+    # turns at the next intersection: tests/test_behaviours.py, along the intersection's own ways
 
 
-def test_lane_change_onto_the_mapped_neighbour() -> None:
+def _start(rollout: Rollout, number: int) -> tuple[np.ndarray, float]:
+    a = _agent(rollout, number)
+    return rollout.sim.xy[a, rollout.current], float(rollout.sim.yaw[a, rollout.current])
+
+
+def test_lane_change_onto_the_same_direction_neighbour() -> None:
     scene = Catalog.open().load("scene-0553")
     rollout = simulate(scene, ReplayPolicy(), 3.0)
     lanes = scene.lanes
-    number = next(
-        n
+    number, side = next(
+        (n, side)
         for n in range(int(rollout.controlled.sum()))
-        if (p := nearest_lane(lanes, _future(rollout, n)[0][0], float(_future(rollout, n)[1][0]))) is not None
-        and left_lane(lanes, p) is not None
-        and _future(rollout, n)[2].mean() > 2.0
+        if (p := nearest_lane(lanes, *_start(rollout, n))) is not None and _future(rollout, n)[2].mean() > 2.0
+        for side in ("left", "right")
+        if same_direction_neighbour(lanes, p, side) is not None
     )
+    other_side = "right" if side == "left" else "left"
+    xy0, yaw0 = _start(rollout, number)
+    start = nearest_lane(lanes, xy0, yaw0)
+    target = same_direction_neighbour(lanes, start, side)
+    assert target is not None and same_direction_neighbour(lanes, start, other_side) is None
     xy, yaw, speed = _future(rollout, number)
-    start = nearest_lane(lanes, xy[0], float(yaw[0]))
-    target = left_lane(lanes, start)
-    path = lane_points_ahead(lanes, target, 1.0 * len(xy), 1.0)  # (K, 2) along the left lane, 10 m/s
+    path = lane_points_ahead(lanes, target, 1.0 * len(xy), 1.0)  # (K, 2) along the neighbour, 10 m/s
     k = np.minimum(np.arange(len(xy)), len(path) - 1)
     drift = np.clip(np.arange(len(xy)) / 30.0, 0.0, 1.0)[:, None]  # over 3 s onto the neighbour
-    moved = xy[0] + (path[k] - path[0]) + drift * (path[0] - xy[0])
+    moved = xy0 + (path[k] - path[0]) + drift * (path[0] - xy0)
     seg = np.diff(moved, axis=0, append=moved[-1:] + (moved[-1:] - moved[-2:-1]))
     heading = np.arctan2(seg[:, 1], seg[:, 0])
     changed = _edited(rollout, number, moved, heading, np.full(len(xy), 10.0))
-    query = f"vehicle {number} changes to the left lane, vehicle {number} changes to the right lane"
+    query = f"vehicle {number} changes to the {side} lane, vehicle {number} changes to the {other_side} lane"
     assert _verdicts(changed, query) == [True, False]
-    assert _verdicts(rollout, f"vehicle {number} changes to the left lane") == [False]
+    assert _verdicts(rollout, f"vehicle {number} changes to the {side} lane") == [False]
+    # the same drift mirrored to the side with no same-direction lane: never a lane change
+    mirrored = 2 * xy0 + (path[k] - path[0]) - moved + (path[k] - path[0])
+    seg = np.diff(mirrored, axis=0, append=mirrored[-1:] + (mirrored[-1:] - mirrored[-2:-1]))
+    drifted = _edited(rollout, number, mirrored, np.arctan2(seg[:, 1], seg[:, 0]), np.full(len(xy), 10.0))
+    query = f"vehicle {number} changes to the {other_side} lane"
+    report = check_satisfied(drifted, compile_query(query, 20))[0]
+    assert not report.satisfied and f"no same-direction lane on its {other_side}" in report.measured
 
 
 def test_missing_vehicle_is_reported_not_raised(replay: Rollout) -> None:

@@ -1,5 +1,6 @@
-"""``ctgpp rules``: every guidance rule with its parameters, defaults and units; and the ``--rule``
-syntax that ``ctgpp simulate`` accepts."""
+"""``ctgpp rules``: every behaviour of the vocabulary (:mod:`ctgpp.behaviours`) with its parameters,
+defaults and units, its violation's unit, the window its verdict is judged on and a phrasing; and the
+``--rule`` syntax that ``ctgpp simulate`` accepts."""
 
 from __future__ import annotations
 
@@ -17,21 +18,25 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
 
 
 def run_rules(args: argparse.Namespace) -> int:
-    from ctgpp.guidance import describe_rules
+    from ctgpp.behaviours import behaviours
+    from ctgpp.guidance import registered_losses
 
-    rows = []
-    for rule in describe_rules():
-        summary = rule.doc.split("\n\n")[0].replace("\n", " ")
-        coupled = "  (couples vehicles: one sample kept for the whole scene)" if rule.couples_agents else ""
-        print(f"{rule.name}{coupled}\n  {summary}")
+    losses = registered_losses()
+    for name, b in behaviours().items():
+        coupled = "  (couples vehicles: one sample kept for the whole scene)" if getattr(
+            losses[b.rule], "couples_agents", False) else ""
+        print(f"{name}{coupled}\n  {b.summary}")
         rows = [
             [p.name, p.type, "required" if p.required else repr(p.default), p.unit or "-", p.help]
-            for p in rule.params
+            for p in b.params
         ]
         if rows:
             print_table(["parameter", "type", "default", "unit", "meaning"], rows)
+        print(f"  violation: {b.meaning} ({b.unit or 'no unit'})")
+        print(f"  judged on: {b.window}")
+        print(f"  e.g. \"{b.phrasings[0]}\"")
         print()
     print(f"Use with: ctgpp simulate --rule {RULE_SYNTAX} (repeatable; e.g. --rule speed_limit:limit_mps=3")
     print("--rule no_offroad). Vehicles are the displayed numbers; lists are written 1/2/3; a parameter may")
-    print("drop its unit suffix (limit=3).")
+    print("drop its unit suffix (limit=3). Each rule reports its violation with its unit and a verdict.")
     return 0

@@ -157,7 +157,9 @@ def run_simulate(args: argparse.Namespace) -> int:
     moving = "  ".join(f"{k} {_fmt(metrics[k])}" for k in MOVING_METRICS if k in metrics)
     print(f"  {result.moving_vehicles} moving at the start: {moving}")
     for text, value in result.rules.items():
-        print(f"  rule {text}: violation {_fmt(value['violation'])}")
+        mark = "yes" if value["satisfied"] else "no "
+        print(f"  rule {text}: violation {_fmt(value['violation'])} {value['unit']}".rstrip()
+              + f"  [{mark}] {value['measured']}")
     if result.query is not None:
         print(f"  query satisfied: {result.query['satisfied']}")
         for part in result.query["parts"]:

@@ -24,6 +24,7 @@ from tqdm import tqdm
 from ctgpp.data.catalog import Catalog
 from ctgpp.eval.records import append_records, metric_cell, read_records, record_key
 from ctgpp.guidance.base import GuidanceLoss
+from ctgpp.interfaces import Policy, Rollout
 from ctgpp.language.compiler import CompiledQuery
 from ctgpp.language.query import resolve_query
 from ctgpp.language.satisfaction import check_satisfied
@@ -31,8 +32,6 @@ from ctgpp.metrics import compute_metrics
 from ctgpp.metrics.rules import fail_excluding
 from ctgpp.scene.types import Scene
 from ctgpp.sim.closed_loop import initial_observation, simulate
-from ctgpp.sim.policy import Policy
-from ctgpp.sim.rollout import Rollout
 
 KEY = ("family", "query", "scene", "start_s", "seed")
 SIDES = ("guided", "unguided")
@@ -81,7 +80,7 @@ def colliding_vehicles(compiled: CompiledQuery) -> list[int]:
     """Displayed numbers of the vehicles that a query asks to collide (empty for other queries)."""
     out: list[int] = []
     for part in compiled.parts:
-        for name in COLLIDING.get(part.family, ()):
+        for name in COLLIDING.get(part.rule, ()):
             if int(part.params[name]) not in out:
                 out.append(int(part.params[name]))
     return out

@@ -24,9 +24,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from ctgpp.behaviours import RuleMeasure, Verdict, get_behaviour, rule_verdict, rule_violation
 from ctgpp.geometry import wrap_angle
 from ctgpp.guidance import CompositeLoss, GuidanceLoss, build_guidance_batch, make_loss
-from ctgpp.metrics.rules import RuleMeasure, fail_excluding, rule_violation
+from ctgpp.metrics.rules import fail_excluding
 from ctgpp.scene.types import Scene
 from ctgpp.sim.policy import Observation
 from ctgpp.sim.rollout import Rollout
@@ -56,9 +57,10 @@ LOG_WINDOW = (30, 100)  # steps of history and of simulation around the start
 
 @dataclass(frozen=True, eq=False)
 class RuleSpec:
-    """A rule of one episode: the guidance ``loss``, how it is measured (``measures``, the first
-    is the rule's violation), the displayed vehicles left out of the fail rate (``exempt``: the pair
-    a collision rule asks to crash) and a one-line ``description``."""
+    """A rule of one episode: the guidance ``loss``, how it is measured (``measures``: behaviours of
+    :mod:`ctgpp.behaviours` with their parameters, the first is the rule's violation and verdict), the
+    displayed vehicles left out of the fail rate (``exempt``: the pair a collision rule asks to crash)
+    and a one-line ``description``."""
 
     name: str
     loss: GuidanceLoss
@@ -73,6 +75,19 @@ class RuleSpec:
     def violation(self, rollout: Rollout) -> float:
         """The rule's violation on ``rollout`` (NaN when it has no measure)."""
         return float("nan") if self.measure is None else rule_violation(rollout, self.measure)
+
+    @property
+    def unit(self) -> str:
+        """The unit of :meth:`violation`."""
+        return "" if self.measure is None else get_behaviour(self.measure.name).unit
+
+    def verdict(self, rollout: Rollout) -> Verdict | None:
+        """Whether every measured behaviour holds on ``rollout`` (their checks joined), None without one."""
+        verdicts = [rule_verdict(rollout, m) for m in self.measures.values()]
+        if not verdicts:
+            return None
+        return Verdict(all(v.satisfied for v in verdicts), "; ".join(v.measured for v in verdicts),
+                       "; ".join(dict.fromkeys(v.window for v in verdicts)))
 
     def fail(self, rollout: Rollout) -> float:
         """The fail rate without the exempted vehicles."""
@@ -96,13 +111,12 @@ def setup_rule(name: str, scene: Scene, start_step: int, controlled: np.ndarray)
         follower, leader = pair
         if name == "keep_distance":
             lo, hi = PAIR_RANGE_M
-            loss = make_loss("keep_distance", follower=follower, leader=leader, min_m=lo, max_m=hi)
             desc = f"vehicle {follower} keeps {lo:g}-{hi:g} m behind vehicle {leader}"
-            return spec_for(name, loss, desc)
-        loss = make_loss("collision", vehicle_a=follower, vehicle_b=leader)
-        return spec_for(name, loss, f"vehicles {follower} and {leader} collide")
+            return spec_for(name, {"follower": follower, "leader": leader, "min_m": lo, "max_m": hi}, desc)
+        desc = f"vehicles {follower} and {leader} collide"
+        return spec_for(name, {"vehicle_a": follower, "vehicle_b": leader}, desc)
     if name in ("no_collision", "no_offroad"):
-        return spec_for(name, make_loss(name), name.replace("_", " "))
+        return spec_for(name, {}, name.replace("_", " "))
     if name == "speed_limit":
         lo, hi = start_step - LOG_WINDOW[0], start_step + LOG_WINDOW[1] + 1
         speeds = log.speed[controlled, lo:hi][log.valid[controlled, lo:hi]]
@@ -110,9 +124,10 @@ def setup_rule(name: str, scene: Scene, start_step: int, controlled: np.ndarray)
         if moving.size == 0:
             return None
         limit = float(np.quantile(moving, SPEED_QUANTILE))
-        return spec_for(name, make_loss(name, limit_mps=limit), f"speed limit {limit:.2f} m/s")
+        return spec_for(name, {"limit_mps": limit}, f"speed limit {limit:.2f} m/s")
     if name == "target_speed":
-        return spec_for(name, _target_speed(scene, controlled), "50% of each vehicle's logged speed")
+        params = {"speed_mps": _target_table(scene, controlled), "absolute_steps": True}
+        return spec_for(name, params, "50% of each vehicle's logged speed")
     if name == "goal_waypoint":
         return _goal_rule(scene, start_step, controlled)
     if name == "stop_region":
@@ -161,8 +176,19 @@ def _target_table(scene: Scene, controlled: np.ndarray) -> np.ndarray:
 
 
 def _target_speed(scene: Scene, controlled: np.ndarray) -> GuidanceLoss:
-    table = torch.from_numpy(_target_table(scene, controlled).astype(np.float32))
-    return make_loss("target_speed", speed_mps=table, absolute_steps=True)
+    return make_loss("target_speed", **_loss_params({"speed_mps": _target_table(scene, controlled),
+                                                     "absolute_steps": True}))
+
+
+def _loss_params(params: dict) -> dict:
+    """Measure parameters as the guidance rules take them: tables as float32 tensors, points as lists."""
+    out = {}
+    for key, value in params.items():
+        if isinstance(value, np.ndarray):
+            table = value.ndim == 2
+            value = torch.from_numpy(value.astype(np.float32)) if table else [float(v) for v in value]
+        out[key] = value
+    return out
 
 
 def _goal_rule(scene: Scene, start_step: int, controlled: np.ndarray) -> RuleSpec | None:
@@ -208,39 +234,15 @@ def _stop_rule(scene: Scene, start_step: int, controlled: np.ndarray) -> RuleSpe
     return RuleSpec("stop_region", loss, measures, (), desc)
 
 
-def spec_for(name: str, loss: GuidanceLoss, description: str = "") -> RuleSpec:
-    """A RuleSpec for a loss of the rules library, its measure read from the loss's parameters
-    (rules without a measure, e.g. lane rules, get none)."""
-    measure = measure_of(name, loss)
+def spec_for(name: str, params: dict, description: str = "") -> RuleSpec:
+    """The RuleSpec of behaviour ``name`` with ``params`` (typed): its guidance loss and its measure
+    from the same parameters; the pair a collision asks to crash is exempt from the fail rate."""
+    loss = get_behaviour(name).build(**_loss_params(params))
     exempt: tuple[int, ...] = ()
-    if name == "collision" and measure is not None:
-        exempt = (measure.params["vehicle_a"], measure.params["vehicle_b"])
-    return RuleSpec(name, loss, {name: measure} if measure else {}, exempt, description or name)
-
-
-def measure_of(name: str, loss: GuidanceLoss) -> RuleMeasure | None:
-    """How to measure a rule built by ``make_loss(name, ...)``, from the loss's parameters."""
-    attrs = {
-        "speed_limit": {"limit_mps": "limit_mps"},
-        "acceleration_limit": {"max_mps2": "max_mps2"},
-        "keep_distance": {"follower": "follower", "leader": "leader", "min_m": "min_m", "max_m": "max_m"},
-        "collision": {"vehicle_a": "vehicle_a", "vehicle_b": "vehicle_b"},
-        "no_collision": {},
-        "no_offroad": {},
-    }
-    if name in attrs:
-        return RuleMeasure(name, {key: getattr(loss, attr) for key, attr in attrs[name].items()})
-    if name == "target_speed":
-        speed = loss.speed_mps
-        table = speed.detach().cpu().numpy() if isinstance(speed, torch.Tensor) else float(speed)
-        return RuleMeasure(name, {"speed_mps": table, "absolute_steps": bool(loss.absolute_steps)})
-    if name in ("goal_waypoint", "stop_region"):
-        goals = np.asarray(loss.goals_world)
-        params = {"vehicle": list(loss.vehicles), "x": goals[:, 0], "y": goals[:, 1]}
-        if name == "stop_region":
-            params["radius_m"] = float(loss.radius_m)
-        return RuleMeasure(name, params)
-    return None
+    if name in ("collision", "collide_from_behind"):
+        pair = ("vehicle_a", "vehicle_b", "vehicle", "target")
+        exempt = tuple(int(v) for k, v in params.items() if k in pair)
+    return RuleSpec(name, loss, {name: RuleMeasure(name, dict(params))}, exempt, description or name)
 
 
 def custom_rule(
@@ -250,7 +252,12 @@ def custom_rule(
     unknown rules or parameters, bad values and vehicle numbers the episode does not have raise
     ValueError naming ``text`` (the rule as the user wrote it)."""
     label = text or name
-    loss = make_loss(name, **params)
+    try:
+        behaviour = get_behaviour(name)
+        typed = behaviour.resolve(params)
+        loss = behaviour.build(**typed)
+    except ValueError as err:
+        raise ValueError(f"--rule {label}: {err}") from None
     obs = Observation(scene, scene.agents, start_step, controlled, 52, np.random.default_rng(0))
     x = torch.zeros(len(controlled), 1, 52, 6)
     x[..., 0] = torch.arange(1, 53, dtype=torch.float32) * 0.5  # 5 m/s straight ahead
@@ -261,4 +268,6 @@ def custom_rule(
         raise ValueError(f"--rule {label}: {err}") from None
     if not torch.isfinite(cost).all():
         raise ValueError(f"--rule {label}: the rule's loss is not finite on this scene")
-    return spec_for(name, loss, label)
+    exempt = tuple(int(typed[k]) for k in ("vehicle_a", "vehicle_b", "vehicle", "target")
+                   if name in ("collision", "collide_from_behind") and k in typed)
+    return RuleSpec(name, loss, {name: RuleMeasure(name, typed)}, exempt, label)

@@ -154,13 +154,11 @@ def check_quantity(what: str, value: Any, unit: str) -> None:
             )
 
 
-def make_loss(name: str, **params: Any) -> GuidanceLoss:
-    """Build the registered loss ``name`` with ``params``.
-
-    A parameter may be named without its unit suffix (``limit=3`` for ``limit_mps``); text values
-    are converted to the parameter's type (lists as ``1/2/3``). Unknown names or parameters and
-    missing required ones raise ValueError listing the valid choices.
-    """
+def resolve_params(name: str, **params: Any) -> dict[str, Any]:
+    """The keyword arguments of the registered loss ``name`` for ``params``: full names (a parameter
+    may be named without its unit suffix, ``limit=3`` for ``limit_mps``), text values converted to the
+    parameter's type (lists as ``1/2/3``) and checked for physical range, defaults filled in. Unknown
+    names or parameters and missing required ones raise ValueError listing the valid choices."""
     table = registered_losses()
     if name not in table:
         raise ValueError(f"unknown rule {name!r}; the rules are: {', '.join(sorted(table))}")
@@ -182,7 +180,15 @@ def make_loss(name: str, **params: Any) -> GuidanceLoss:
     missing = [p for p, spec in sig.parameters.items() if spec.default is empty and p not in kwargs]
     if missing:
         raise ValueError(f"rule {name!r} needs {', '.join(missing)}; its parameters are: {', '.join(valid)}")
-    return factory(**kwargs)
+    defaults = {p: spec.default for p, spec in sig.parameters.items() if spec.default is not empty}
+    return {**defaults, **kwargs}
+
+
+def make_loss(name: str, **params: Any) -> GuidanceLoss:
+    """Build the registered loss ``name`` with ``params`` (:func:`resolve_params` says how they are
+    read and when they are refused)."""
+    kwargs = resolve_params(name, **params)  # unknown names raise ValueError first
+    return registered_losses()[name](**kwargs)
 
 
 __all__ = [
@@ -193,4 +199,5 @@ __all__ = [
     "check_quantity",
     "describe_rules",
     "make_loss",
+    "resolve_params",
 ]

@@ -14,6 +14,7 @@ map-aware ones on these.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
@@ -39,6 +40,7 @@ TURN_THRESHOLD_RAD = math.radians(30.0)  # heading change that counts as a turn
 INTERSECTION_SEARCH_M = 150.0
 NEIGHBOUR_OFFSET_M = (2.0, 6.0)  # centerline spacing of a plausible neighbour lane
 NEIGHBOUR_MAX_HEADING_RAD = math.radians(20.0)
+LANE_WIDTH_M = 3.5  # where a neighbour is looked for when the lane graph links none
 
 
 def vehicle_lane(data_batch: GuidanceBatch, i: int) -> LaneProjection | None:
@@ -110,10 +112,8 @@ def get_adjacent_lane(data_batch: GuidanceBatch, i: int, side: Side) -> Tensor |
         proj = vehicle_lane(data_batch, i)
         if proj is None:
             return None
-        other = (left_lane if side == "left" else right_lane)(data_batch.scene.lanes, proj)
-        if other is None or not _plausible_neighbour(data_batch.scene.lanes, proj, other):
-            return None
-        return _straight_polyline(data_batch, other, i)
+        other = same_direction_neighbour(data_batch.scene.lanes, proj, side)
+        return None if other is None else _straight_polyline(data_batch, other, i)
 
     return _memo(data_batch, (side, i), build)
 
@@ -129,6 +129,27 @@ def _plausible_neighbour(lanes: LaneGraph, proj: LaneProjection, other: LaneProj
     return NEIGHBOUR_OFFSET_M[0] <= gap <= NEIGHBOUR_OFFSET_M[1] and turn <= NEIGHBOUR_MAX_HEADING_RAD
 
 
+def same_direction_neighbour(lanes: LaneGraph, proj: LaneProjection, side: Side) -> LaneProjection | None:
+    """The lane beside ``proj`` on ``side`` that one may change to: the lane graph's neighbour when it
+    is plausible (:func:`_plausible_neighbour`), else the nearest lane whose centerline lies 2-6 m to
+    that side and runs the same way within 20° (maps without neighbour links). Never an oncoming
+    lane; None when there is no such lane or ``proj`` is inside an intersection."""
+    if side not in ("left", "right"):
+        raise ValueError(f"side must be 'left' or 'right', not {side!r}")
+    if lanes.intersection[proj.lane]:
+        return None
+    other = (left_lane if side == "left" else right_lane)(lanes, proj)
+    if other is not None and _plausible_neighbour(lanes, proj, other):
+        return other
+    sign = 1.0 if side == "left" else -1.0
+    normal = sign * np.array([-math.sin(proj.heading), math.cos(proj.heading)])
+    guess = nearest_lane(lanes, proj.xy + LANE_WIDTH_M * normal, proj.heading, max_dist_m=1.5,
+                         max_heading_diff_rad=NEIGHBOUR_MAX_HEADING_RAD)
+    if guess is None or guess.lane == proj.lane or float((guess.xy - proj.xy) @ normal) <= 0:
+        return None
+    return guess if _plausible_neighbour(lanes, proj, guess) else None
+
+
 def get_rightmost_lane(data_batch: GuidanceBatch, i: int) -> Tensor | None:
     """Target polyline (M, 2) of the rightmost same-direction lane beside vehicle i (its own lane when
     it is already rightmost), continued straight ahead; None when the vehicle is not on a lane."""
@@ -139,9 +160,7 @@ def get_rightmost_lane(data_batch: GuidanceBatch, i: int) -> Tensor | None:
             return None
         seen = {proj.lane}
         lanes = data_batch.scene.lanes
-        while (nxt := right_lane(lanes, proj)) is not None and nxt.lane not in seen:
-            if not _plausible_neighbour(lanes, proj, nxt):
-                break
+        while (nxt := same_direction_neighbour(lanes, proj, "right")) is not None and nxt.lane not in seen:
             seen.add(nxt.lane)
             proj = nxt
         return _straight_polyline(data_batch, proj, i)
@@ -179,12 +198,51 @@ def _heading_change(lanes: LaneGraph, lanes_in: list[int]) -> float:
     return float(wrap_angle(np.float64(h1 - h0)))
 
 
+@dataclass(frozen=True)
+class TurnPath:
+    """A lane path through the next intersection: ``lanes`` from the vehicle's lane on, the indices
+    ``first``..``last`` of its intersection lanes, their heading change ``turn_rad`` (left positive)
+    and the distance ``ahead_m`` from the vehicle to the intersection."""
+
+    lanes: list[int]
+    first: int
+    last: int
+    turn_rad: float
+    ahead_m: float
+
+
+def turn_path(lanes: LaneGraph, proj: LaneProjection, direction: Direction) -> TurnPath | None:
+    """The lane path from ``proj`` through the next intersection that turns ``direction``: "left"
+    (heading change over the intersection lanes above +30°), "right" (below -30°) or "straight"
+    (within ±30°); the sharpest such turn for left/right, the straightest for straight. None when no
+    intersection lies ahead within 150 m or no path through it turns that way. The guidance
+    (:func:`get_turn_lane`) steers along it and the verdict asks for its heading change."""
+    if direction not in ("left", "right", "straight"):
+        raise ValueError(f"direction must be 'left', 'right' or 'straight', not {direction!r}")
+    best, best_key = None, None
+    for path in lanes_ahead(lanes, proj, INTERSECTION_SEARCH_M):
+        found = _first_intersection(lanes, path, proj.s_m)
+        if found is None:
+            continue
+        k, ahead = found
+        end = k
+        while end + 1 < len(path) and lanes.intersection[path[end + 1]]:
+            end += 1
+        turn = _heading_change(lanes, path[k : end + 1])
+        ok = {"left": turn > TURN_THRESHOLD_RAD, "right": turn < -TURN_THRESHOLD_RAD}.get(
+            direction, abs(turn) <= TURN_THRESHOLD_RAD
+        )
+        key = -abs(turn) if direction != "straight" else abs(turn)
+        if ok and (best_key is None or key < best_key):
+            best, best_key = TurnPath(path, k, end, turn, ahead), key
+    return best
+
+
 def get_turn_lane(data_batch: GuidanceBatch, i: int, direction: Direction) -> Tensor | None:
     """Target polyline (M, 2), local world frame m, of a lane path from vehicle i through the next
-    intersection that turns ``direction``: "left" (heading change over the intersection lanes above
-    +30°), "right" (below -30°) or "straight" (within ±30°); the sharpest such turn for left/right,
-    the straightest for straight. None when no intersection lies ahead within 150 m or no path through
-    it turns that way."""
+    intersection that turns ``direction`` (:func:`turn_path`: the sharpest left or right turn, the
+    straightest way on). None when no intersection lies ahead within 150 m or no path through it
+    turns that way."""
     if direction not in ("left", "right", "straight"):
         raise ValueError(f"direction must be 'left', 'right' or 'straight', not {direction!r}")
 
@@ -193,26 +251,11 @@ def get_turn_lane(data_batch: GuidanceBatch, i: int, direction: Direction) -> Te
         if proj is None:
             return None
         lanes = data_batch.scene.lanes
-        best, best_key = None, None
-        for path in lanes_ahead(lanes, proj, INTERSECTION_SEARCH_M):
-            found = _first_intersection(lanes, path, proj.s_m)
-            if found is None:
-                continue
-            k = found[0]
-            end = k
-            while end + 1 < len(path) and lanes.intersection[path[end + 1]]:
-                end += 1
-            turn = _heading_change(lanes, path[k : end + 1])
-            ok = {"left": turn > TURN_THRESHOLD_RAD, "right": turn < -TURN_THRESHOLD_RAD}.get(
-                direction, abs(turn) <= TURN_THRESHOLD_RAD
-            )
-            key = -abs(turn) if direction != "straight" else abs(turn)
-            if ok and (best_key is None or key < best_key):
-                best, best_key = path, key
+        best = turn_path(lanes, proj, direction)
         if best is None:
             return None
         reach = max(_reach_m(data_batch, i), next_intersection_distance(data_batch, i) + 40.0)
-        return _to_tensor(data_batch, _path_polyline(lanes, best, proj.s_m, reach))
+        return _to_tensor(data_batch, _path_polyline(lanes, best.lanes, proj.s_m, reach))
 
     return _memo(data_batch, ("turn", direction, i), build)
 

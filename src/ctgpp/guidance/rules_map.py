@@ -32,7 +32,7 @@ from ctgpp.guidance.lane_helpers import (
     ramp_weights,
     signed_offset,
 )
-from ctgpp.guidance.lane_paths import get_adjacent_lane, get_current_lane, get_rightmost_lane, get_turn_lane
+from ctgpp.guidance.lane_paths import get_adjacent_lane, get_rightmost_lane, get_turn_lane
 from ctgpp.guidance.rules_common import Rule, apply_mask, check_vehicle, soft_abs, world_states
 from ctgpp.guidance.scope import LossScope
 from ctgpp.scene.lanes import lane_points_ahead, nearest_lane
@@ -47,15 +47,6 @@ def free_speed(x_row: Tensor, speed_now: Tensor, dt_s: float) -> Tensor:
     negative where a stopped vehicle is sampled braking. A speed term on these keeps its gradient
     on the accelerations of a stopped vehicle (the clipped speed has none), so it can set it going."""
     return speed_now + torch.cumsum(x_row[..., 4], dim=-1) * dt_s
-
-
-def shifted(line: Tensor, offset_m: float) -> Tensor:
-    """The polyline (M, 2) moved ``offset_m`` to its left (negative: right)."""
-    seg = line[1:] - line[:-1]  # (M-1, 2)
-    tangent = torch.cat([seg[:1], seg[:-1] + seg[1:], seg[-1:]])  # (M, 2) per point
-    tangent = tangent / tangent.norm(dim=-1, keepdim=True).clamp_min(1e-9)
-    normal = torch.stack([-tangent[:, 1], tangent[:, 0]], dim=-1)
-    return line + offset_m * normal
 
 
 def extended(data_batch: GuidanceBatch, line: Tensor, extra_m: float) -> Tensor:
@@ -138,33 +129,23 @@ class CommittedLaneRule(Rule):
 @register_loss("lane_change")
 class LaneChange(CommittedLaneRule):
     """A vehicle changes to the lane on its left or right: the lateral offset (m) from that lane's
-    centerline, weighted up over the first 3 s. Where the lane graph has no such lane, the target is
-    the current lane (or the vehicle's heading line) moved ``lane_width_m`` to that side."""
+    centerline, weighted up over the first 3 s. The lane is a same-direction neighbour of the lane the
+    vehicle is on (:func:`~ctgpp.guidance.lane_paths.same_direction_neighbour`), never the oncoming
+    lane; where there is none the cost is zero (nothing to change to: the verdict says so)."""
 
     param_doc = {
         "vehicle": ("", "displayed number of the vehicle"),
         "side": ("", "'left' or 'right'"),
-        "lane_width_m": ("m", "offset of the target when the map has no lane on that side"),
     }
 
-    def __init__(self, vehicle: int, side: str = "left", lane_width_m: float = 3.5) -> None:
+    def __init__(self, vehicle: int, side: str = "left") -> None:
         super().__init__(vehicle)
         if side not in ("left", "right"):
             raise ValueError(f"side must be 'left' or 'right', not {side!r}")
-        self.side, self.lane_width_m = side, float(lane_width_m)
+        self.side = side
 
     def choose(self, data_batch: GuidanceBatch, i: int) -> Tensor | None:
-        line = get_adjacent_lane(data_batch, i, self.side)  # type: ignore[arg-type]
-        if line is not None:
-            return line
-        base = get_current_lane(data_batch, i)
-        if base is None:  # the vehicle's heading line, 10 m behind to 30 m ahead
-            pose = data_batch.pose[i].detach()
-            ahead = torch.stack([torch.cos(pose[2]), torch.sin(pose[2])])
-            along = torch.tensor([-10.0, 30.0], dtype=pose.dtype, device=pose.device)[:, None]  # (2, 1) m
-            base = pose[:2] + along * ahead  # (2, 2)
-        sign = 1.0 if self.side == "left" else -1.0
-        return shifted(base, sign * self.lane_width_m)
+        return get_adjacent_lane(data_batch, i, self.side)  # type: ignore[arg-type]
 
 
 @register_loss("move_to_rightmost_lane")
@@ -290,6 +271,5 @@ __all__ = [
     "extended",
     "free_speed",
     "ramp_weights",
-    "shifted",
     "signed_offset",
 ]

@@ -35,17 +35,20 @@ class SpeedLimit(Rule):
     """Every vehicle stays at or below a speed limit: the mean excess speed over the horizon
     (m/s), mean over t of max(v - limit, 0)."""
 
-    param_doc = {"limit_mps": ("m/s", "the speed limit")}
+    param_doc = {
+        "limit_mps": ("m/s", "the speed limit"),
+        "margin_mps": ("m/s", "the guidance aims this far under the limit (plans are not executed exactly)"),
+    }
 
-    def __init__(self, limit_mps: float = 10.0) -> None:
+    def __init__(self, limit_mps: float = 10.0, margin_mps: float = 0.0) -> None:
         super().__init__()
-        self.limit_mps = float(limit_mps)
+        self.limit_mps, self.margin_mps = float(limit_mps), float(margin_mps)
 
     def scope(self) -> LossScope:
         return LossScope.everyone()
 
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
-        cost = torch.relu(x[..., 2] - self.limit_mps).mean(-1)  # (B, N)
+        cost = torch.relu(x[..., 2] - (self.limit_mps - self.margin_mps)).mean(-1)  # (B, N)
         return apply_mask(cost, agt_mask)
 
 
@@ -55,7 +58,8 @@ class TargetSpeed(Rule):
 
     ``speed_mps`` is one speed for all, or a tensor (B, S) per vehicle and step: column t is future
     step t (t = 0 is the step after the current one), or with ``absolute_steps`` column j is scene
-    step j (e.g. 50% of each vehicle's logged speed, :meth:`from_log`); NaN entries are ignored.
+    step j (evaluation rule 5: 50% of each vehicle's logged speed, :mod:`ctgpp.eval.rule_setup`); NaN
+    entries are ignored.
     """
 
     param_doc = {
@@ -67,15 +71,6 @@ class TargetSpeed(Rule):
         super().__init__()
         self.speed_mps = speed_mps if isinstance(speed_mps, Tensor) else float(speed_mps)
         self.absolute_steps = bool(absolute_steps)
-
-    @classmethod
-    def from_log(cls, data_batch: GuidanceBatch, fraction: float = 0.5) -> TargetSpeed:
-        """Evaluation rule 5: ``fraction`` of each controlled vehicle's logged speed at every scene
-        step (NaN where the log is invalid), with absolute steps."""
-        log = data_batch.scene.agents
-        idx = data_batch.agent_index
-        speed = np.where(log.valid[idx], log.speed[idx] * fraction, np.nan)  # (B, scene T)
-        return cls(torch.from_numpy(speed.astype(np.float32)), absolute_steps=True)
 
     def targets(self, x: Tensor, data_batch: GuidanceBatch) -> Tensor:
         """(B, T) target speeds for x's horizon, NaN where there is none."""
@@ -99,6 +94,49 @@ class TargetSpeed(Rule):
         dev = soft_abs(x[..., 2] - torch.nan_to_num(target)) * has  # (B, N, T)
         cost = dev.sum(-1) / has.sum(-1).clamp_min(1)
         return apply_mask(cost, agt_mask)
+
+
+@register_loss("stop")
+class Stop(TargetSpeed):
+    """Every vehicle comes to a stop and stays stopped: the mean speed (m/s) over the horizon (the
+    target speed 0)."""
+
+    param_doc: dict[str, tuple[str, str]] = {}
+
+    def __init__(self) -> None:
+        super().__init__(0.0)
+
+
+@register_loss("reach_speed")
+class ReachSpeed(Rule):
+    """Every vehicle gets to a speed at most (``bound`` "below": slows down to under it) or at least
+    ("above": speeds up to over it) ``speed_mps`` and stays there: the mean over the horizon of the
+    speed's excess beyond ``speed_mps`` ∓ ``margin_mps`` (m/s). Speeds up are read without the
+    rollout's clip at zero (the integrated accelerations), so a stopped vehicle is set going."""
+
+    param_doc = {
+        "speed_mps": ("m/s", "the speed to get under or over"),
+        "bound": ("", "'below' (slow down to under speed_mps) or 'above' (speed up to over it)"),
+        "margin_mps": ("m/s", "the guidance aims this far beyond speed_mps"),
+    }
+
+    def __init__(self, speed_mps: float = 5.0, bound: str = "below", margin_mps: float = 0.5) -> None:
+        super().__init__()
+        if bound not in ("below", "above"):
+            raise ValueError(f"bound must be 'below' or 'above', not {bound!r}")
+        self.speed_mps, self.bound, self.margin_mps = float(speed_mps), bound, float(margin_mps)
+
+    def scope(self) -> LossScope:
+        return LossScope.everyone()
+
+    def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
+        if self.bound == "below":
+            cost = torch.relu(x[..., 2] - (self.speed_mps - self.margin_mps))  # (B, N, T)
+        else:
+            now = data_batch.speed.to(x)[:, None, None]  # (B, 1, 1)
+            free = now + torch.cumsum(x[..., 4], dim=-1) * data_batch.dt_s  # speeds without the clip at 0
+            cost = torch.relu(self.speed_mps + self.margin_mps - free)
+        return apply_mask(cost.mean(-1), agt_mask)
 
 
 @register_loss("acceleration_limit")

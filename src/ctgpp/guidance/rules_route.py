@@ -25,6 +25,7 @@ from ctgpp.guidance.rules_relative import relative_position
 from ctgpp.guidance.scope import LossScope
 
 CUT_IN_RAMP_S = 3.0  # a cut-in is a lane change: its lane offsets count fully after 3 s
+KEEP_MOVING_AIM = 0.6  # the one cut in front of keeps this share of its speed (the verdict asks for 0.5)
 ROUTE_RAMP_S = 0.5  # a route is followed from the start: the executed near term counts as much
 
 
@@ -34,7 +35,9 @@ class CutIn(Rule):
     (m) of the vehicle and of the other from the centerline of the lane the other is on (from the
     other's heading line off the lane graph), so that the one cuts in and the other keeps its lane —
     with a bumper gap ahead of the other between ``min_gap_m`` and ``gap_m`` (shortfall or excess
-    in m, in the other's predicted frame); weighted up over the first 3 s. One cost per sample (N)."""
+    in m, in the other's predicted frame); weighted up over the first 3 s. The other keeps moving: its
+    speed's shortfall (m/s) below ``KEEP_MOVING_AIM`` of its current speed, at every step (a cut-in
+    ahead of a vehicle that stops is no cut-in). One cost per sample (N)."""
 
     couples_agents: ClassVar[bool] = True
     param_doc = {
@@ -72,22 +75,24 @@ class CutIn(Rule):
         gap = lon - half[a] - half[b]  # (N, T) bumper gap ahead of vehicle b
         gap_cost = torch.relu(self.min_gap_m - gap) + torch.relu(gap - self.gap_m)
         w = ramp_weights(x.shape[2], data_batch.dt_s, CUT_IN_RAMP_S, x)
-        return ((offsets + gap_cost) * w).sum(-1)
+        keep_moving = torch.relu(KEEP_MOVING_AIM * data_batch.speed[b].to(x) - x[b, ..., 2]).mean(-1)  # (N,)
+        return ((offsets + gap_cost) * w).sum(-1) + keep_moving
 
 
 @register_loss("reach_point")
 class ReachPoint(GoalWaypoint):
     """A vehicle reaches a point (x, y, scene world metres): its closest approach (m) over the horizon
-    beyond ``reach_m``, plus, where a lane path ahead of it leads through the point
+    beyond half of ``reach_m``, plus, where a lane path ahead of it leads through the point
     (:func:`~ctgpp.guidance.lane_helpers.get_route_to_point`), the lateral offset (m) from that path,
     weighted up over the first 0.5 s; with ``target_speed_mps`` also the mean absolute deviation from
-    that speed times ``speed_weight``. Several vehicles: pass lists of equal length. Unlike
+    that speed times ``speed_weight``. The distance term aims at half of ``reach_m``, the distance the
+    verdict accepts. Several vehicles: pass lists of equal length. Unlike
     ``goal_waypoint`` (evaluation rule 7) it follows the lanes to the point and stops pulling once the
-    plan passes within ``reach_m``."""
+    plan passes within half of ``reach_m``."""
 
     param_doc = {
         **GoalWaypoint.param_doc,
-        "reach_m": ("m", "closest approach that counts as reached (the hinge of the distance term)"),
+        "reach_m": ("m", "closest approach that counts as reached (the loss aims at half of it)"),
     }
 
     def __init__(
@@ -95,7 +100,7 @@ class ReachPoint(GoalWaypoint):
         vehicle: int | Sequence[int],
         x: float | Sequence[float],
         y: float | Sequence[float],
-        reach_m: float = 1.0,
+        reach_m: float = 2.0,
         target_speed_mps: float | None = None,
         speed_weight: float = 1.0,
     ) -> None:
@@ -108,7 +113,7 @@ class ReachPoint(GoalWaypoint):
         w = ramp_weights(x.shape[2], data_batch.dt_s, ROUTE_RAMP_S, x)
         terms = []
         for g, row in enumerate(rows):
-            term = torch.relu(dist[g].min(-1).values - self.reach_m)  # (N,)
+            term = torch.relu(dist[g].min(-1).values - 0.5 * self.reach_m)  # (N,)
             line = get_route_to_point(data_batch, row, self.goals_world[g])
             if line is not None:
                 term = term + (soft_abs(signed_offset(pos[row], line.to(x))) * w).sum(-1)

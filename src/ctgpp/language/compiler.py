@@ -22,11 +22,12 @@ import re
 from dataclasses import dataclass, field
 from typing import Any
 
+from ctgpp.behaviours import behaviours
 from ctgpp.guidance import CompositeLoss, GuidanceLoss, make_loss
 from ctgpp.guidance.composite import check_quantity
 from ctgpp.guidance.rules_relative import ForVehicles, SteerOnly
 from ctgpp.language.compiler_families import Context, PartSpec, QueryError, recognise
-from ctgpp.language.compiler_patterns import EXAMPLES, Clause, analyse, split_points
+from ctgpp.language.compiler_patterns import Clause, analyse, split_points
 
 __all__ = [
     "CompiledQuery",
@@ -35,6 +36,7 @@ __all__ = [
     "UnsupportedQuery",
     "VehicleOutOfRange",
     "compile_query",
+    "phrasings",
     "render_code",
     "suggest",
 ]
@@ -102,10 +104,15 @@ class CompiledQuery:
     code: str = ""
 
 
+def phrasings() -> list[str]:
+    """Every behaviour's phrasings (:mod:`ctgpp.behaviours`): the sentences suggestions come from."""
+    return [p for b in behaviours().values() for p in b.phrasings]
+
+
 def suggest(text: str, n: int = 3) -> list[str]:
-    """The ``n`` supported example phrasings closest to ``text`` (difflib similarity)."""
+    """The ``n`` supported phrasings closest to ``text`` (difflib similarity)."""
     canon = re.sub(r"\s+", " ", text.lower()).strip()
-    return difflib.get_close_matches(canon, EXAMPLES, n=n, cutoff=0.0)
+    return difflib.get_close_matches(canon, phrasings(), n=n, cutoff=0.0)
 
 
 def _unsupported(text: str, query: str) -> UnsupportedQuery:

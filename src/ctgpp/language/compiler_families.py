@@ -13,17 +13,19 @@ steer both: the pair meets halfway, and the vehicle cut in front of keeps its la
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from ctgpp.language.compiler_patterns import Clause
+from ctgpp.language.compiler_patterns import NUM, Clause
 
 DEFAULT_NEAR_M = 10.0  # "stay close to" without a distance
 DEFAULT_AWAY_M = 10.0  # "stay away from" without a distance
 DEFAULT_CUT_IN_GAP_M = 10.0
 DEFAULT_STOP_RADIUS_M = 3.0
 FOLLOW_RANGE_M = (10.0, 30.0)  # "follow vehicle N": the paper's keep-distance range
+SPEED_MARGIN_MPS = 0.5  # a compiled speed limit aims this far under the limit the verdict holds
 
 
 class QueryError(ValueError):
@@ -136,6 +138,7 @@ _LANE_CHANGE = (
     r"(?:chang|switch|mov|go|shift|merg|get|pull)\w*\s+(?:\w+\s+){0,3}?(?:to|into|onto|in)\s+(?:the\s+)?"
     r"(?:left|right)(?:[- ]hand)?\s+lane|lane[- ]change\s+(?:to\s+the\s+)?(?:left|right)"
     r"|chang\w*\s+lanes?\s+(?:to\s+(?:the\s+)?)?(?:left|right)|(?:left|right)\s+lane[- ]change"
+    r"|\b(?:mov|shift|go|chang|switch)\w*\s+(?:one\s+|a\s+)?lanes?\s+(?:over\s+)?(?:to\s+(?:the\s+)?)?(?:left|right)"
 )
 
 
@@ -177,7 +180,7 @@ def _stop(c: Clause, ctx: Context) -> list[PartSpec]:
         x, y = c.points[0]
         return [PartSpec("stop_region", "stop_region", {"vehicle": v, "x": x, "y": y, "radius_m": radius})
                 for v in _subjects(c, ctx)]
-    return [PartSpec("stop", "target_speed", {"speed_mps": 0.0}, _scope(c, ctx))]
+    return [PartSpec("stop", "stop", {}, _scope(c, ctx))]
 
 
 def _reach(c: Clause, ctx: Context) -> list[PartSpec]:
@@ -189,7 +192,38 @@ def _reach(c: Clause, ctx: Context) -> list[PartSpec]:
 
 
 def _speed_limit(c: Clause, ctx: Context) -> list[PartSpec]:
-    return [PartSpec("speed_limit", "speed_limit", {"limit_mps": _speed(c)}, _scope(c, ctx))]
+    params = {"limit_mps": _speed(c), "margin_mps": SPEED_MARGIN_MPS}
+    return [PartSpec("speed_limit", "speed_limit", params, _scope(c, ctx))]
+
+
+def _reach_speed(c: Clause, ctx: Context) -> list[PartSpec]:
+    bound = "below" if c.has(_REACH_BELOW) else "above"
+    return [PartSpec("reach_speed", "reach_speed", {"speed_mps": _speed(c), "bound": bound}, _scope(c, ctx))]
+
+
+_ACCELERATION = re.compile(
+    rf"({NUM})\s*(?:m/s²|m/s\^?2|m/s/s|m\s*s-2|(?:meters?|metres?)\s+per\s+second\s+squared)"
+)
+
+
+def _acceleration(c: Clause, ctx: Context) -> list[PartSpec]:
+    m = _ACCELERATION.search(c.text)
+    if m is None:
+        raise QueryError(f"{c.text.strip()!r}: an acceleration limit needs a value in m/s² (e.g. '3 m/s²')")
+    params = {"max_mps2": float(m.group(1))}
+    return [PartSpec("acceleration_limit", "acceleration_limit", params, _scope(c, ctx))]
+
+
+def _goal(c: Clause, ctx: Context) -> list[PartSpec]:
+    x, y = c.points[0]
+    return [PartSpec("goal_waypoint", "goal_waypoint", {"vehicle": v, "x": x, "y": y})
+            for v in _subjects(c, ctx)]
+
+
+def _keep_lane(c: Clause, ctx: Context) -> list[PartSpec]:
+    if c.everyone or (not c.vehicles and ctx.subject is None):
+        return [PartSpec("keep_lane", "keep_lane", {"vehicle": None})]
+    return [PartSpec("keep_lane", "keep_lane", {"vehicle": v}) for v in _subjects(c, ctx)]
 
 
 def _target_speed(c: Clause, ctx: Context) -> list[PartSpec]:
@@ -238,7 +272,7 @@ _SPEED_LIMIT = (
 )
 _TARGET_SPEED = (
     r"target\s+speed|(?:drive|travel|go|move|cruise|run|ride|proceed)\w*\s+(?:at|with)|speed\s+of|\bat\s+"
-    r"|maintain\w*|hold\w*|keep\w*|speed\s+(?:up|down)|accelerat\w*|slow\w*|decelerat\w*|\bspeed\b"
+    r"|maintain\w*|hold\w*|keep\w*|speed\w*\s+(?:up|down)|accelerat\w*|slow\w*|decelerat\w*|\bspeed\b"
 )
 _STAY_AWAY = (
     r"away\s+from|at\s+least|(?<!no )(?:more|further|farther)\s+than|keep\w*\s+(?:a\s+)?(?:safe\s+)?distance"
@@ -251,8 +285,19 @@ _WITHIN = (
 _FOLLOW_LANE = (
     r"follow\w*\s+(?:its|their|his|her|the|a|current)?\s*(?:own\s+|current\s+)?lanes?\b"
     r"|(?:stay|remain)\w*\s+in\s+(?:its|their|the|his|her)?\s*(?:own\s+|current\s+)?lanes?\b"
-    r"|keep\w*\s+(?:to\s+)?(?:its|their|the)\s+(?:own\s+|current\s+)?lanes?\b|lane[- ]keeping"
-    r"|(?:not|n't|never)\s+change\s+lanes?"
+    r"|lane[- ]following"
+)
+_KEEP_LANE = (
+    r"\bkeep\w*\s+(?:to\s+)?(?:its|their|his|her|the)\s+(?:own\s+|current\s+)?lanes?\b|lane[- ]keeping"
+    r"|(?:not|n't|never)\s+(?:change|switch|leave)\w*\s+(?:its\s+|their\s+)?lanes?"
+)
+_REACH_BELOW = (
+    r"\b(?:slow\w*|decelerat\w*|brak\w*|reduc\w*)\b.*"
+    r"\b(?:under|below|less\s+than|at\s+most|no\s+more\s+than)\b"
+)
+_REACH_ABOVE = (
+    r"\b(?:speed\w*\s+up|accelerat\w*|get\w*\s+to|reach\w*|pick\w*\s+up)\b.*"
+    r"\b(?:over|above|more\s+than|at\s+least|faster\s+than)\b"
 )
 _OFFROAD = (
     r"(?:stay|remain|keep|drive)\w*\s+on\s+(?:the\s+)?(?:road|drivable|pavement|street)|off[- ]?road"
@@ -272,6 +317,7 @@ def _names_vehicle(c: Clause) -> bool:
 FAMILIES: tuple[tuple[str, Callable[[Clause], bool], Handler], ...] = (
     ("rear_end", lambda c: bool(c.has(_REAR_END)), _rear_end),
     ("cut_in", lambda c: bool(c.has(_CUT_IN)), _cut_in),
+    ("keep_lane", lambda c: bool(c.has(_KEEP_LANE)), _keep_lane),
     ("follow_lane", lambda c: bool(c.has(_FOLLOW_LANE)), _follow_lane),
     ("rightmost_lane", lambda c: bool(c.has(_RIGHTMOST)), _rightmost),
     ("lane_change", lambda c: bool(c.has(_LANE_CHANGE)), _lane_change),
@@ -281,7 +327,11 @@ FAMILIES: tuple[tuple[str, Callable[[Clause], bool], Handler], ...] = (
      _same_direction),
     ("collision", lambda c: bool(c.has(_COLLIDE)), _collision),
     ("stop", lambda c: bool(c.has(r"\bstop\w*|\bhalt\w*|standstill|\bpark\w*")) and not c.negated, _stop),
+    ("goal_waypoint", lambda c: bool(c.points) and bool(c.has(r"\bgoal\b|waypoint")), _goal),
     ("reach", lambda c: bool(c.points) and bool(c.has(_REACH)), _reach),
+    ("acceleration_limit", lambda c: bool(_ACCELERATION.search(c.text)), _acceleration),
+    ("reach_speed", lambda c: bool(c.has(_REACH_BELOW) or c.has(_REACH_ABOVE)) and _speed(c) is not None,
+     _reach_speed),
     ("speed_limit", lambda c: bool(c.has(_SPEED_LIMIT)) and _speed(c) is not None
      and (bool(c.speeds) or bool(c.has(r"speed|fast|slow"))), _speed_limit),
     ("target_speed", lambda c: bool(c.has(_TARGET_SPEED)) and _speed(c) is not None

@@ -13,7 +13,9 @@ import re
 from dataclasses import dataclass
 
 NUM = r"-?\d+(?:\.\d+)?(?:e[+-]?\d+)?"  # 12, -3.5, 1e12 (read whole: never as 12 of 1e12)
-_VEHICLE_LIST = re.compile(r"\b(?:vehicles|cars|agents)\s+(#?\d+(?:\s*(?:,|and|&|or)\s*#?\d+)+)")
+_VEHICLE_LIST = re.compile(  # "vehicles 1, 2 and 3", "vehicle 1, 3, and 2", "cars 4 & 5"
+    r"\b(?:vehicles?|cars?|agents?)\s+(#?\d+(?:(?:\s*,\s*(?:and\s+)?|\s*(?:and|&|or)\s+)#?\d+)+)"
+)
 _VEHICLE = re.compile(
     r"\b(?:vehicle|car|agent|truck|veh\.?)\s*(?:#|no\.?\s*|number\s+)?(\d+)\b"
     r"|\bv(\d+)\b|#(\d+)\b"
@@ -167,38 +169,3 @@ def split_points(query: str) -> list[tuple[int, int]]:
     if last < len(query):
         atoms.append((last, len(query)))
     return [(a, b) for a, b in atoms if query[a:b].strip(" .!?")]
-
-
-# Example phrasings of every family: the suggestions for unsupported queries.
-EXAMPLES = (
-    "vehicle 1 should collide with vehicle 2",
-    "vehicle 3 crashes into vehicle 5",
-    "vehicle 2 should rear-end vehicle 4",
-    "vehicle 2 collides with vehicle 4 from behind",
-    "no collisions",
-    "avoid crashes",
-    "vehicle 3 should stay within 20 m of vehicle 1",
-    "vehicle 3 should stay close to vehicle 1",
-    "vehicle 3 should stay at least 15 m away from vehicle 1",
-    "vehicle 2 should keep a distance between 10 and 30 m from vehicle 1",
-    "vehicle 2 should follow vehicle 1",
-    "vehicle 4 should drive in the same direction as vehicle 2",
-    "vehicle 5 should follow its lane",
-    "everyone stays in their lane",
-    "vehicle 6 should stay on the left of vehicle 2",
-    "speed limit 10 m/s",
-    "vehicle 3 should not exceed 36 km/h",
-    "everyone drives slower than 20 mph",
-    "vehicle 2 should drive at 5 m/s",
-    "target speed 8 m/s",
-    "vehicle 1 should stop at (620.5, 1640.2)",
-    "vehicle 1 should come to a stop ahead",
-    "vehicle 4 should reach (612.0, 1655.3)",
-    "vehicle 3 should cut in ahead of vehicle 7",
-    "vehicle 2 should change to the left lane",
-    "vehicle 2 should change to the right lane",
-    "vehicle 5 should move to the rightmost lane",
-    "vehicle 5 should turn right at the next intersection",
-    "vehicle 5 should turn left at the next intersection",
-    "all vehicles stay on the road",
-)

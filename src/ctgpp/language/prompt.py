@@ -1,7 +1,8 @@
 """The prompt for the language model, from the template files in ``ctgpp/language/templates``.
 
 The user message is: the loss API (``api.md``: the paper's contract and its six helpers as
-``../shared/docs/LLM-API.md`` states them, then ctgpp's own helpers and the sandbox's vocabulary),
+``../shared/docs/LLM-API.md`` states them, then ctgpp's own helpers, the sandbox's vocabulary and what
+each behaviour of :mod:`ctgpp.behaviours` means),
 the paired examples (``examples.md``: query -> loss class, the paper's two among them), then the
 query (``query.md``). The system message (``system.md``) states the rules of the sandbox; ``repair.md``
 sends a refusal back. Helper descriptions are generated from the helpers' signatures and docstrings,
@@ -34,6 +35,7 @@ __all__ = [
     "TEMPLATE_NAMES",
     "Example",
     "Message",
+    "behaviour_descriptions",
     "build_messages",
     "examples",
     "helper_descriptions",
@@ -93,7 +95,17 @@ def _api_text() -> str:
         builtins=listing(SAFE_BUILTIN_NAMES),
         paper_helpers=helper_descriptions(helpers.__all__),
         more_helpers=helper_descriptions([n for n in HELPER_NAMES if n not in helpers.__all__]),
+        behaviours=behaviour_descriptions(),
     )
+
+
+def behaviour_descriptions() -> str:
+    """One Markdown entry per behaviour of the vocabulary (:mod:`ctgpp.behaviours`): its name, what
+    it means and the window it is judged on."""
+    from ctgpp.behaviours import behaviours
+
+    return "\n".join(f"- {name.replace('_', ' ')}: {b.summary} Judged on: {b.window}."
+                      for name, b in behaviours().items())
 
 
 @dataclass(frozen=True)

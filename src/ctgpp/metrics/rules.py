@@ -5,17 +5,15 @@ sampler: boxes, the drivable raster and logged speeds, over the future steps of 
 Vehicles are named by their displayed numbers (``rollout.number``). Lower is better for every rule
 except ``collision``, whose value is 1 when the pair never collides (the rule asked for a crash).
 
-A rule is a :class:`RuleMeasure` (a measure's name and its parameters); :func:`rule_violation`
-evaluates one. ``stop_region``: a vehicle that never enters its region counts as its speed at the
-simulation start — it never lost any of the speed it had to lose there — so stopping short of the
-region does not satisfy the rule.
+These are the measures of the paper's rules; :mod:`ctgpp.behaviours` joins each to its behaviour
+(``ctgpp.behaviours.rule_violation`` evaluates a rule by name). ``stop_region``: a vehicle that never
+enters its region counts as its speed at the simulation start — it never lost any of the speed it had
+to lose there — so stopping short of the region does not satisfy the rule.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
-from typing import Any
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -23,14 +21,6 @@ from ctgpp.metrics.boxes import boxes_overlap
 from ctgpp.metrics.collision import collision_rate, controlled_vehicle_indices
 from ctgpp.metrics.offroad import failed_vehicles, offroad_rate
 from ctgpp.sim.rollout import Rollout
-
-
-@dataclass(frozen=True, eq=False)
-class RuleMeasure:
-    """How one rule is measured: ``name`` (a key of :data:`MEASURES`) and its keyword ``params``."""
-
-    name: str
-    params: dict[str, Any] = field(default_factory=dict)
 
 
 def vehicle_agents(rollout: Rollout, vehicles: int | Sequence[int] | None = None) -> np.ndarray:
@@ -167,28 +157,6 @@ def stop_region(
     lowest = np.where(inside, speed, np.inf).min(axis=1)
     start_speed = rollout.sim.speed[agents, rollout.current]
     return float(np.where(inside.any(axis=1), lowest, start_speed).mean())
-
-
-MEASURES: dict[str, Callable[..., float]] = {
-    "keep_distance": keep_distance,
-    "collision": collision,
-    "no_collision": no_collision,
-    "speed_limit": speed_limit,
-    "target_speed": target_speed,
-    "acceleration_limit": acceleration_limit,
-    "no_offroad": no_offroad,
-    "goal_waypoint": goal_waypoint,
-    "stop_region": stop_region,
-}
-
-
-def rule_violation(rollout: Rollout, rule: Any) -> float:
-    """The violation of one rule on ``rollout``: ``rule`` is a :class:`RuleMeasure` or anything with
-    a ``measure`` attribute holding one (an evaluation ``RuleSpec``). NaN when undefined."""
-    measure: RuleMeasure = getattr(rule, "measure", rule)
-    if measure.name not in MEASURES:
-        raise ValueError(f"no measure for rule {measure.name!r}; measured rules: {', '.join(MEASURES)}")
-    return MEASURES[measure.name](rollout, **measure.params)
 
 
 def fail_excluding(rollout: Rollout, vehicles: Sequence[int] = ()) -> float:

@@ -1,0 +1,104 @@
+"""What the measures and checks read of a rollout: one vehicle's start state and simulated future,
+and the windows a verdict is judged on.
+
+The start (t = 0, the state the guidance loss plans from) is the reference of every check that needs
+one (the lane a vehicle starts on, its heading, its speed); the verdict is judged on the simulated
+future (t > 0), from the step the sentence allows (:func:`earliest_speed_step`, :func:`held_from`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from ctgpp.behaviours.base import MissingVehicle, Vehicles
+from ctgpp.dynamics.unicycle import ACC_MAX_MPS2, ACC_MIN_MPS2
+from ctgpp.metrics.collision import controlled_vehicle_indices
+from ctgpp.sim.rollout import Rollout
+
+HOLD_S = 1.0  # "reach and stay": the condition must hold at least this long before the end
+
+
+@dataclass(frozen=True)
+class Track:
+    """One controlled vehicle: its ``number``, agent index, start state (xy0 (2,) m, yaw0 rad, speed0
+    m/s at t = 0) and future (t > 0): xy (T, 2) m, yaw (T,) rad, speed (T,) m/s, valid (T,), extent (2,)
+    length, width m; ``dt_s`` the step."""
+
+    number: int
+    agent: int
+    xy0: np.ndarray
+    yaw0: float
+    speed0: float
+    xy: np.ndarray
+    yaw: np.ndarray
+    speed: np.ndarray
+    valid: np.ndarray
+    extent: np.ndarray
+    dt_s: float
+
+    def time(self, k: int) -> float:
+        """Time (s) of future index k (index 0 is t = 0.1 s)."""
+        return (k + 1) * self.dt_s
+
+    def valid_part(self) -> Track:
+        """The track with its invalid future steps dropped."""
+        keep = self.valid
+        return Track(self.number, self.agent, self.xy0, self.yaw0, self.speed0, self.xy[keep], self.yaw[keep],
+                     self.speed[keep], self.valid[keep], self.extent, self.dt_s)
+
+
+def track(rollout: Rollout, number: int) -> Track:
+    """Displayed vehicle ``number``'s track; :class:`MissingVehicle` when it is not controlled."""
+    hit = np.flatnonzero(rollout.number == int(number))
+    if hit.size == 0:
+        raise MissingVehicle(f"vehicle {number} is not controlled in this episode")
+    a, sim, f, c = int(hit[0]), rollout.sim, rollout.future, rollout.current
+    return Track(int(number), a, sim.xy[a, c], float(sim.yaw[a, c]), float(sim.speed[a, c]), sim.xy[a, f],
+                 sim.yaw[a, f], sim.speed[a, f], sim.valid[a, f], sim.extent[a], rollout.dt_s)
+
+
+def tracks(rollout: Rollout, vehicles: Vehicles | Sequence[int]) -> list[Track]:
+    """Tracks of ``vehicles`` (displayed numbers), or of every controlled vehicle in order when None."""
+    if vehicles is None:
+        agents = controlled_vehicle_indices(rollout)
+        numbers = sorted(int(rollout.number[a]) for a in agents)
+        return [track(rollout, n) for n in numbers]
+    return [track(rollout, v) for v in vehicles]
+
+
+def both_valid(a: Track, b: Track) -> np.ndarray:
+    """(T,) steps at which both tracks are valid."""
+    return a.valid & b.valid
+
+
+def earliest_speed_step(speed0: float, bound_mps: float, below: bool, dt_s: float) -> int:
+    """The first future index (0: t = 0.1 s) at which a vehicle starting at ``speed0`` could be at or
+    below (``below``) / at or above ``bound_mps``, at the action bounds (braking 10 m/s², accelerating
+    8 m/s², DESIGN.md Dynamics). 0 when it already is."""
+    gap = speed0 - bound_mps if below else bound_mps - speed0
+    if gap <= 0:
+        return 0
+    rate = -ACC_MIN_MPS2 if below else ACC_MAX_MPS2
+    return max(math.ceil(gap / rate / dt_s - 1e-9) - 1, 0)
+
+
+def held_from(ok: np.ndarray) -> int | None:
+    """The first index from which ``ok`` (T,) bool holds to the end, None when it fails at the end."""
+    if ok.size == 0 or not ok[-1]:
+        return None
+    bad = np.flatnonzero(~ok)
+    return 0 if bad.size == 0 else int(bad[-1]) + 1
+
+
+def hold_steps(dt_s: float) -> int:
+    """Steps a "reach and stay" condition must hold at the end (:data:`HOLD_S`)."""
+    return int(round(HOLD_S / dt_s))
+
+
+def wrapped_deg(a: float) -> float:
+    """An angle in rad wrapped to (-180, 180] degrees."""
+    return math.degrees(math.atan2(math.sin(a), math.cos(a)))
