@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ctgpp.scene.lanes import project_to_lane
 from ctgpp.scene.types import LaneGraph
 
 DEFAULT_WIDTH_M = 3.6  # 2 x the 1.8 m half-width ctgpp gives a lane without a polygon
@@ -19,22 +20,12 @@ MIN_WIDTH_M = 2.5
 MAX_WIDTH_M = 4.5
 
 
-def point_to_polyline_m(points: np.ndarray, line: np.ndarray) -> np.ndarray:
-    """(n,) distance in m of each of ``points`` (n, 2) to the polyline ``line`` (m, 2), m >= 2."""
-    start, seg = line[:-1], np.diff(line, axis=0)  # (m-1, 2)
-    seg_len2 = np.maximum((seg**2).sum(axis=1), 1e-12)
-    rel = points[:, None, :] - start[None]  # (n, m-1, 2)
-    t = np.clip((rel * seg[None]).sum(axis=-1) / seg_len2, 0.0, 1.0)  # (n, m-1)
-    nearest = start[None] + t[..., None] * seg[None]
-    return np.linalg.norm(points[:, None, :] - nearest, axis=-1).min(axis=1)
-
-
 def lane_widths_m(lanes: LaneGraph) -> np.ndarray:
     """(L,) estimated width in m of every lane (see the module docstring)."""
     widths = np.full(lanes.num_lanes, np.nan)
     for i in range(lanes.num_lanes):
         spacing = [
-            float(np.median(point_to_polyline_m(lanes.lane(i), lanes.lane(j))))
+            float(np.median([np.linalg.norm(p - project_to_lane(lanes, j, p).xy) for p in lanes.lane(i)]))
             for j in (int(lanes.left[i]), int(lanes.right[i]))
             if j >= 0
         ]
