@@ -218,8 +218,11 @@ def _rule(text: str, scene: Scene, step: int, controlled: np.ndarray) -> RuleSpe
 
 
 def _rule_record(spec: RuleSpec, rollout: Rollout) -> dict[str, Any]:
-    """A rule's violation (appendix E)."""
-    return {"rule": spec.name, "violation": spec.violation(rollout)}
+    """A rule's violation (appendix E) with its unit and its verdict, with what was measured and when."""
+    verdict = spec.verdict(rollout)
+    assert verdict is not None  # every rule given by name is a behaviour with a check
+    return {"rule": spec.name, "violation": spec.violation(rollout), "unit": spec.unit,
+            "satisfied": verdict.satisfied, "measured": verdict.measured, "window": verdict.window}
 
 
 def _fail_excluding(specs: list[RuleSpec], rollout: Rollout) -> float | None:
@@ -237,7 +240,8 @@ def _query_report(text: str, query: QueryLoss, rollout: Rollout) -> dict[str, An
     if query.compiled is None:
         return {**report, "satisfied": "unknown (no independent check for this query)", "parts": []}
     parts = check_satisfied(rollout, query.compiled)
-    rows = [{"text": p.text, "satisfied": p.satisfied, "measured": p.measured} for p in parts]
+    rows = [{"text": p.text, "satisfied": p.satisfied, "measured": p.measured, "window": p.window,
+             "violation": p.violation, "unit": p.unit} for p in parts]
     return {**report, "satisfied": all(p.satisfied for p in parts), "parts": rows}
 
 
