@@ -246,10 +246,14 @@ def _lanes_to_the_right(lanes: LaneGraph, proj: LaneProjection) -> int:
 
 
 def rightmost_violation(rollout: Rollout, p: Params, vehicles: Vehicles) -> float:
-    """Same-direction lanes to the right of the lane the vehicle ends on (NaN: it ends on no lane)."""
+    """Same-direction lanes to the right of the last lane the vehicle is on (NaN: it is on none)."""
     t = _valid(rollout, p["vehicle"])
-    end = end_lane(rollout.scene.lanes, *_with_start(t))
-    return math.nan if end is None else float(_lanes_to_the_right(rollout.scene.lanes, end))
+    lanes, last = rollout.scene.lanes, None
+    proj = None
+    for xy, yaw in zip(*_with_start(t), strict=True):
+        proj = follow_lane(lanes, proj, xy, float(yaw))
+        last = proj if proj is not None else last
+    return math.nan if last is None else float(_lanes_to_the_right(lanes, last))
 
 
 def rightmost_check(rollout: Rollout, p: Params, vehicles: Vehicles) -> Verdict:
