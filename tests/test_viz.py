@@ -7,16 +7,28 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from matplotlib.colors import to_rgba
 from matplotlib.lines import Line2D
 from PIL import Image
 
 from ctgpp.data.scenarionet import load_scenarionet
-from ctgpp.scene.types import AgentTracks, Scene
+from ctgpp.metrics import vehicle_events
+from ctgpp.scene.types import AgentTracks, AgentType, Scene
 from ctgpp.scene.vehicles import controlled_vehicles
 from ctgpp.sim.rollout import Rollout
-from ctgpp.viz import Event, animate_rollout, draw_scene, plot_scene
+from ctgpp.viz import (
+    Event,
+    QueryCaption,
+    animate_rollout,
+    draw_scene,
+    event_lines,
+    plot_scene,
+    rollout_events,
+)
 from ctgpp.viz import animation as animation_module
-from ctgpp.viz.animation import frame_indices
+from ctgpp.viz.animation import Clip, frame_indices
+from ctgpp.viz.colors import REPLAYED_COLORS, VEHICLE_PALETTE, vehicle_color
+from ctgpp.viz.painter import EVENT_FRESH_S, MARKER_FACE_ALPHA
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "nuscenes-mini"
 START = 30
@@ -122,3 +134,206 @@ def test_mp4_without_ffmpeg_falls_back_to_gif(scene: Scene, tmp_path: Path, monk
     with Image.open(out) as im:
         assert im.n_frames == 10
         assert im.info["duration"] == 200
+
+
+# ------------------------------------------------------------- pictures that explain (issue 18)
+
+
+def crashed_replay(scene: Scene) -> Rollout:
+    """The log replay with vehicle 1 driven into vehicle 2 over the first 4 s, and vehicle 4 put on a
+    spot off the road (on the map) from t = 3 s on."""
+    r = log_replay(scene)
+    xy = r.sim.xy.copy()
+    v1, v2, v4 = (int(np.flatnonzero(r.number == k)[0]) for k in (1, 2, 4))
+    for k in range(r.current, r.sim.num_steps):
+        f = min(1.0, (k - r.current) / 40)
+        xy[v1, k] = (1 - f) * xy[v1, r.current] + f * xy[v2, k]
+    area = scene.drivable
+    offsets = np.stack(np.meshgrid(np.arange(-30, 31), np.arange(-30, 31)), -1).reshape(-1, 2)  # (G, 2) m
+    grid = xy[v4, r.current] + offsets
+    disks = grid[:, None] + 4.0 * np.array([[0, 0], [1, 0], [-1, 0], [0, 1], [0, -1]])[None]  # (G, 5, 2)
+    off = ~area.is_drivable(disks).any(axis=1) & area.covers(disks).all(axis=1)
+    xy[v4, r.current + 30 :] = grid[np.flatnonzero(off)[0]]
+    sim = AgentTracks(ids=r.sim.ids, types=r.sim.types, xy=xy, yaw=r.sim.yaw, speed=r.sim.speed,
+                      extent=r.sim.extent, valid=r.sim.valid)
+    return Rollout(scene=scene, first_step=r.first_step, current=r.current, sim=sim, controlled=r.controlled,
+                   number=r.number, policy="edited replay")
+
+
+def by_gid(fig, gid: str) -> list:
+    return [a for a in fig.axes[0].get_children() if a.get_gid() == gid]
+
+
+def test_every_numbered_vehicle_has_its_own_colour() -> None:
+    colors = np.array([vehicle_color(n) for n in range(60)])[:, :3]  # (60, 3)
+    distance = np.linalg.norm(colors[:, None] - colors[None], axis=-1)  # (60, 60)
+    np.fill_diagonal(distance, np.inf)
+    assert distance.min() > 0.0  # sixty vehicles (a US101 scene has 50), sixty colours
+    first = len(VEHICLE_PALETTE)
+    assert distance[:first, :first].min() > 0.25  # the palette's colours are far apart
+    saturation = colors.max(axis=1) - colors.min(axis=1)
+    assert saturation.min() > 0.15  # none is grey, the colour of replayed agents
+    for grey in REPLAYED_COLORS.values():
+        rgb = np.array(to_rgba(grey)[:3])
+        assert (rgb.max() - rgb.min()) < 0.1
+
+
+def test_boxes_and_tags_wear_the_vehicle_colour(scene: Scene) -> None:
+    rollout = log_replay(scene)
+    fig = draw_scene(scene, START, rollout=rollout)
+    (boxes,) = by_gid(fig, "agent-boxes")
+    shown = np.flatnonzero(rollout.sim.valid[:, rollout.current])
+    faces = boxes.get_facecolor()  # (shown, 4), in agent order
+    assert len(faces) == len(shown)
+    numbered = [(a, int(rollout.number[a])) for a in shown if rollout.number[a] >= 0]
+    for i, a in enumerate(shown):
+        if rollout.number[a] >= 0:
+            np.testing.assert_allclose(faces[i], vehicle_color(int(rollout.number[a])))
+        else:
+            assert faces[i][:3].max() - faces[i][:3].min() < 0.1  # replayed agents are grey
+    assert len({tuple(faces[i]) for i, a in enumerate(shown) if rollout.number[a] >= 0}) == len(numbered)
+    tags = {int(t.get_text().split()[0]): t.get_bbox_patch().get_facecolor() for t in labels(fig)}
+    assert sorted(tags) == sorted(n for _, n in numbered)
+    for n, face in tags.items():
+        np.testing.assert_allclose(face, vehicle_color(n))
+
+
+def test_event_list_and_marks_match_the_metrics_events(scene: Scene) -> None:
+    rollout = crashed_replay(scene)
+    records = vehicle_events(rollout)  # the events of metrics.json
+    collided = {(r["vehicle"], r["collision"]["vehicle"], r["collision"]["time_s"]) for r in records
+                if r["collision"] is not None}
+    offroad = {(r["vehicle"], r["offroad"]["time_s"]) for r in records if r["offroad"] is not None}
+    assert {(v, p) for v, p, _ in collided} >= {(1, 2), (2, 1)} and offroad == {(4, 3.0)}
+
+    events = rollout_events(rollout)
+    fig = draw_scene(scene, START, rollout=rollout, events=events)
+    (listing,) = by_gid(fig, "event-list")
+    lines = listing.get_text().splitlines()[1:]
+    pairs = {frozenset((v, p)) for v, p, _ in collided}
+    assert len(lines) == len(pairs) + len(offroad)  # a crash of two numbered vehicles is listed once
+    for v, p, t in collided:
+        assert (f"{t:4.1f} s  collision  vehicle {v} × vehicle {p}" in lines
+                or f"{t:4.1f} s  collision  vehicle {p} × vehicle {v}" in lines)
+    for v, t in offroad:
+        assert f"{t:4.1f} s  off-road   vehicle {v}" in lines
+    # marked where they happen: the crash midway between the two cars, the off-road car where it went
+    (stars,) = by_gid(fig, "event-collision")
+    (triangles,) = by_gid(fig, "event-offroad")
+    assert len(stars.get_xydata()) == len(pairs)
+    v1, v2, v4 = (int(np.flatnonzero(rollout.number == k)[0]) for k in (1, 2, 4))
+    t12 = rollout.current + round(min(t for v, _, t in collided if v == 1) / rollout.dt_s)
+    np.testing.assert_allclose(stars.get_xydata()[0], (rollout.sim.xy[v1, t12] + rollout.sim.xy[v2, t12]) / 2)
+    np.testing.assert_allclose(triangles.get_xydata(), rollout.sim.xy[v4, rollout.current + 30][None])
+
+
+def test_no_event_list_on_a_picture_without_events(scene: Scene) -> None:
+    fig = draw_scene(scene, START)
+    (listing,) = by_gid(fig, "event-list")
+    assert listing.get_text() == ""
+    lines = event_lines([])
+    assert lines == ["none"]
+
+
+def test_query_and_verdict_in_the_title_and_its_vehicles_highlighted(scene: Scene) -> None:
+    rollout = log_replay(scene)
+    for satisfied, word, colour in ((True, "met", "#1a7f37"), (False, "not met", "#c62828"),
+                                    (None, "not checked", "#555555")):
+        query = QueryCaption("vehicle 1 should collide with vehicle 2", satisfied, frozenset({1, 2}))
+        fig = draw_scene(scene, START, rollout=rollout, query=query)
+        (verdict,) = by_gid(fig, "query-verdict")
+        assert verdict.get_text().startswith('query "vehicle 1 should collide with vehicle 2": ' + word)
+        assert to_rgba(verdict.get_color()) == to_rgba(colour)
+    (boxes,) = by_gid(fig, "agent-boxes")
+    shown = np.flatnonzero(rollout.sim.valid[:, rollout.current])
+    widths = dict(zip(rollout.number[shown].tolist(), boxes.get_linewidth(), strict=True))
+    assert min(widths[1], widths[2]) > 2 * max(w for n, w in widths.items() if n not in (1, 2))
+    edges = {int(t.get_text().split()[0]): t.get_bbox_patch().get_linewidth() for t in labels(fig)}
+    assert min(edges[1], edges[2]) > 2 * max(w for n, w in edges.items() if n not in (1, 2))
+    report = {"text": "vehicle 3 should stop", "satisfied": "unknown (no independent check)", "vehicles": [3]}
+    assert QueryCaption.from_report(report) == QueryCaption("vehicle 3 should stop", None, frozenset({3}))
+
+
+def test_parked_cars_are_in_the_first_frame(scene: Scene) -> None:
+    rollout = log_replay(scene)
+    clip = Clip(rollout)
+    (ghosts,) = by_gid(clip.figure, "parked-ghosts")
+    (boxes,) = by_gid(clip.figure, "agent-boxes")
+    sim, first, last = rollout.sim, int(clip.indices[0]), int(clip.indices[-1])
+    later = np.flatnonzero((rollout.number < 0) & ~sim.valid[:, first] & sim.valid[:, first:].any(axis=1)
+                           & (sim.types == AgentType.VEHICLE))
+    parked = [a for a in later if np.ptp(sim.xy[a][sim.valid[a]], axis=0).max() < 0.7]
+    assert len(parked) > 10  # scene-0103's parked cars enter the log only as the ego comes near
+
+    def centres(collection) -> np.ndarray:
+        return np.array([p.vertices[:4].mean(axis=0) for p in collection.get_paths()]).reshape(-1, 2)
+
+    clip.frame(first)
+    assert len(boxes.get_paths()) == sim.valid[:, first].sum()
+    assert len(centres(ghosts)) >= len(parked)
+    for a in parked:  # each is drawn in frame 0, where the log will show it
+        seen = sim.xy[a, np.argmax(sim.valid[a])]
+        assert np.linalg.norm(centres(ghosts) - seen, axis=-1).min() < 1.0
+    walkers = np.flatnonzero((sim.types == AgentType.PEDESTRIAN) & ~sim.valid[:, first])
+    assert len(walkers) and not np.isin(walkers, clip.painter.parked.agents).any()  # people are not parked
+
+    clip.frame(last)  # those the log holds now are drawn solid, not also as a ghost
+    solid = centres(boxes)
+    assert len(centres(ghosts)) < len(parked)
+    for ghost in centres(ghosts):
+        assert np.linalg.norm(solid - ghost, axis=-1).min() > 0.3
+
+
+def test_collision_marks_appear_when_it_happens_and_never_cover_a_number(scene: Scene) -> None:
+    rollout = crashed_replay(scene)
+    events = rollout_events(rollout)
+    t_crash = min(e.time_s for e in events if e.kind == "collision")
+    clip = Clip(rollout, events=events)
+    (recent,) = by_gid(clip.figure, "event-collision")
+    (past,) = by_gid(clip.figure, "event-collision-past")
+    step = rollout.current + round(t_crash / rollout.dt_s)
+    clip.frame(step - 1)
+    assert len(recent.get_xydata()) == len(past.get_xydata()) == 0
+    assert "none" in by_gid(clip.figure, "event-list")[0].get_text()
+    clip.frame(step)
+    assert len(recent.get_xydata()) == 1 and len(past.get_xydata()) == 0
+    clip.frame(step + round(EVENT_FRESH_S / rollout.dt_s) + 1)
+    assert len(recent.get_xydata()) == 0 and len(past.get_xydata()) == 1
+
+    # A star put on every vehicle's tag at t = 0: in the frame the tags show their colour, no gold.
+    renderer = clip.figure.canvas.get_renderer()
+    tags = {a: t for a, t in clip.painter._labels.items() if rollout.sim.valid[a, rollout.current]}
+    clip.frame(rollout.current)
+    boxes = {a: tag.get_bbox_patch().get_window_extent(renderer) for a, tag in tags.items()}
+    to_data = clip.painter.ax.transData.inverted()
+    clip.events = [Event("collision", to_data.transform(((b.x0 + b.x1) / 2, (b.y0 + b.y1) / 2)),
+                         int(rollout.number[a]), 0.0) for a, b in boxes.items()]
+    frame = clip.frame(rollout.current).astype(float) / 255.0
+    gold = np.array(to_rgba("#ffd700")[:3])
+    height = frame.shape[0]
+    for a, b in boxes.items():
+        rows = slice(height - int(b.y1) + 2, height - int(b.y0) - 2)
+        region = frame[rows, int(b.x0) + 2 : int(b.x1) - 2].reshape(-1, 3)
+        own = np.abs(region - np.array(vehicle_color(int(rollout.number[a]))[:3])).max(axis=1) < 0.08
+        assert own.mean() > 0.25, a
+        assert (np.abs(region - gold).max(axis=1) < 0.1).sum() == 0, a
+
+
+def test_the_gif_keeps_every_vehicle_colour_and_the_collision_marker(scene: Scene, tmp_path: Path) -> None:
+    rollout = crashed_replay(scene)
+    events = rollout_events(rollout)
+    out = animate_rollout(rollout, tmp_path / "clip.gif", events=events, stride=5)
+    crash = rollout.current + round(min(e.time_s for e in events if e.kind == "collision") / rollout.dt_s)
+    indices = frame_indices(rollout, 5)
+    with Image.open(out) as im:
+        im.seek(0)
+        first = {tuple(c) for c in np.asarray(im.convert("RGB")).reshape(-1, 3)}
+        im.seek(int(np.searchsorted(indices, crash)))
+        marked = {tuple(c) for c in np.asarray(im.convert("RGB")).reshape(-1, 3)}
+    for a in np.flatnonzero(rollout.number >= 0):
+        if rollout.sim.valid[a, rollout.current]:
+            assert tuple(round(c * 255) for c in vehicle_color(int(rollout.number[a]))[:3]) in first
+    alpha = MARKER_FACE_ALPHA[0]  # the star's see-through face over the road
+    star = alpha * np.array(to_rgba("#ffd700")[:3]) + (1 - alpha) * np.array(to_rgba("#dcdcdc")[:3])
+    assert not any(np.abs(np.array(c) / 255 - star).max() < 3 / 255 for c in first)  # no crash yet
+    assert any(np.abs(np.array(c) / 255 - star).max() < 3 / 255 for c in marked)
