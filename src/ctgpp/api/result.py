@@ -136,22 +136,23 @@ class Result:
     def plot(self, path: str | Path = "scene.png") -> Path:
         """A picture of the episode (the simulated paths, collisions and off-road steps marked) at
         ``path``; returns the path written."""
-        from ctgpp.viz import plot_scene
+        from ctgpp.viz import QueryCaption, plot_scene
         from ctgpp.viz.events import rollout_events
 
         step = self.rollout.first_step + self.rollout.current
         return plot_scene(
             self.scene, step, Path(path), rollout=self.rollout, events=rollout_events(self.rollout),
-            title=self.title,
+            title=self.title, query=QueryCaption.from_report(self.query),
         )
 
     def animate(self, path: str | Path = "rollout.gif") -> Path:
         """An animation of the simulated future at ``path`` (.gif, or .mp4 when ffmpeg is found, a GIF
         beside it otherwise); returns the path written."""
-        from ctgpp.viz import animate_rollout
+        from ctgpp.viz import QueryCaption, animate_rollout
         from ctgpp.viz.events import rollout_events
 
-        return animate_rollout(self.rollout, Path(path), events=rollout_events(self.rollout))
+        return animate_rollout(self.rollout, Path(path), events=rollout_events(self.rollout),
+                               query=QueryCaption.from_report(self.query))
 
     # --- scenarios for other simulators ----------------------------------------------------------
 
