@@ -145,7 +145,8 @@ def test_a_new_run_starts_from_the_weights_it_is_given(
     out, _ = trained
     cfg = TrainConfig(1, batch_scenes=1, lr=1e-9, stride=40, val_every=1, val_windows=1, max_agents=4)
     given = load_file(str(out / "model.safetensors"))
-    train([scene_0103], [scene_0103], TINY, replace(cfg, init_from=str(out)), tmp_path / "warm", progress=False)
+    warm_cfg = replace(cfg, init_from=str(out))
+    train([scene_0103], [scene_0103], TINY, warm_cfg, tmp_path / "warm", progress=False)
     scratch = train([scene_0103], [scene_0103], TINY, cfg, tmp_path / "cold", progress=False)
     warm = load_file(str(tmp_path / "warm" / "train_state.safetensors"))
     cold = load_file(str(tmp_path / "cold" / "train_state.safetensors"))
@@ -159,9 +160,9 @@ def test_init_from_a_checkpoint_of_another_shape_is_refused_before_training(
     trained: tuple[Path, dict], tmp_path: Path
 ) -> None:
     out, _ = trained  # 1 block of d_model 32: not the default 2 of 64
+    argv = ["train", "--out", str(tmp_path / "x"), "--init-from", str(out)]
     done = subprocess.run(
-        [sys.executable, "-m", "ctgpp.cli.main", "train", "--out", str(tmp_path / "x"), "--init-from", str(out)],
-        capture_output=True, text=True, timeout=120,
+        [sys.executable, "-m", "ctgpp.cli.main", *argv], capture_output=True, text=True, timeout=120
     )
     assert done.returncode != 0 and "does not match the model" in done.stderr
     assert "Traceback" not in done.stderr and len(done.stderr.strip().splitlines()) == 1

@@ -10,7 +10,7 @@ configuration is spelled out in its name, so that a candidate can be timed besid
 step>`` (default 1), ``-lr<learning rate>`` (default 0.3), ``-from<k>`` (guide only at diffusion
 steps k ≤ this; default every step) and ``-scene`` (filtration keeps one sample for the whole scene
 when the loss couples vehicles, as the paper; default: the plan is composed vehicle by vehicle).
-``ddim@99.75.40.0-n2-lr0.9`` is ``fast``; ``ddpm-n5-scene`` is ``paper``.
+``ddim6-n2-lr0.9`` is ``fast``; ``ddpm-n5-scene`` is ``paper``.
 """
 
 from __future__ import annotations
@@ -48,10 +48,10 @@ PRESETS: dict[str, SamplerPreset] = {
         ),
         SamplerPreset(
             "fast",
-            SamplingConfig(),  # the defaults: DDIM at k = 99, 75, 40, 0, N = 2
+            SamplingConfig(),  # the defaults: DDIM, 6 steps spread evenly, N = 2
             GuidanceConfig(),  # the default: 1 Adam step of lr 0.9 at every step, plans composed
-            "the default: DDIM 4 steps (k = 99, 75, 40, 0), guided at every step with 1 Adam step of "
-            "lr 0.9, N = 2, plans composed vehicle by vehicle",
+            "the default: DDIM 6 steps spread evenly (k = 99, 79, 59, 40, 20, 0), guided at every step "
+            "with 1 Adam step of lr 0.9, N = 2, plans composed vehicle by vehicle",
         ),
     )
 }
