@@ -274,7 +274,7 @@ def test_metrics_json_is_strict() -> None:
 
 def test_nan_scene_simulates_with_strict_metrics(tmp_path: Path) -> None:
     """The converted scene with NaN positions runs (a short replay episode); metrics.json is strict
-    JSON with null for the rule without a measure."""
+    JSON, the rule's violation a finite number (every behaviour has its measure: issue 17)."""
     nan_pickle(tmp_path / "src" / "scene.pkl")
     assert main(["data", "convert", str(tmp_path / "src"), str(tmp_path / "data"), "--no-progress"]) == 0
     out = tmp_path / "run"
@@ -300,7 +300,8 @@ def test_nan_scene_simulates_with_strict_metrics(tmp_path: Path) -> None:
 
     record = json.loads((out / "metrics.json").read_text(), parse_constant=no_constants)
     assert 0.0 <= record["fail"] <= 1.0 and record["controlled_vehicles"] > 0
-    assert [r["violation"] for r in record["rules"].values()] == [None]
+    (rule,) = record["rules"].values()
+    assert isinstance(rule["violation"], float) and np.isfinite(rule["violation"])
 
 
 def test_a_failure_while_writing_leaves_no_output(

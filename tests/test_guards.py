@@ -185,7 +185,7 @@ def test_guards_flag_reaches_the_config(argv: list[str], expected: GuardConfig) 
     from ctgpp.cli.common import guard_config
     from ctgpp.cli.main import build_parser
 
-    assert guard_config(build_parser().parse_args(argv)) == expected
+    assert guard_config(build_parser(argv[0]).parse_args(argv)) == expected
 
 
 def test_an_unknown_guard_is_refused() -> None:
