@@ -1,168 +1,200 @@
 """The vocabulary: every behaviour, registered once (importing this module registers them).
 
 Each entry joins a guidance rule of :mod:`ctgpp.guidance` (same name: its parameters, with units, are
-the behaviour's), its measure and check (:mod:`~ctgpp.behaviours.motion`, :mod:`~ctgpp.behaviours.pairs`,
-:mod:`~ctgpp.behaviours.lanes`), the window the check judges and the sentences the offline compiler
-turns into it. Points in phrasings are scene world metres.
+the behaviour's), its measure and check, the window the check judges and the sentences the offline
+compiler turns into it. Points in phrasings are scene world metres.
+
+There is one factory per kind of behaviour, reading that kind's module: :func:`motion_rule` (one
+vehicle's speed, acceleration, the road, points: :mod:`~ctgpp.behaviours.motion`), :func:`pair_rule`
+(two vehicles: :mod:`~ctgpp.behaviours.pairs`) and :func:`lane_rule` (the lane graph:
+:mod:`~ctgpp.behaviours.lanes`). ``measures`` names the pair ``<measures>_violation`` /
+``<measures>_check`` of the module (the behaviour's name when not given).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from types import ModuleType
+
 from ctgpp.behaviours import lanes, motion, pairs
 from ctgpp.behaviours.base import Behaviour, register
 
-register(Behaviour(
+Factory = Callable[..., Behaviour]
+
+
+def _kind(module: ModuleType, default_window: str) -> Factory:
+    """A factory registering behaviours whose measure and check live in ``module``."""
+
+    def make(name: str, summary: str, unit: str, meaning: str, phrasings: tuple[str, ...], *,
+             measures: str = "", window: str = default_window) -> Behaviour:
+        stem = measures or name
+        return register(Behaviour(name, summary, getattr(module, f"{stem}_violation"), unit, meaning,
+                                  getattr(module, f"{stem}_check"), window, phrasings))
+
+    make.__doc__ = (f"Register a behaviour measured and checked by :mod:`{module.__name__}` (judged on "
+                    f"{default_window!r} unless ``window`` says otherwise).")
+    return make
+
+
+motion_rule = _kind(motion, motion.EVERY_STEP)
+pair_rule = _kind(pairs, pairs.EVERY_STEP)
+lane_rule = _kind(lanes, lanes.END)
+
+# --- two vehicles ------------------------------------------------------------------------------------
+
+pair_rule(
     "collision", "Two vehicles collide: their boxes overlap at some step.",
-    pairs.collision_violation, "indicator", "1 when the pair never collides, 0 when it does",
-    pairs.collision_check, pairs.EVERY_STEP,
+    "indicator", "1 when the pair never collides, 0 when it does",
     ("vehicle 1 should collide with vehicle 2", "vehicle 3 crashes into vehicle 5"),
-))
-register(Behaviour(
+)
+pair_rule(
     "collide_from_behind", "A vehicle hits another from behind: their boxes overlap, the hitting vehicle's "
     "centre behind the target's, headings less than 60° apart.",
-    pairs.rear_end_violation, "indicator",
-    "1 when the vehicle never hits the target from behind, 0 when it does",
-    pairs.rear_end_check, pairs.EVERY_STEP,
+    "indicator", "1 when the vehicle never hits the target from behind, 0 when it does",
     ("vehicle 2 should rear-end vehicle 4", "vehicle 2 collides with vehicle 4 from behind"),
-))
-register(Behaviour(
+    measures="rear_end",
+)
+pair_rule(
     "no_collision", "No vehicle collides with any agent (vehicles, pedestrians, cyclists, obstacles).",
-    pairs.no_collision_violation, "fraction of vehicles", "share of the vehicles that collide",
-    pairs.no_collision_check, pairs.EVERY_STEP,
+    "fraction of vehicles", "share of the vehicles that collide",
     ("no collisions", "avoid crashes", "vehicle 3 should not collide with anything"),
-))
-register(Behaviour(
+)
+pair_rule(
     "keep_distance", "A vehicle keeps its centre distance to another within [min_m, max_m]; a pair that "
     "starts outside the band is judged from when it gets inside, and must then stay.",
-    pairs.keep_distance_violation, "m", "mean distance outside [min_m, max_m]",
-    pairs.keep_distance_check, pairs.BAND_WINDOW,
+    "m", "mean distance outside [min_m, max_m]",
     ("vehicle 2 should keep a distance between 10 and 30 m from vehicle 1",
      "vehicle 2 should follow vehicle 1",
      "vehicle 3 should stay within 20 m of vehicle 1", "vehicle 3 should stay close to vehicle 1"),
-))
-register(Behaviour(
+    window=pairs.BAND_WINDOW,
+)
+pair_rule(
     "stay_away", "A vehicle keeps at least min_m (centre to centre) from another; judged from when it first "
     "is that far, and must then stay.",
-    pairs.stay_away_violation, "m", "mean shortfall below min_m",
-    pairs.stay_away_check, pairs.BAND_WINDOW,
+    "m", "mean shortfall below min_m",
     ("vehicle 3 should stay at least 15 m away from vehicle 1",),
-))
-register(Behaviour(
+    window=pairs.BAND_WINDOW,
+)
+pair_rule(
     "same_direction", "A vehicle ends heading the same way as another (within 30°).",
-    pairs.same_direction_violation, "°", "heading difference at the end",
-    pairs.same_direction_check, "the last step both vehicles are present",
+    "°", "heading difference at the end",
     ("vehicle 4 should drive in the same direction as vehicle 2",),
-))
-register(Behaviour(
+    window="the last step both vehicles are present",
+)
+pair_rule(
     "stay_side_of", "A vehicle is on the left or right of another (lateral coordinate in its frame) from "
     "when it first gets there to the end.",
-    pairs.side_violation, "m", "mean lateral distance on the wrong side",
-    pairs.side_check, pairs.SIDE_WINDOW,
+    "m", "mean lateral distance on the wrong side",
     ("vehicle 6 should stay on the left of vehicle 2",),
-))
-register(Behaviour(
+    measures="side", window=pairs.SIDE_WINDOW,
+)
+
+# --- one vehicle: speeds, accelerations, the road, points --------------------------------------------
+
+motion_rule(
     "speed_limit", "Every vehicle (or those named) is at or under the speed limit, from the first step it "
     "could be, braking at 10 m/s² from its start speed.",
-    motion.speed_limit_violation, "m/s", "mean excess speed over the limit",
-    motion.speed_limit_check, motion.SPEED_LIMIT_WINDOW,
+    "m/s", "mean excess speed over the limit",
     ("speed limit 10 m/s", "vehicle 3 should not exceed 36 km/h", "everyone drives slower than 20 mph"),
-))
-register(Behaviour(
+    window=motion.SPEED_LIMIT_WINDOW,
+)
+motion_rule(
     "target_speed", "Every vehicle (or those named) gets to the target speed (within 1 m/s) and stays there "
     "to the end, for at least the last second.",
-    motion.target_speed_violation, "m/s", "mean |speed - target|",
-    motion.target_speed_check, motion.REACH_WINDOW,
+    "m/s", "mean |speed - target|",
     ("vehicle 2 should drive at 5 m/s", "target speed 8 m/s", "vehicle 1 should slow down to 4 m/s",
      "vehicle 1 speeds up until it reaches 11 m/s"),
-))
-register(Behaviour(
+    window=motion.REACH_WINDOW,
+)
+motion_rule(
     "reach_speed", "Every vehicle (or those named) slows down to at most (bound 'below') or speeds up to at "
     "least ('above') a speed and stays there to the end, for at least the last second.",
-    motion.reach_speed_violation, "m/s", "mean speed beyond the bound over the last second",
-    motion.reach_speed_check, motion.REACH_WINDOW,
+    "m/s", "mean speed beyond the bound over the last second",
     ("vehicles 1 and 2 both slow down to under 2 m/s", "vehicle 3 should speed up to over 10 m/s",
      "vehicle 3 should get to at least 30 km/h"),
-))
-register(Behaviour(
+    window=motion.REACH_WINDOW,
+)
+motion_rule(
     "stop", "Every vehicle (or those named) comes to a stop (under 0.5 m/s) and stays stopped to the end, "
     "for at least the last second.",
-    motion.stop_violation, "m/s", "highest speed over the last second",
-    motion.stop_check, motion.REACH_WINDOW,
+    "m/s", "highest speed over the last second",
     ("vehicle 1 should come to a stop", "vehicle 4 should stop"),
-))
-register(Behaviour(
+    window=motion.REACH_WINDOW,
+)
+motion_rule(
     "acceleration_limit", "Every vehicle keeps its acceleration magnitude (longitudinal and lateral) at or "
     "under a limit.",
-    motion.acceleration_violation, "m/s²", "mean excess acceleration over the limit",
-    motion.acceleration_check, motion.EVERY_STEP,
+    "m/s²", "mean excess acceleration over the limit",
     ("every vehicle keeps its acceleration under 3 m/s²", "vehicle 2 should accelerate no more than 2 m/s²"),
-))
-register(Behaviour(
+    measures="acceleration",
+)
+motion_rule(
     "no_offroad", "No vehicle's centre leaves the drivable area (vehicles that start off it excluded).",
-    motion.offroad_violation, "fraction of vehicles", "share of the vehicles that leave the road",
-    motion.offroad_check, motion.EVERY_STEP,
+    "fraction of vehicles", "share of the vehicles that leave the road",
     ("all vehicles stay on the road", "vehicle 2 should not go off-road"),
-))
-register(Behaviour(
+    measures="offroad",
+)
+motion_rule(
     "goal_waypoint", "A vehicle reaches its goal waypoint (evaluation rule 7): passes within 2 m of it.",
-    motion.goal_violation, "m", "closest approach to the goal",
-    motion.goal_check, "closest approach over the episode",
+    "m", "closest approach to the goal",
     ("vehicle 4 should reach its goal waypoint (612.0, 1655.3)",),
-))
-register(Behaviour(
+    measures="goal", window="closest approach over the episode",
+)
+motion_rule(
     "reach_point", "A vehicle drives along its lanes to a point and passes within reach_m of it.",
-    motion.reach_violation, "m", "closest approach beyond reach_m",
-    motion.reach_check, "closest approach over the episode",
+    "m", "closest approach beyond reach_m",
     ("vehicle 4 should reach (612.0, 1655.3)", "vehicle 1 should drive to (620.5, 1640.2) at 5 m/s"),
-))
-register(Behaviour(
+    measures="reach", window="closest approach over the episode",
+)
+motion_rule(
     "stop_region", "A vehicle stops (under 0.5 m/s) inside a disc of radius_m around a point.",
-    motion.stop_region_violation, "m/s", "lowest speed inside the region (the start speed when never inside)",
-    motion.stop_region_check, "the steps inside the region",
+    "m/s", "lowest speed inside the region (the start speed when never inside)",
     ("vehicle 1 should stop at (620.5, 1640.2)",),
-))
-register(Behaviour(
+    window="the steps inside the region",
+)
+
+# --- lanes -------------------------------------------------------------------------------------------
+
+lane_rule(
     "follow_lane", "A vehicle (or every moving vehicle) follows the lane it starts on: under 1.5 m from "
     "its centerline at every step.",
-    lanes.follow_lane_violation, "m", "mean lateral offset from the lane's centerline",
-    lanes.follow_lane_check, lanes.EVERY_STEP,
+    "m", "mean lateral offset from the lane's centerline",
     ("vehicle 5 should follow its lane", "everyone stays in their lane"),
-))
-register(Behaviour(
+    window=lanes.EVERY_STEP,
+)
+lane_rule(
     "keep_lane", "A vehicle (or every vehicle) keeps to the lanes it may follow without changing lanes, "
     "turns included: within tolerance_m (or its distance at the start, when more) of them.",
-    lanes.keep_lane_violation, "m", "mean distance beyond the allowance from its lanes",
-    lanes.keep_lane_check, lanes.EVERY_STEP,
+    "m", "mean distance beyond the allowance from its lanes",
     ("vehicle 5 should keep its lane", "vehicle 2 must not change lanes"),
-))
-register(Behaviour(
+    window=lanes.EVERY_STEP,
+)
+lane_rule(
     "lane_change", "A vehicle changes to the same-direction lane on its left or right (never the oncoming "
     "lane) and ends inside it.",
-    lanes.lane_change_violation, "m", "distance of the end from the target lane's centerline",
-    lanes.lane_change_check, lanes.END,
+    "m", "distance of the end from the target lane's centerline",
     ("vehicle 2 should change to the left lane", "vehicle 2 should change to the right lane",
      "vehicle 3 should move one lane over to the right"),
-))
-register(Behaviour(
+)
+lane_rule(
     "move_to_rightmost_lane", "A vehicle ends on a lane with no same-direction lane to its right.",
-    lanes.rightmost_violation, "lanes", "same-direction lanes to the right of the lane it ends on",
-    lanes.rightmost_check, lanes.END,
+    "lanes", "same-direction lanes to the right of the lane it ends on",
     ("vehicle 5 should move to the rightmost lane",),
-))
-register(Behaviour(
+    measures="rightmost",
+)
+lane_rule(
     "turn_at_next_intersection", "A vehicle turns left or right (or goes straight) at the next "
     "intersection: its heading change while moving is within 15° of that way's through the intersection.",
-    lanes.turn_violation, "°", "|heading change - the turn's heading change|",
-    lanes.turn_check, "t = 0 to the end, steps at which the vehicle moves",
+    "°", "|heading change - the turn's heading change|",
     ("vehicle 5 should turn right at the next intersection",
      "vehicle 5 should turn left at the next intersection",
      "vehicle 1 goes straight at the next intersection"),
-))
-register(Behaviour(
+    measures="turn", window="t = 0 to the end, steps at which the vehicle moves",
+)
+lane_rule(
     "cut_in", "A vehicle cuts in ahead of another: it starts outside the other's lane and ends inside it, "
     "ahead with a bumper gap in (0, gap_m], while the other keeps moving (at least half its start speed).",
-    lanes.cut_in_violation, "m",
-    "lateral distance beyond half a lane plus the gap outside (0, gap_m] at the end",
-    lanes.cut_in_check, "t = 0 (outside the lane) and the last step both are present (inside, ahead)",
+    "m", "lateral distance beyond half a lane plus the gap outside (0, gap_m] at the end",
     ("vehicle 3 should cut in ahead of vehicle 7",),
-))
+    window="t = 0 (outside the lane) and the last step both are present (inside, ahead)",
+)
