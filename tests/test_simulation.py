@@ -14,11 +14,21 @@ from ctgpp.sim.policy import ConstantVelocityPolicy, Observation, Plan, ReplayPo
 
 
 def test_replay_reproduces_the_log_exactly(scene_0103: Scene) -> None:
+    """Every logged state is reproduced; beyond the log, only parked agents are added (held still at
+    their place where the log does not see them: scene.parked)."""
     r = simulate(scene_0103, ReplayPolicy(), 3.0)
     log = r.log
     assert r.sim.num_steps == 131 and r.current == 30 and r.first_step == 0
-    np.testing.assert_array_equal(r.sim.valid, log.valid)
+    assert not (log.valid & ~r.sim.valid).any()
     np.testing.assert_array_equal(r.sim.xy[log.valid], log.xy[log.valid])
+    added = r.sim.valid & ~log.valid  # (A, T)
+    assert not added[r.controlled].any()
+    assert np.all(r.sim.speed[added] == 0.0)
+    agents = scene_0103.agents
+    for a in np.flatnonzero(added.any(axis=1)):  # each stands where the log has it
+        place = np.median(agents.xy[a, agents.valid[a]], axis=0)
+        held = r.sim.xy[a, added[a]]
+        np.testing.assert_allclose(held, np.broadcast_to(place, held.shape), rtol=1e-6)  # float32
     m = compute_metrics(r)
     assert m["real"] == 0.0 and m["rel_real"] == 0.0
 

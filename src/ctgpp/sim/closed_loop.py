@@ -9,6 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ctgpp.interfaces import Observation, Policy, Rollout
+from ctgpp.scene.parked import fill_parked, parked_agents
 from ctgpp.scene.types import AgentTracks, Scene
 from ctgpp.scene.vehicles import controlled_vehicles
 
@@ -146,12 +147,16 @@ def simulate(
 
 def initial_observation(scene: Scene, start_s: float, config: SimConfig = SimConfig()) -> Observation:
     """What a policy sees at the start of an episode: the log up to the start for the controlled
-    vehicles (in displayed order), the whole log for the others, padded past the scene's end."""
+    vehicles (in displayed order), the whole log for the others, padded past the scene's end, with
+    parked agents held at their place where the log has not seen them (:func:`fill_parked`)."""
     step0 = start_step(scene, start_s, config)
     first = step0 - (config.history_steps - 1)
     window = config.history_steps + config.duration_steps
     tracks = _padded(scene.agents, first + window + config.horizon_steps)
     controlled = controlled_vehicles(scene, step0)
+    number = np.full(scene.agents.num_agents, -1)
+    number[controlled] = np.arange(len(controlled))
+    fill_parked(tracks, scene.agents, parked_agents(scene.agents, number))
     tracks.valid[controlled, step0 + 1 :] = False
     return Observation(scene, tracks, step0, controlled, config.horizon_steps, np.random.default_rng(0))
 

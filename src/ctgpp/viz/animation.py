@@ -17,13 +17,13 @@ import numpy as np
 from matplotlib.colors import to_rgba
 from PIL import Image
 
+from ctgpp.scene.parked import parked_agents
 from ctgpp.sim.rollout import Rollout
 from ctgpp.viz.caption import QueryCaption
 from ctgpp.viz.colors import RGBA, vehicle_color
 from ctgpp.viz.events import Event
 from ctgpp.viz.layers import COLORS
 from ctgpp.viz.painter import EVENT_STYLE, MARKER_FACE_ALPHA, ScenePainter
-from ctgpp.viz.parked import parked_agents
 from ctgpp.viz.scene_plot import new_figure, pick_view, write_atomic
 
 log = logging.getLogger(__name__)

@@ -22,13 +22,13 @@ from matplotlib.text import Text
 
 from ctgpp.geometry import rotate
 from ctgpp.metrics.boxes import box_corners
+from ctgpp.scene.parked import ParkedAgents
 from ctgpp.scene.types import AgentTracks, AgentType, Scene
 from ctgpp.sim.rollout import Rollout
 from ctgpp.viz.caption import QueryCaption
 from ctgpp.viz.colors import REPLAYED_COLORS, agent_colors, text_color, vehicle_color
 from ctgpp.viz.events import Event, distinct_events, event_lines
 from ctgpp.viz.layers import COLORS, View, draw_drivable, draw_lanes
-from ctgpp.viz.parked import ParkedAgents
 
 HISTORY_S = 3.0  # length of the drawn history trail
 EVENT_FRESH_S = 2.0  # in animations an event is marked large this long, then small and faint
@@ -60,7 +60,7 @@ class ScenePainter:
 
     ``numbers``: (A,) displayed vehicle number of each agent, -1 for agents without one.
     ``query``: its named vehicles are highlighted. ``parked``: replayed parked agents, drawn faintly
-    at steps where the drawn tracks do not hold them (``viz.parked``).
+    at steps where the drawn tracks do not hold them (``scene.parked``).
     """
 
     def __init__(

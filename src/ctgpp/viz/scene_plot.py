@@ -17,6 +17,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from ctgpp.io.atomic import atomic_path
+from ctgpp.scene.parked import parked_agents
 from ctgpp.scene.types import Scene
 from ctgpp.scene.vehicles import controlled_vehicles
 from ctgpp.sim.rollout import Rollout
@@ -24,7 +25,6 @@ from ctgpp.viz.caption import QueryCaption
 from ctgpp.viz.events import Event
 from ctgpp.viz.layers import View
 from ctgpp.viz.painter import ScenePainter
-from ctgpp.viz.parked import parked_agents
 
 MARGIN_M = 20.0  # margin of the default view around the controlled vehicles
 
