@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from ctgpp.data.batch import collate
-from ctgpp.data.context import ContextConfig, Role, select_context, training_roles
+from ctgpp.data.context import ContextConfig, Role, select_context, standing_vehicles, training_roles
 from ctgpp.data.windows import build_window
 from ctgpp.model import Denoiser, ModelConfig
 from ctgpp.scene.types import AgentTracks, AgentType, Scene
@@ -150,3 +150,33 @@ def test_a_vehicle_at_rest_that_the_log_moves_on_is_never_held_in_training(scene
                 kept += 1
                 assert v in held
     assert moved_on > 0 and kept > 0  # the scene has both kinds
+
+
+def test_in_closed_loop_parked_replayed_vehicles_are_held_as_in_training(
+    scene_0103: Scene, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Training never replays a vehicle at rest: it is held (or sampled). In closed loop, a vehicle the
+    simulator replays standing still (a parked car the log sees later) is given the held role, and a
+    replayed vehicle that moves keeps the replayed role."""
+    import ctgpp.sim.diffusion_policy as diffusion_policy
+
+    policy = DiffusionPolicy(Denoiser(TINY), SamplingConfig.evenly("ddim", 2, 2))
+    obs = initial_observation(scene_0103, 3.0)
+    a = obs.tracks
+    parked = standing_vehicles(replace(scene_0103, agents=a), obs.step, obs.controlled, TINY.future_steps)
+    assert len(parked) > 0 and not np.isin(parked, obs.controlled).any()
+    assert a.is_vehicle[parked].all() and (a.speed[parked, obs.step] < 0.5).all()
+    assert (~scene_0103.agents.valid[parked, obs.step]).any()  # held although the log sees them later
+    windows = []
+
+    def build_and_keep(*args, **kwargs):  # type: ignore[no-untyped-def]
+        windows.append(build_window(*args, **kwargs))
+        return windows[-1]
+
+    monkeypatch.setattr(diffusion_policy, "build_window", build_and_keep)
+    policy.sample_plans(obs)
+    role = dict(zip(windows[0].context.index.tolist(), windows[0].context.role.tolist(), strict=True))
+    shown = [v for v in parked.tolist() if v in role]
+    assert shown and all(role[v] == Role.HELD for v in shown)
+    moving = [i for i in role if a.is_vehicle[i] and a.speed[i, obs.step] >= 0.5]
+    assert all(role[i] == Role.REPLAYED for i in moving)

@@ -117,6 +117,17 @@ def stays_put(scene: Scene, vehicles: np.ndarray, step: int, future_steps: int) 
     return logged.any(axis=1) & ~far
 
 
+def standing_vehicles(scene: Scene, step: int, exclude: np.ndarray, future_steps: int) -> np.ndarray:
+    """The vehicles present at ``step``, not in ``exclude``, at rest and kept within
+    ``STAYS_WITHIN_M`` by ``scene``'s tracks over the next ``future_steps``: parked cars the simulator
+    replays standing still. A window gives them the held role, as training gives it to every vehicle
+    at rest that its log keeps there (:func:`training_roles`), and never to a replayed one."""
+    a = scene.agents
+    present = np.flatnonzero(a.is_vehicle & a.valid[:, step])
+    candidates = present[~np.isin(present, exclude) & (a.speed[present, step] < AT_REST_MPS)]
+    return candidates[stays_put(scene, candidates, step, future_steps)]
+
+
 def select_context(
     scene: Scene,
     step: int,

@@ -11,6 +11,7 @@ import torch
 from torch import Tensor
 
 from ctgpp.data.batch import collate
+from ctgpp.data.context import standing_vehicles
 from ctgpp.data.windows import build_window
 from ctgpp.diffusion import CosineSchedule, DDIMSampler, DDPMSampler, Sampler
 from ctgpp.diffusion.filtration import compose, filtration
@@ -151,7 +152,9 @@ class DiffusionPolicy:
         # the simulated past, never the logged future; the model is conditioned on the held vehicles
         # (standing still) and on every replayed agent (the log the simulator will play)
         seen = replace(obs.scene, agents=obs.tracks)
-        window = build_window(seen, obs.step, windows, agent_index=planned.controlled, held=obs.held)
+        parked = standing_vehicles(seen, obs.step, obs.controlled, cfg.future_steps)  # held, as in training
+        held = np.concatenate([obs.held, parked])
+        window = build_window(seen, obs.step, windows, agent_index=planned.controlled, held=held)
         batch = collate([window])  # (1, M, ...): the N samples share one scene
         context = model.encode_context(batch).expand(n)  # encoded once, (N, M, ...) views
         gen = torch.Generator().manual_seed(int(obs.rng.integers(2**31)))
