@@ -100,7 +100,9 @@ def test_readme_python_example_runs(tmp_path: Path, monkeypatch: pytest.MonkeyPa
 # --- item 4: fast start -------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("argv", [[], ["--help"], ["scenes"], ["show", "0103", "--out", "{tmp}/s.png"]])
+@pytest.mark.parametrize(
+    "argv", [[], ["--help"], ["scenes"], ["rules"], ["show", "0103", "--out", "{tmp}/s.png"]]
+)
 def test_light_commands_do_not_import_torch(argv: list[str], tmp_path: Path) -> None:
     argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
     code = (

@@ -10,6 +10,11 @@ model's prompt. ``ctgpp rules``, ``simulate --rule``, the compiler's suggestions
 
 Measures and checks read only the simulated tracks of a rollout, the boxes, the drivable raster and
 the lane graph — never the guidance loss.
+
+What a behaviour says of itself (name, summary, parameters with units from
+:mod:`ctgpp.rule_params`, phrasings, window) needs no torch: ``ctgpp rules``, the compiler's
+phrasings and the prompt read it without loading torch; :meth:`Behaviour.build` loads the guidance
+rules, and the lane measures the guidance's lane paths, when first used.
 """
 
 from __future__ import annotations
@@ -17,11 +22,13 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from ctgpp.guidance import GuidanceLoss, describe_rules, make_loss
-from ctgpp.guidance.composite import ParamInfo, resolve_params
+from ctgpp.rule_params import ParamInfo, resolve_params, rule_params
 from ctgpp.sim.rollout import Rollout
+
+if TYPE_CHECKING:
+    from ctgpp.guidance import GuidanceLoss
 
 Vehicles = tuple[int, ...] | None
 """Displayed vehicle numbers a behaviour is restricted to (None: the behaviour's own scope)."""
@@ -84,15 +91,22 @@ class Behaviour:
     @property
     def params(self) -> list[ParamInfo]:
         """The behaviour's parameters with types, defaults and units (its rule's constructor's)."""
-        return next(r.params for r in describe_rules() if r.name == self.rule)
+        return list(rule_params()[self.rule].params)
+
+    @property
+    def couples_agents(self) -> bool:
+        """Whether the guidance loss couples vehicles (one sample kept for the whole scene)."""
+        return rule_params()[self.rule].couples_agents
 
     def resolve(self, params: Mapping[str, Any]) -> dict[str, Any]:
         """``params`` as the rule reads them: full names, typed, the defaults filled in (ValueError on
         an unknown or missing parameter or a value out of range)."""
-        return resolve_params(self.rule, **params)
+        return resolve_params(rule_params()[self.rule], params)
 
     def build(self, **params: Any) -> GuidanceLoss:
-        """The guidance loss of this behaviour with ``params``."""
+        """The guidance loss of this behaviour with ``params`` (loads torch)."""
+        from ctgpp.guidance import make_loss
+
         return make_loss(self.rule, **params)
 
     def violation(self, rollout: Rollout, params: Mapping[str, Any], vehicles: Vehicles = None) -> Violation:

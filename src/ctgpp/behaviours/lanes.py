@@ -7,7 +7,8 @@ verdict asks for is chosen by the same lane-graph functions the guidance steers 
 (:func:`~ctgpp.guidance.lane_paths.same_direction_neighbour`, :func:`~ctgpp.guidance.lane_paths.turn_path`).
 A track's lane is followed from lane end to lane end (:func:`chain_offsets`, which never switches
 sideways while a lane goes on) or with the hysteresis of :func:`ctgpp.scene.lanes.follow_lane`
-(which does switch to a neighbour, :func:`end_lane`).
+(which does switch to a neighbour, :func:`end_lane`). The guidance's lane paths load with the first
+measure that needs them, so that the vocabulary itself imports no torch.
 """
 
 from __future__ import annotations
@@ -20,7 +21,6 @@ import numpy as np
 
 from ctgpp.behaviours.base import Vehicles, Verdict
 from ctgpp.behaviours.tracks import Track, both_valid, track, tracks, wrapped_deg
-from ctgpp.guidance.lane_paths import same_direction_neighbour, turn_path
 from ctgpp.scene.lanes import (
     LaneProjection,
     follow_lane,
@@ -192,6 +192,8 @@ def keep_lane_check(rollout: Rollout, p: Params, vehicles: Vehicles) -> Verdict:
 
 
 def _lane_change_target(lanes: LaneGraph, t: Track, side: str) -> tuple[LaneProjection | None, str]:
+    from ctgpp.guidance.lane_paths import same_direction_neighbour
+
     start = nearest_lane(lanes, t.xy0, t.yaw0)
     if start is None:
         return None, "the vehicle starts on no lane"
@@ -238,6 +240,8 @@ END = "the last simulated step (the lane it starts on: t = 0)"
 
 
 def _lanes_to_the_right(lanes: LaneGraph, proj: LaneProjection) -> int:
+    from ctgpp.guidance.lane_paths import same_direction_neighbour
+
     count, seen = 0, {proj.lane}
     while (nxt := same_direction_neighbour(lanes, proj, "right")) is not None and nxt.lane not in seen:
         seen.add(nxt.lane)
@@ -272,6 +276,8 @@ def rightmost_check(rollout: Rollout, p: Params, vehicles: Vehicles) -> Verdict:
 def _turn(lanes: LaneGraph, t: Track, direction: str) -> tuple[bool, float, str]:
     """Whether the vehicle's heading change while moving matches the turn of the lane path through
     the next intersection that turns ``direction`` (within 15°), the mismatch (°) and the words."""
+    from ctgpp.guidance.lane_paths import turn_path
+
     start = nearest_lane(lanes, t.xy0, t.yaw0)
     path = None if start is None else turn_path(lanes, start, direction)  # type: ignore[arg-type]
     if path is None:

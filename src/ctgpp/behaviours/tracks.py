@@ -15,7 +15,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from ctgpp.behaviours.base import MissingVehicle, Vehicles
-from ctgpp.dynamics.unicycle import ACC_MAX_MPS2, ACC_MIN_MPS2
 from ctgpp.metrics.collision import controlled_vehicle_indices
 from ctgpp.sim.rollout import Rollout
 
@@ -79,6 +78,8 @@ def earliest_speed_step(speed0: float, bound_mps: float, below: bool, dt_s: floa
     """The first future index (0: t = 0.1 s) at which a vehicle starting at ``speed0`` could be at or
     below (``below``) / at or above ``bound_mps``, at the action bounds (braking 10 m/s², accelerating
     8 m/s², DESIGN.md Dynamics). 0 when it already is."""
+    from ctgpp.dynamics.unicycle import ACC_MAX_MPS2, ACC_MIN_MPS2  # torch, when a measure first runs
+
     gap = speed0 - bound_mps if below else bound_mps - speed0
     if gap <= 0:
         return 0

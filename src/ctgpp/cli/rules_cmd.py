@@ -19,12 +19,9 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
 
 def run_rules(args: argparse.Namespace) -> int:
     from ctgpp.behaviours import behaviours
-    from ctgpp.guidance import registered_losses
 
-    losses = registered_losses()
     for name, b in behaviours().items():
-        coupled = "  (couples vehicles: one sample kept for the whole scene)" if getattr(
-            losses[b.rule], "couples_agents", False) else ""
+        coupled = "  (couples vehicles: one sample kept for the whole scene)" if b.couples_agents else ""
         print(f"{name}{coupled}\n  {b.summary}")
         rows = [
             [p.name, p.type, "required" if p.required else repr(p.default), p.unit or "-", p.help]
