@@ -10,6 +10,7 @@ import re
 import shutil
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -210,3 +211,44 @@ def test_evaluate_fits_its_episodes_to_short_scenes(ngsim_dir: Path, tmp_path: P
     assert main([*argv, "--out", str(out)]) == 0
     rows = (out / "episodes.csv").read_text().strip().splitlines()
     assert len(rows) == 2 and LONGER in rows[1]
+
+
+def test_evaluate_queries_fits_its_episodes_to_short_scenes(
+    ngsim_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """--duration and --history reach evaluate-queries: the 7 s scene hosts a query's 5-s episodes
+    from 2 s on, 6-s ones from 1 s on with 1 s of history; 10 s is refused before any simulation."""
+    from ctgpp.cli import queries_cmd
+    from ctgpp.sim.factory import PolicyFactory
+
+    simple = PolicyFactory()
+    calls: list[str] = []
+
+    def factory(*_: object) -> Callable[[str, object], object]:  # the model's methods as simple policies
+        def make(method: str, guidance: object) -> object:
+            calls.append(method)
+            return simple({"ctgpp": "constvel", "ctgpp-unguided": "replay"}[method], guidance)
+
+        return make
+
+    monkeypatch.setattr(queries_cmd, "PolicyFactory", factory)
+    cases = tmp_path / "cases.json"
+
+    def run(start_s: float, *flags: str) -> int:
+        case = {"family": "speed limit", "query": "speed limit 10 m/s", "scene": LONGER, "start_s": start_s}
+        cases.write_text(json.dumps([case]))
+        out = tmp_path / f"q{start_s:g}{''.join(flags)}"
+        argv = ["evaluate-queries", "--data", str(ngsim_dir), "--cases", str(cases), "--out", str(out)]
+        code = main([*argv, *flags])
+        if code == 0:
+            rows = (out / "queries.csv").read_text().strip().splitlines()
+            assert len(rows) == 2 and LONGER in rows[1]
+        return code
+
+    assert run(2.0) == 2  # 10 s: too short
+    assert "7.0 s long" in capsys.readouterr().err and calls == []
+    assert run(2.0, "--duration", "5") == 0
+    assert calls == ["ctgpp", "ctgpp-unguided"]
+    assert run(1.0, "--duration", "5") == 2  # 2 s of history by default
+    assert "--start 1 is outside 2.0-2.0 s" in capsys.readouterr().err
+    assert run(1.0, "--duration", "6", "--history", "1") == 0

@@ -29,6 +29,28 @@ def add_data_arg(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def add_episode_args(parser: argparse.ArgumentParser, what: str = "") -> None:
+    """``--duration`` and ``--history``: how long an episode runs and the log it starts from
+    (:func:`ctgpp.sim.closed_loop.episode_config`); ``what`` ends the duration's help."""
+    from ctgpp.sim.closed_loop import DURATION_S, HISTORY_S, MIN_HISTORY_S
+
+    parser.add_argument(
+        "--duration",
+        type=float,
+        default=DURATION_S,
+        metavar="SEC",
+        help=f"simulated seconds (default: {DURATION_S:g}){' ' + what if what else ''}",
+    )
+    parser.add_argument(
+        "--history",
+        type=float,
+        default=None,
+        metavar="SEC",
+        help=f"logged seconds before the start (default: {HISTORY_S:g}, shortened down to "
+        f"{MIN_HISTORY_S:g} where the scene is too short for it and --duration)",
+    )
+
+
 def add_model_args(parser: argparse.ArgumentParser) -> None:
     """Checkpoint and sampler options of the ctgpp policy."""
     from ctgpp.sim.diffusion_policy import SamplingConfig

@@ -8,6 +8,7 @@ from pathlib import Path
 
 from ctgpp.cli.common import (
     add_data_arg,
+    add_episode_args,
     add_guidance_args,
     add_model_args,
     guidance_config,
@@ -33,6 +34,8 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     )
     add_model_args(p)
     p.add_argument("--seeds", type=int, default=1, help="number of seeds (0, 1, ...)")
+    add_episode_args(p, "of each case's episodes; one duration per --out directory (it is not part of "
+                     "a result's key)")
     add_guidance_args(p)
     p.add_argument(
         "--out",
@@ -53,7 +56,8 @@ def run_evaluate_queries(args: argparse.Namespace) -> int:
     cases = load_cases(default_cases() if args.cases is None else args.cases)
     factory = PolicyFactory(args.checkpoint, sampling_config(args), guide)
     results = args.out / "queries.csv"
-    records = run_query_cases(open_catalog(args), cases, factory, results, range(args.seeds))
+    records = run_query_cases(open_catalog(args), cases, factory, results, range(args.seeds),
+                              duration_s=args.duration, history_s=args.history)
     table = markdown_table(records, cases)
     write_text_atomic(args.out / "table.md", table)
     print(table)

@@ -12,6 +12,7 @@ from pathlib import Path
 from ctgpp.api.rule_text import RULE_SYNTAX
 from ctgpp.cli.common import (
     add_data_arg,
+    add_episode_args,
     add_guard_args,
     add_guidance_args,
     add_model_args,
@@ -23,7 +24,6 @@ from ctgpp.cli.common import (
 from ctgpp.io.atomic import check_output_dir, staged_dir, write_text_atomic
 from ctgpp.io.export import EXPORT_KINDS, check_export_kind, export, export_name
 from ctgpp.io.strict_json import dumps_strict
-from ctgpp.sim.closed_loop import DURATION_S, HISTORY_S, MIN_HISTORY_S
 from ctgpp.sim.factory import POLICY_NAMES
 
 
@@ -56,21 +56,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         metavar="SEC",
         help="simulation start in seconds (default: the earliest, after the history)",
     )
-    p.add_argument(
-        "--duration",
-        type=float,
-        default=DURATION_S,
-        metavar="SEC",
-        help=f"simulated seconds (default: {DURATION_S:g})",
-    )
-    p.add_argument(
-        "--history",
-        type=float,
-        default=None,
-        metavar="SEC",
-        help=f"logged seconds before the start (default: {HISTORY_S:g}, shortened down to "
-        f"{MIN_HISTORY_S:g} where the scene is too short for it and --duration)",
-    )
+    add_episode_args(p)
     p.add_argument(
         "--rule",
         action="append",

@@ -1,7 +1,9 @@
 """The query benchmark (issue 5, "What it must show"): each case is a sentence on a scene, simulated
 guided by its compiled query and unguided from the same seed, and judged by the independent check.
 
-A case is (family, query, scene, start_s). For every case and seed the benchmark records whether the
+A case is (family, query, scene, start_s); every episode runs ``duration_s`` simulated seconds after
+``history_s`` of log (:func:`~ctgpp.sim.closed_loop.episode_config`: 3 s, less down to 1 s where a
+scene is short). For every case and seed the benchmark records whether the
 query was satisfied (:func:`ctgpp.language.satisfaction.check_satisfied`, every part must hold) for
 the guided and the unguided rollout, their fail rates, for collision queries also the fail rate
 without the vehicles asked to collide (:func:`ctgpp.metrics.rules.fail_excluding`), and ``real``.
@@ -31,7 +33,7 @@ from ctgpp.language.satisfaction import check_satisfied
 from ctgpp.metrics import compute_metrics
 from ctgpp.metrics.rules import fail_excluding
 from ctgpp.scene.types import Scene
-from ctgpp.sim.closed_loop import initial_observation, simulate
+from ctgpp.sim.closed_loop import DURATION_S, SimConfig, episode_config, initial_observation, simulate
 
 KEY = ("family", "query", "scene", "start_s", "seed")
 SIDES = ("guided", "unguided")
@@ -86,11 +88,12 @@ def colliding_vehicles(compiled: CompiledQuery) -> list[int]:
     return out
 
 
-def _compile(scene: Scene, case: QueryCase) -> CompiledQuery:
+def _compile(scene: Scene, case: QueryCase, config: SimConfig) -> CompiledQuery:
     """The offline compilation of a case's query on its episode (a fresh loss: committed lane rules
-    keep per-episode state). Raises a ValueError naming the case when the query does not compile."""
+    keep per-episode state). Raises a ValueError naming the case when the query does not compile or
+    the scene cannot host the episode."""
     try:
-        compiled = resolve_query(case.query, initial_observation(scene, case.start_s), None).compiled
+        compiled = resolve_query(case.query, initial_observation(scene, case.start_s, config), None).compiled
     except ValueError as err:
         raise ValueError(f"case {case.query!r} on {case.scene} at {case.start_s:g} s: {err}") from err
     assert compiled is not None  # the offline path always compiles
@@ -122,28 +125,34 @@ def run_query_cases(
     seeds: Sequence[int] = (0,),
     methods: tuple[str, str] = ("ctgpp", "ctgpp-unguided"),
     progress: bool = True,
+    duration_s: float = DURATION_S,
+    history_s: float | None = None,
 ) -> list[dict[str, str]]:
     """Simulate every case × seed not yet in ``results`` guided and unguided; append one row each.
 
     ``make_policy(method, guidance)`` builds a policy; ``methods`` are the guided and the unguided
-    method names. Every query is compiled before any simulation, so a bad case fails at once.
-    Returns every finished row of ``results`` (:data:`FIELDS`).
+    method names. Episodes run ``duration_s`` simulated seconds after ``history_s`` of log (None: 3 s,
+    less down to 1 s where a scene is short; the duration is not part of a row's key: one duration
+    per ``results`` file). Every query is compiled, and every episode fitted to its scene, before any
+    simulation, so a bad case fails at once. Returns every finished row of ``results`` (:data:`FIELDS`).
     """
     scenes = {sid: catalog.load(sid) for sid in dict.fromkeys(c.scene for c in cases)}
+    configs = {sid: episode_config(scene, duration_s, history_s) for sid, scene in scenes.items()}
     for case in cases:
-        _compile(scenes[case.scene], case)
+        _compile(scenes[case.scene], case, configs[case.scene])
     done = {record_key(r, KEY) for r in read_records(results, KEY)}
     todo = [(c, s) for c in cases for s in seeds if c.key(s) not in done]
     unguided: dict[tuple[str, float, int], Rollout] = {}
     with append_records(results, FIELDS) as write:
         for case, seed in tqdm(todo, desc="query cases", unit="case", disable=not progress):
             began = time.perf_counter()
-            scene = scenes[case.scene]
-            compiled = _compile(scene, case)
-            guided = simulate(scene, make_policy(methods[0], compiled.loss), case.start_s, seed=seed)
+            scene, config = scenes[case.scene], configs[case.scene]
+            compiled = _compile(scene, case, config)
+            guided = simulate(scene, make_policy(methods[0], compiled.loss), case.start_s, seed, config)
             base_key = (case.scene, case.start_s, seed)
             if base_key not in unguided:
-                unguided[base_key] = simulate(scene, make_policy(methods[1], None), case.start_s, seed=seed)
+                base = make_policy(methods[1], None)
+                unguided[base_key] = simulate(scene, base, case.start_s, seed, config)
             row = dict(zip(KEY, case.key(seed), strict=True))
             row["vehicles"] = str(int(guided.controlled.sum()))
             row.update(_measure(guided, compiled, "guided"))
