@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import socket
 import threading
+import time
 from collections.abc import Iterator
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
@@ -44,17 +45,20 @@ def reply(code: str) -> str:
 
 
 class CannedServer:
-    """POST /v1/chat/completions answers the queued replies in order (text, or (status, message))."""
+    """POST /v1/chat/completions answers the queued replies in order (text, or (status, message)),
+    each after ``delay_s`` seconds."""
 
     def __init__(self) -> None:
         self.replies: list[Any] = []
         self.requests: list[dict[str, Any]] = []
+        self.delay_s = 0.0
         server = self
 
         class Handler(BaseHTTPRequestHandler):
             def do_POST(self) -> None:  # noqa: N802
                 body = json.loads(self.rfile.read(int(self.headers["Content-Length"])))
                 server.requests.append(body)
+                time.sleep(server.delay_s)
                 item = server.replies.pop(0) if server.replies else (500, "no canned reply left")
                 if isinstance(item, tuple):
                     error = {"message": item[1], "type": "invalid_request_error"}

@@ -96,6 +96,7 @@ def simulate(
     llm: LLMConfig | None = None,
     progress: bool = False,
     echo: Echo | None = None,
+    on_replan: Callable[[int, int], None] | None = None,
 ) -> Result:
     """Simulate ``scene`` in closed loop and measure it (what ``ctgpp simulate`` does, without files).
 
@@ -112,6 +113,8 @@ def simulate(
     sampler and Algorithm 2's settings (default: the ``fast`` preset). guards: the realism guards,
     ``"on"``, ``"off"`` or a comma-separated subset of ``offroad,collision,lane``. progress: a
     progress bar over the re-plans. echo: called with each line worth telling (the query's loss).
+    on_replan: called as ``on_replan(done, total)`` after each re-plan (what ``ctgpp serve`` shows;
+    an exception it raises stops the episode).
 
     Raises ValueError (one line) for anything the user can get wrong: unknown scene, policy or rule,
     a start outside the scene, a scene too short for the episode, a query nothing understands.
@@ -148,7 +151,7 @@ def simulate(
     def episode(loss: GuidanceLoss | None) -> tuple[Policy, Rollout]:
         made = make_policy(policy, None if checkpoint is None else Path(checkpoint), sampling, loss,
                            guidance, guard_config, scope)
-        return made, _run(scene, made, start, seed, config, progress)
+        return made, _run(scene, made, start, seed, config, progress, on_replan)
 
     if losses and policy != "ctgpp":
         say(f"policy {policy} is not guided: the rules and the query are only measured")
@@ -191,10 +194,14 @@ def _combined(losses: list[GuidanceLoss]) -> GuidanceLoss | None:
     return losses[0] if len(losses) == 1 else CompositeLoss([(item, 1.0) for item in losses])
 
 
-def _run(scene: Scene, policy: Policy, start: float, seed: int, config: SimConfig, progress: bool) -> Rollout:
-    """The closed-loop episode, with a progress bar over its re-plans when ``progress``."""
+def _run(
+    scene: Scene, policy: Policy, start: float, seed: int, config: SimConfig, progress: bool,
+    report: Callable[[int, int], None] | None = None,
+) -> Rollout:
+    """The closed-loop episode, with a progress bar over its re-plans when ``progress``; ``report``
+    is called after each re-plan."""
     if not progress:
-        return run_closed_loop(scene, policy, start, seed=seed, config=config)
+        return run_closed_loop(scene, policy, start, seed=seed, config=config, on_replan=report)
     from tqdm import tqdm
 
     total = -(-config.duration_steps // config.replan_every)
@@ -203,6 +210,8 @@ def _run(scene: Scene, policy: Policy, start: float, seed: int, config: SimConfi
         def on_replan(done: int, total: int) -> None:
             bar.total = total
             bar.update(done - bar.n)
+            if report is not None:
+                report(done, total)
 
         return run_closed_loop(scene, policy, start, seed=seed, config=config, on_replan=on_replan)
 
@@ -233,10 +242,12 @@ def _fail_excluding(specs: list[RuleSpec], rollout: Rollout) -> float | None:
 
 def _query_report(text: str, query: QueryLoss, rollout: Rollout) -> dict[str, Any]:
     """Whether the rollout satisfies the query, by the independent checks of the compiled query's
-    parts (not by the loss); "unknown" when only the language model understood the query."""
+    parts (not by the loss); "unknown" when only the language model understood the query. With a
+    language model: why its program was not used (``fallback``, null when it was) and every round's
+    reply, refusal and seconds (``rounds``)."""
     named = None if query.scope.vehicles is None else sorted(query.scope.vehicles)  # None: every vehicle
     report: dict[str, Any] = {"text": text, "path": query.path, "code": query.code, "notes": query.notes,
-                              "vehicles": named}
+                              "vehicles": named, "fallback": query.fallback, "rounds": query.rounds}
     if query.compiled is None:
         return {**report, "satisfied": "unknown (no independent check for this query)", "parts": []}
     parts = check_satisfied(rollout, query.compiled)

@@ -11,9 +11,10 @@ executed only in the worker process (:mod:`ctgpp.language.checks`), for its tria
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any, Protocol
 
 from torch import Tensor
 
@@ -25,7 +26,7 @@ from ctgpp.language.prompt import Message, build_messages, repair_message
 from ctgpp.language.remote import CALL_TIME_LIMIT_S, RemoteLoss
 from ctgpp.language.sandbox import SandboxError, check_source
 
-__all__ = ["ChatModel", "GeneratedLoss", "GenerationFailed", "generate_loss"]
+__all__ = ["ChatModel", "GeneratedLoss", "GenerationFailed", "Round", "generate_loss"]
 
 log = logging.getLogger(__name__)
 
@@ -37,10 +38,24 @@ class ChatModel(Protocol):
 
 
 @dataclass(frozen=True)
+class Round:
+    """One reply of the model: its text, why it was refused (None: accepted) and the seconds the
+    model took to answer."""
+
+    reply: str
+    refusal: str | None
+    seconds: float
+
+    def record(self) -> dict[str, Any]:
+        """JSON-able: what the run's output keeps of the round."""
+        return {"reply": self.reply, "refusal": self.refusal, "seconds": round(self.seconds, 1)}
+
+
+@dataclass(frozen=True)
 class GeneratedLoss:
     """An accepted program: its code, its loss class's name, how many model replies it took (0 when
-    it came from the cache), the trial's report and the earlier refusals. :meth:`build` makes the
-    loss that steers sampling."""
+    it came from the cache), the trial's report, the earlier refusals and every round. :meth:`build`
+    makes the loss that steers sampling."""
 
     code: str
     name: str
@@ -50,6 +65,7 @@ class GeneratedLoss:
     cached: bool = False
     errors: tuple[str, ...] = ()
     path: str = "llm"
+    transcript: tuple[Round, ...] = ()
 
     def build(self, worker: LossChecker | None = None,
               call_time_limit_s: float = CALL_TIME_LIMIT_S) -> RemoteLoss:
@@ -59,11 +75,13 @@ class GeneratedLoss:
 
 
 class GenerationFailed(RuntimeError):
-    """Every round's program was refused; ``errors`` holds the reason of each round."""
+    """Every round's program was refused; ``errors`` holds the reason of each round, ``transcript``
+    the rounds."""
 
-    def __init__(self, query: str, errors: Sequence[str]) -> None:
+    def __init__(self, query: str, errors: Sequence[str], transcript: Sequence[Round] = ()) -> None:
         self.query = query
         self.errors = tuple(errors)
+        self.transcript = tuple(transcript)
         listing = "\n".join(f"  {e}" for e in self.errors)
         super().__init__(f"the model's code for {query!r} failed the checks in all {len(self.errors)} "
                          f"rounds:\n{listing}")
@@ -122,8 +140,11 @@ def _rounds(query: str, llm: ChatModel, batch: GuidanceBatch, x: Tensor, max_rep
     """The repair loop: one reply per round, the refusal sent back after each failed one."""
     messages = build_messages(query, batch.num_vehicles)
     errors: list[str] = []
+    transcript: list[Round] = []
     for round_no in range(1, max_repairs + 2):
+        began = time.monotonic()
         reply = llm.complete(messages)
+        seconds = time.monotonic() - began
         messages.append({"role": "assistant", "content": reply})
         try:
             code = extract_code(reply)
@@ -131,9 +152,12 @@ def _rounds(query: str, llm: ChatModel, batch: GuidanceBatch, x: Tensor, max_rep
         except (ExtractionError, SandboxError, LossCheckError) as err:
             log.info("round %d for %r refused: %s", round_no, query, err)
             errors.append(f"round {round_no}: {err}")
+            transcript.append(Round(reply, str(err), seconds))
             messages.append(repair_message(str(err)))
             continue
+        transcript.append(Round(reply, None, seconds))
         if store is not None:
             store.put(query, model, code, round_no)
-        return GeneratedLoss(code, report.name, round_no, report, model, errors=tuple(errors))
-    raise GenerationFailed(query, errors)
+        return GeneratedLoss(code, report.name, round_no, report, model, errors=tuple(errors),
+                             transcript=tuple(transcript))
+    raise GenerationFailed(query, errors, transcript)

@@ -145,9 +145,52 @@ def build_messages(query: str, num_vehicles: int | None = None) -> list[Message]
             {"role": "user", "content": user + "\n"}]
 
 
+# What to change for each kind of refusal, found by a phrase of its message (the first match wins).
+# A small model resends the same program when told only what failed.
+REPAIR_HINTS: tuple[tuple[str, str], ...] = (
+    ("gradient with respect to x is zero",
+     "the cost must change when x changes. Compute it from the positions x[..., :2] (or speed "
+     "x[..., 2], yaw x[..., 3]) with a smooth penalty that is positive for the trajectories the query "
+     "does not want, e.g. torch.relu(gap - target_m) or gap ** 2, never a comparison such as "
+     "(gap > target_m).float(), and no .detach(), .item(), argmin/argmax or rounding of x. Check that "
+     "every vehicle index you use is below B."),
+    ("does not depend differentiably on x",
+     "return a tensor computed from x with torch operations (no .detach(), .item(), numpy, Python "
+     "floats or torch.tensor(...) built from values of x)."),
+    ("forward returned shape",
+     "reduce over the time and feature dimensions only, e.g. cost.mean(dim=(-2, -1)) for x of shape "
+     "(B, N, T, 6), and keep the vehicle and sample dimensions: (B, N)."),
+    ("nan or inf", "avoid division by values that can be 0 (add a small epsilon), sqrt of 0 "
+     "(use torch.sqrt(d2 + 1e-6)) and log of values that can be 0 or negative."),
+    ("wrote into data_batch", "read data_batch only: compute new tensors (a = b * 2), never assign "
+     "into its fields or call in-place methods (add_, clamp_, [...] = ...) on them."),
+    ("grows between calls", "do not store x, results or lists on self or in globals inside forward: "
+     "compute everything from x and data_batch on each call."),
+    ("did not finish within its time limit", "vectorize: no Python loops over time steps, samples "
+     "or vehicles; use tensor operations over whole dimensions."),
+    ("without arguments", "give every parameter of __init__ a default value, e.g. "
+     "def __init__(self, target_ind=1, speed_mps=10.0)."),
+    ("no Python program", "reply with the whole program in one ```python code block."),
+    ("no class deriving from GuidanceLoss", "define exactly one class MyLoss(GuidanceLoss) with "
+     "forward(self, x, data_batch, agt_mask=None)."),
+)
+
+
+def repair_hint(error: str) -> str | None:
+    """What to change for the refusal ``error`` (:data:`REPAIR_HINTS`), or None when the message
+    already says it (the sandbox's refusals name what is allowed)."""
+    for phrase, hint in REPAIR_HINTS:
+        if phrase in error:
+            return hint
+    return None
+
+
 def repair_message(error: str) -> Message:
-    """The user message that sends a refusal (sandbox, checks or extraction) back to the model."""
-    return {"role": "user", "content": _fill(load_template("repair.md"), error=error).rstrip()}
+    """The user message that sends a refusal (sandbox, checks or extraction) back to the model, with
+    what to change where the kind of refusal is known."""
+    hint = repair_hint(error)
+    text = error if hint is None else f"{error}\n\nHow to fix it: {hint}"
+    return {"role": "user", "content": _fill(load_template("repair.md"), error=text).rstrip()}
 
 
 def _prompt_version() -> str:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import torch
@@ -34,7 +35,9 @@ log = logging.getLogger(__name__)
 class QueryLoss:
     """The loss for a query, where it came from (``path``), its code, and the compiled query when
     the compiler understands the query (the independent satisfaction check needs it); ``query`` and
-    ``model`` name the cache entry of a language model's program."""
+    ``model`` name the cache entry of a language model's program. ``rounds``: every reply of the
+    language model with its refusal and seconds (:meth:`Round.record`); ``fallback``: why the
+    compiler's loss is used although a language model was asked (None: it was not)."""
 
     loss: GuidanceLoss
     code: str
@@ -43,6 +46,8 @@ class QueryLoss:
     notes: list[str] = field(default_factory=list)
     query: str = ""
     model: str | None = None
+    rounds: list[dict[str, Any]] = field(default_factory=list)
+    fallback: str | None = None
 
     def close(self) -> None:
         """Stop the worker process of a language model's loss (nothing for other losses)."""
@@ -95,10 +100,12 @@ def resolve_query(query: str, obs: Observation, llm: LLMConfig | None, max_repai
             ) from err
         note = f"the language model's code was not used: {err}"
         log.warning("%s; falling back to the offline compiler", note)
-        return QueryLoss(compiled.loss, compiled.code, "offline query compiler (fallback)", compiled, [note])
+        rounds = [r.record() for r in err.transcript] if isinstance(err, GenerationFailed) else []
+        return QueryLoss(compiled.loss, compiled.code, "offline query compiler (fallback)", compiled, [note],
+                         rounds=rounds, fallback=str(err))
     source = "cache" if generated.cached else f"{generated.rounds} round(s)"
     return QueryLoss(loss, generated.code, f"language model {llm.model} ({source})", compiled, [], query,
-                     llm.model)
+                     llm.model, [r.record() for r in generated.transcript])
 
 
 def fall_back(failed: QueryLoss, err: GeneratedLossError) -> QueryLoss:
@@ -115,4 +122,4 @@ def fall_back(failed: QueryLoss, err: GeneratedLossError) -> QueryLoss:
     log.warning("%s", note)
     compiled = failed.compiled
     return QueryLoss(compiled.loss, compiled.code, "offline query compiler (fallback)", compiled,
-                     [*failed.notes, note])
+                     [*failed.notes, note], rounds=failed.rounds, fallback=str(err))
