@@ -48,6 +48,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     ),
     "data": ("data_cmd", "data management"),
     "bench": ("bench_cmd", "time guided closed-loop scenarios per sampler preset, and scaling"),
+    "serve": ("serve_cmd", "the playground in the browser: pick a scene, type a sentence, watch"),
 }
 
 

@@ -1,0 +1,331 @@
+"""``ctgpp serve`` (issue 19): the JSON API against the real server (``ctgpp serve`` started as a
+process on a free port, spoken to over HTTP), and the page in a real headless browser (Debian's
+chromium driven by selenium): pick scene-0103, type a sentence, run it, see the animation advance
+and the verdict appear.
+
+The server runs with a language model configured (an address where nothing listens, a made-up key):
+the page offers it by name, and the key appears in no answer. Episodes are short (1-2 s).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import socket
+import subprocess
+import sys
+import time
+import urllib.error
+import urllib.request
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+CHROMIUM = Path("/usr/bin/chromium")
+CHROMEDRIVER = Path("/usr/bin/chromedriver")
+SECRET_KEY = "sk-test-serve-5f1c0b7e-never-shown"
+LLM_MODEL = "local-test-model"
+SENTENCE = "vehicle 1 should collide with vehicle 2"
+START_TIMEOUT_S = 300.0  # torch loads in two processes on a busy 2-core machine
+RUN_TIMEOUT_S = 300.0
+
+
+class Server:
+    """A running ``ctgpp serve`` and a small HTTP client for it."""
+
+    def __init__(self, url: str, out: Path, process: subprocess.Popen[str]) -> None:
+        self.url, self.out, self.process = url, out, process
+        self.bodies: list[str] = []  # every answer, to look for the key in
+
+    def request(self, path: str, body: Any = None, raw: bytes | None = None) -> tuple[int, Any]:
+        data = raw if raw is not None else None if body is None else json.dumps(body).encode()
+        req = urllib.request.Request(self.url + path, data=data, method="GET" if data is None else "POST",
+                                     headers={"Content-Type": "application/json"})
+        try:
+            with urllib.request.urlopen(req, timeout=60) as answer:
+                status, text = answer.status, answer.read().decode("utf-8", "replace")
+        except urllib.error.HTTPError as err:
+            status, text = err.code, err.read().decode("utf-8", "replace")
+        self.bodies.append(text)
+        try:
+            return status, json.loads(text)
+        except ValueError:
+            return status, text
+
+    def get(self, path: str) -> Any:
+        status, data = self.request(path)
+        assert status == 200, (path, status, data)
+        return data
+
+    def submit(self, **fields: Any) -> dict[str, Any]:
+        status, job = self.request("/api/runs", {"scene": "embedded:scene-0103", **fields})
+        assert status == 201, job
+        return job
+
+    def wait(self, job_id: str, until: tuple[str, ...] = ("done", "failed", "refused", "cancelled"),
+             timeout: float = RUN_TIMEOUT_S, **matching: Any) -> dict[str, Any]:
+        """Poll the run until its state is one of ``until`` and its fields equal ``matching``."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            job = self.get(f"/api/runs/{job_id}")
+            if job["state"] in until and all(job.get(k) == v for k, v in matching.items()):
+                return job
+            if job["state"] in ("done", "failed", "refused", "cancelled"):
+                break
+            time.sleep(0.3)
+        raise AssertionError(f"run {job_id} is {job['state']} ({job['phase']}): {job['message']}")
+
+
+def _free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
+    out = tmp_path_factory.mktemp("serve") / "runs"
+    port = _free_port()
+    env = {**os.environ, "CTGPP_LLM_MODEL": LLM_MODEL, "OPENAI_API_KEY": SECRET_KEY,
+           "OPENAI_BASE_URL": f"http://127.0.0.1:{_free_port()}/v1"}  # nothing listens there
+    process = subprocess.Popen(
+        [sys.executable, "-m", "ctgpp.cli.main", "serve", "--port", str(port), "--out", str(out)],
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )
+    served = Server(f"http://127.0.0.1:{port}", out, process)
+    deadline = time.monotonic() + START_TIMEOUT_S
+    try:
+        while True:
+            assert process.poll() is None, process.stdout.read() if process.stdout else ""
+            try:
+                health = served.get("/api/health")
+                if health["workers_ready"] and health["vocabulary_ready"]:
+                    break
+            except (urllib.error.URLError, ConnectionError):
+                pass
+            assert time.monotonic() < deadline, "ctgpp serve did not get ready"
+            time.sleep(0.5)
+        yield served
+    finally:
+        process.terminate()
+        try:
+            process.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+
+
+# --- the API ------------------------------------------------------------------------------------
+
+
+def test_scenes_and_a_scene_drawn_as_data(server: Server) -> None:
+    scenes = {s["key"]: s for s in server.get("/api/scenes")}
+    entry = scenes["embedded:scene-0103"]
+    assert (entry["map"], entry["vehicles"], entry["split"]) == ("boston-seaport", 61, "mini_val")
+    assert len(scenes) == 10 and entry["max_duration_s"] == 18.5
+    view = server.get("/api/scenes/embedded:scene-0103?duration_s=2")
+    numbered = sorted(a["number"] for a in view["agents"] if a["number"] >= 0)
+    assert numbered == list(range(view["vehicles"])) and view["vehicles"] == 12  # as `ctgpp show` has them
+    assert any(a["moving"] for a in view["agents"]) and any(not a["moving"] for a in view["agents"])
+    assert view["drivable"]["png"].startswith("data:image/png;base64,") and len(view["lanes"]) > 100
+    assert server.request("/api/scenes/embedded:scene-9999")[0] == 404
+    assert server.request("/api/scenes/..%2F..%2Fetc")[0] == 404
+
+
+def test_options_name_the_model_but_never_its_key(server: Server) -> None:
+    options = server.get("/api/options")
+    assert options["llm"] == {"model": LLM_MODEL}
+    assert options["policies"][0] == "ctgpp" and "constvel" in options["policies"]
+    assert SENTENCE in options["phrasings"]
+    page = server.get("/")
+    assert "<canvas" in page and not re.search(r"(src|href)=\"(https?:)?//", page)  # nothing from elsewhere
+
+
+def test_a_run_gives_a_rollout_verdicts_metrics_and_files(server: Server) -> None:
+    job = server.submit(sentence=SENTENCE, duration_s=2, policy="constvel", exports=["scenarionet"])
+    assert job["state"] in ("queued", "running")
+    done = server.wait(job["id"])
+    assert done["state"] == "done", done["message"]
+    record = done["record"]
+    assert record["scene"] == "scene-0103" and record["duration_s"] == 2.0
+    assert record["query"]["text"] == SENTENCE and [p["text"] for p in record["query"]["parts"]]
+    assert record["query"]["path"] == "offline query compiler" and "collision" in record["query"]["code"]
+    assert done["baseline"] is None  # constvel is not guided: nothing to compare
+    playback = server.get(f"/api/runs/{job['id']}/playback")
+    assert playback["time_s"][playback["current"]] == 0.0 and playback["time_s"][-1] == 2.0
+    numbered = [a for a in playback["agents"] if a["number"] >= 0]
+    assert len(numbered) == 12 and all(len(a["x"]) == len(playback["time_s"]) for a in numbered)
+    expected = {"metrics.json", "rollout.parquet", "playback.json", "sd_ctgpp_scene-0103.pkl"}
+    assert set(done["files"]) >= expected
+    metrics = server.get(f"/api/runs/{job['id']}/files/metrics.json")
+    assert metrics["query"]["satisfied"] == record["query"]["satisfied"]
+    folder = server.out / done["folder"]
+    assert (folder / "rollout.parquet").is_file()
+    assert json.loads((folder / "request.json").read_text())["seed"] == 0
+    assert server.request(f"/api/runs/{job['id']}/files/request.json.bak")[0] == 404
+    assert server.request(f"/api/runs/{job['id']}/files/..%2Fmetrics.json")[0] == 404
+    assert done["command"].startswith(f"ctgpp simulate '{SENTENCE}' --scene scene-0103")
+
+
+def test_a_refused_sentence_gets_the_closest_phrasings(server: Server) -> None:
+    status, answer = server.request("/api/runs", {"scene": "embedded:scene-0103",
+                                                  "sentence": "vehicle 3 should fly to the moon"})
+    assert status == 422 and answer["refused"] is True
+    assert len(answer["suggestions"]) == 3 and "Closest supported phrasings" in answer["message"]
+    status, answer = server.request("/api/runs", {"scene": "embedded:scene-0103",
+                                                  "sentence": "vehicle 40 should stop"})
+    assert status == 422 and "vehicles 0-11" in answer["message"]
+
+
+@pytest.mark.parametrize(
+    "body, status, words",
+    [
+        ({"scene": "embedded:scene-0103", "path": "/etc/passwd"}, 422, "path"),
+        ({"scene": "embedded:scene-0103", "sentence": "x" * 301}, 422, "sentence"),
+        ({"scene": "embedded:scene-0103", "seed": -1}, 422, "seed"),
+        ({"scene": "embedded:scene-0103", "duration_s": 19}, 422, "too short"),
+        ({"scene": "/etc/passwd"}, 422, "scene"),
+        ({"scene": "embedded:scene-0103", "policy": "__import__('os')"}, 422, "policy"),
+        ({"scene": "embedded:scene-0103", "policy": "nope"}, 422, "unknown policy"),
+        ({"scene": "embedded:scene-0103", "exports": ["../x"]}, 422, "exports"),
+        ({"scene": "ngsim:USA_1"}, 404, "unknown scene"),
+    ],
+)
+def test_only_scene_keys_sentences_and_numbers_are_taken(
+    server: Server, body: dict[str, Any], status: int, words: str
+) -> None:
+    got, answer = server.request("/api/runs", body)
+    assert got == status and words in answer["message"], answer
+    assert "Traceback" not in answer["message"] and "\n" not in answer["message"]
+
+
+def test_request_size_is_bounded(server: Server) -> None:
+    status, answer = server.request("/api/runs", raw=b'{"scene": "' + b"a" * 10_000 + b'"}')
+    assert status == 413 and "larger than" in answer["message"]
+
+
+def test_runs_queue_are_cancelled_and_the_server_answers_meanwhile(server: Server) -> None:
+    long = server.submit(sentence=SENTENCE, duration_s=10, compare=False)
+    waiting = server.submit(sentence="vehicle 2 should stop", duration_s=1, policy="constvel")
+    after = server.submit(sentence="vehicle 2 should stop", duration_s=1, policy="constvel")
+    server.wait(long["id"], until=("running",), phase="guided")
+    assert server.get(f"/api/runs/{waiting['id']}")["position"] == 1
+    assert server.get(f"/api/runs/{after['id']}")["position"] == 2
+    # the server answers while the run computes: listing, drawing a scene, queueing
+    assert len(server.get("/api/scenes")) == 10
+    assert server.get("/api/scenes/embedded:scene-0553?duration_s=3")["vehicles"] > 0
+    assert server.get(f"/api/runs/{long['id']}")["state"] == "running"
+    cancelled = server.request(f"/api/runs/{waiting['id']}/cancel", {})[1]
+    assert cancelled["state"] == "cancelled"
+    server.request(f"/api/runs/{long['id']}/cancel", {})
+    assert server.wait(long["id"])["state"] == "cancelled"
+    assert server.wait(after["id"])["state"] == "done"  # the worker goes on with the next
+    folders = {server.get(f"/api/runs/{j['id']}")["folder"] for j in (long, waiting, after)}
+    assert len(folders) == 3
+
+
+def test_a_language_model_run_keeps_the_key_on_the_server(server: Server) -> None:
+    """The model is unreachable: the run falls back to the offline compiler and says so."""
+    job = server.submit(sentence="vehicle 2 should stop", duration_s=1, policy="constvel", llm=True)
+    done = server.wait(job["id"])
+    assert done["state"] == "done", done["message"]
+    assert "offline query compiler (fallback)" == done["record"]["query"]["path"]
+    server.get("/api/runs")
+    assert server.bodies and not any(SECRET_KEY in body for body in server.bodies)
+
+
+def test_a_failed_run_is_one_line(tmp_path: Path) -> None:
+    from ctgpp.serve.worker import RunSpec, run_safely
+
+    spec = RunSpec(1, str(tmp_path / "run"), "scene-9999", None, "", 0, 1.0, "constvel", "on", False, False)
+    kind, payload = run_safely(spec, None, lambda kind, payload: None, lambda: False)
+    assert kind == "error" and "\n" not in payload["message"] and "Traceback" not in payload["message"]
+
+
+# --- the page in a real browser -----------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[Any]:
+    if not CHROMIUM.is_file() or not CHROMEDRIVER.is_file():
+        pytest.skip("the browser test needs Debian's chromium and chromium-driver "
+                    "(apt-get install chromium chromium-driver; .ci/run installs them)")
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+
+    options = webdriver.ChromeOptions()
+    options.binary_location = str(CHROMIUM)
+    for arg in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--disable-gpu",
+                "--window-size=1500,1000", "--force-device-scale-factor=1"):
+        options.add_argument(arg)
+    driver = webdriver.Chrome(options=options, service=Service(str(CHROMEDRIVER)))
+    try:
+        yield driver
+    finally:
+        driver.quit()
+
+
+def _screenshot(driver: Any, tmp_path: Path, name: str) -> None:
+    """Save a screenshot under tmp_path, and into $CTGPP_SCREENSHOTS when set (the README's pictures)."""
+    path = tmp_path / name
+    driver.save_screenshot(str(path))
+    folder = os.environ.get("CTGPP_SCREENSHOTS")
+    if folder:
+        Path(folder).mkdir(parents=True, exist_ok=True)
+        shutil.copy(path, Path(folder) / name)
+
+
+def test_the_page_runs_a_sentence_and_plays_it(server: Server, browser: Any, tmp_path: Path) -> None:
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.support import expected_conditions as ec
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    wait = WebDriverWait(browser, RUN_TIMEOUT_S, poll_frequency=0.1)
+    browser.get(server.url)
+    row = wait.until(ec.element_to_be_clickable((By.CSS_SELECTOR, "tr[data-key='embedded:scene-0103']")))
+    duration = browser.find_element(By.ID, "duration")
+    duration.clear()
+    duration.send_keys("2")
+    row.click()
+    wait.until(ec.text_to_be_present_in_element((By.ID, "status"), "12 vehicles at the start"))
+    wait.until(ec.element_to_be_clickable((By.ID, "run")))
+    assert LLM_MODEL in browser.find_element(By.ID, "llm-option").text
+    sentence = browser.find_element(By.ID, "sentence")
+    sentence.send_keys("vehicle 3 should fly to the moon")
+    browser.find_element(By.ID, "run").click()
+    wait.until(ec.visibility_of_element_located((By.ID, "refusal")))
+    suggestions = browser.find_elements(By.CSS_SELECTOR, "#suggestions li")
+    assert len(suggestions) == 3
+    _screenshot(browser, tmp_path, "serve-refused.png")
+
+    sentence.clear()
+    sentence.send_keys(SENTENCE)
+    browser.find_element(By.ID, "run").click()
+    canvas = browser.find_element(By.ID, "canvas")
+    wait.until(lambda d: int(canvas.get_attribute("data-frame")) >= 0)  # the first frame is drawn
+    timings = browser.execute_script("return window.ctgppTimings")
+    assert timings["seconds"] > 0
+    first = int(canvas.get_attribute("data-frame"))
+    wait.until(lambda d: int(canvas.get_attribute("data-frame")) > first)  # the animation advances
+    verdict = wait.until(lambda d: d.find_element(By.CSS_SELECTOR, "#verdict.yes, #verdict.no"))
+    assert "satisfied" in verdict.text.lower()
+    wait.until(ec.text_to_be_present_in_element((By.ID, "status"), "Done"))
+    parts = browser.find_elements(By.CSS_SELECTOR, "#parts tbody tr")
+    assert len(parts) >= 1 and SENTENCE.split(" should")[0] in parts[0].text
+    metrics = browser.find_element(By.ID, "metrics").text
+    assert "fail" in metrics and "unguided" in metrics
+    assert "make_loss" in browser.find_element(By.ID, "code").text
+    links = [a.text for a in browser.find_elements(By.CSS_SELECTOR, "#downloads a")]
+    assert {"metrics.json", "rollout.parquet"} <= set(links)
+    # play it again from the start and watch the time go on
+    browser.find_element(By.ID, "play").click()
+    start = float(browser.find_element(By.ID, "time-label").text.split()[2])
+    wait.until(lambda d: float(d.find_element(By.ID, "time-label").text.split()[2]) > start + 0.5)
+    browser.execute_script("document.getElementById('play').click()")  # pause, then show the last second
+    browser.execute_script("const s = document.getElementById('scrub'); s.value = s.max - 5;"
+                           "s.dispatchEvent(new Event('input'));")
+    _screenshot(browser, tmp_path, "serve-run.png")
