@@ -112,3 +112,21 @@ def test_the_result_states_the_fallback_and_keeps_the_rounds(server: CannedServe
     assert [r["reply"] for r in report["rounds"]] == [reply(FLAT)] * 3
     assert all("zero" in r["refusal"] for r in report["rounds"])
     assert result.record()["query"]["fallback"] == report["fallback"]  # metrics.json keeps it
+
+
+def test_evaluate_queries_measures_a_language_model(server: CannedServer, tmp_path: Any) -> None:
+    """The query benchmark with a model: the guided loss is its program (accepted in round 2 after a
+    repair here), the row keeps the path, rounds and seconds, and the table says so."""
+    from ctgpp.data.catalog import Catalog
+    from ctgpp.eval.queries import QueryCase, markdown_table, run_query_cases
+    from ctgpp.sim.factory import PolicyFactory
+
+    server.replies = [reply(FLAT), reply(GOOD)]
+    llm = LLMConfig(base_url=server.url, model=MODEL, api_key="k", timeout_s=20.0, max_retries=0)
+    cases = [QueryCase("collision", QUERY, "scene-0103", 3.0)]
+    rows = run_query_cases(Catalog.open(), cases, PolicyFactory(), tmp_path / "q.csv",
+                           methods=("constvel", "replay"), progress=False, duration_s=1.0, llm=llm)
+    (row,) = rows
+    assert (row["path"], row["rounds"]) == ("llm", "2") and float(row["llm_s"]) >= 0.0
+    table = markdown_table(rows, cases)
+    assert "Language model: 1 of 1 case-seeds guided by its program (accepted in round 2: 1)" in table

@@ -18,6 +18,7 @@ from ctgpp.eval.queries import (
     run_query_cases,
 )
 from ctgpp.guidance.base import GuidanceLoss
+from ctgpp.guidance.scope import LossScope
 from ctgpp.sim.factory import PolicyFactory
 from ctgpp.sim.policy import Policy
 
@@ -36,9 +37,9 @@ class CountingFactory:
         self.factory = PolicyFactory()
         self.calls: list[tuple[str, bool]] = []
 
-    def __call__(self, name: str, guidance: GuidanceLoss | None) -> Policy:
+    def __call__(self, name: str, guidance: GuidanceLoss | None, scope: LossScope | None) -> Policy:
         self.calls.append((name, guidance is not None))
-        return self.factory(name, guidance)
+        return self.factory(name, guidance, scope)
 
 
 @pytest.fixture(scope="module")

@@ -16,6 +16,7 @@ from ctgpp.data.catalog import Catalog
 if TYPE_CHECKING:
     from ctgpp.diffusion.guided import GuidanceConfig
     from ctgpp.guidance.guards import GuardConfig
+    from ctgpp.language.client import LLMConfig
     from ctgpp.sim.diffusion_policy import SamplingConfig
 
 
@@ -117,6 +118,41 @@ def add_guard_args(parser: argparse.ArgumentParser, default: str) -> None:
     parser.add_argument(
         "--no-guards", dest="guards", action="store_const", const="off", help="the same as --guards off"
     )
+
+
+def add_llm_args(parser: argparse.ArgumentParser) -> None:
+    """The language model that writes the query's loss (``--llm-*``; none: the offline compiler)."""
+    parser.add_argument(
+        "--llm-model",
+        default=None,
+        help="language model name (default: env CTGPP_LLM_MODEL; none: the offline query compiler)",
+    )
+    parser.add_argument(
+        "--llm-base-url", default=None, help="OpenAI-compatible endpoint (default: env OPENAI_BASE_URL)"
+    )
+    parser.add_argument(
+        "--llm-timeout",
+        type=float,
+        default=None,
+        metavar="SEC",
+        help="seconds one request may take; a request that times out is not sent again (default: env "
+        "CTGPP_LLM_TIMEOUT, else 600: a cold prompt on a small CPU server takes minutes)",
+    )
+    parser.add_argument(
+        "--llm-max-tokens",
+        type=int,
+        default=None,
+        metavar="N",
+        help="longest reply in tokens (default: env CTGPP_LLM_MAX_TOKENS, else 1024)",
+    )
+
+
+def llm_config(args: argparse.Namespace) -> LLMConfig | None:
+    """The ``--llm-*`` choice over the environment; None: the offline compiler."""
+    from ctgpp.language.client import LLMConfig
+
+    return LLMConfig.resolve(base_url=args.llm_base_url, model=args.llm_model, timeout_s=args.llm_timeout,
+                             max_tokens=args.llm_max_tokens)
 
 
 def guard_config(args: argparse.Namespace) -> GuardConfig:

@@ -9,9 +9,13 @@ from pathlib import Path
 from ctgpp.cli.common import (
     add_data_arg,
     add_episode_args,
+    add_guard_args,
     add_guidance_args,
+    add_llm_args,
     add_model_args,
+    guard_config,
     guidance_config,
+    llm_config,
     open_catalog,
     sampling_config,
 )
@@ -37,6 +41,8 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     add_episode_args(p, "of each case's episodes; one duration per --out directory (it is not part of "
                      "a result's key)")
     add_guidance_args(p)
+    add_guard_args(p, "on")
+    add_llm_args(p)
     p.add_argument(
         "--out",
         type=Path,
@@ -53,11 +59,15 @@ def run_evaluate_queries(args: argparse.Namespace) -> int:
     if args.seeds < 1:
         raise ValueError("--seeds must be at least 1")
     guide = guidance_config(args)
+    guards = guard_config(args)
+    llm = llm_config(args)
     cases = load_cases(default_cases() if args.cases is None else args.cases)
-    factory = PolicyFactory(args.checkpoint, sampling_config(args), guide)
+    factory = PolicyFactory(args.checkpoint, sampling_config(args), guide, guards=guards)
     results = args.out / "queries.csv"
-    records = run_query_cases(open_catalog(args), cases, factory, results, range(args.seeds),
-                              duration_s=args.duration, history_s=args.history)
+    # with guards, the side without the query is the guards alone (ctgpp simulate with no query)
+    methods = ("ctgpp", "ctgpp" if guards.enabled else "ctgpp-unguided")
+    records = run_query_cases(open_catalog(args), cases, factory, results, range(args.seeds), methods,
+                              duration_s=args.duration, history_s=args.history, llm=llm)
     table = markdown_table(records, cases)
     write_text_atomic(args.out / "table.md", table)
     print(table)

@@ -15,9 +15,11 @@ from ctgpp.cli.common import (
     add_episode_args,
     add_guard_args,
     add_guidance_args,
+    add_llm_args,
     add_model_args,
     guard_config,
     guidance_config,
+    llm_config,
     open_catalog,
     sampling_config,
 )
@@ -85,21 +87,13 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         help="also write the episode as a scenario other simulators replay (repeatable; default: none): "
         "scenarionet (ScenarioNet/MetaDrive pickle) or commonroad (CommonRoad XML, needs commonroad-io)",
     )
-    p.add_argument(
-        "--llm-model",
-        default=None,
-        help="language model name (default: env CTGPP_LLM_MODEL; none: the offline query compiler)",
-    )
-    p.add_argument(
-        "--llm-base-url", default=None, help="OpenAI-compatible endpoint (default: env OPENAI_BASE_URL)"
-    )
+    add_llm_args(p)
     add_data_arg(p)
     p.set_defaults(run=run_simulate)
 
 
 def run_simulate(args: argparse.Namespace) -> int:
     from ctgpp.api.episode import default_scene_id, simulate
-    from ctgpp.language.client import LLMConfig
     from ctgpp.metrics import MOVING_METRICS
 
     check_output_dir(args.out)  # every bad input is reported before any work starts
@@ -108,7 +102,7 @@ def run_simulate(args: argparse.Namespace) -> int:
     catalog = open_catalog(args)
     scene_id = default_scene_id(catalog, args.duration) if args.scene is None else args.scene
     scene = catalog.load(scene_id)
-    llm = LLMConfig.resolve(base_url=args.llm_base_url, model=args.llm_model) if args.query else None
+    llm = llm_config(args) if args.query else None
     result = simulate(
         scene,
         args.query,

@@ -26,9 +26,12 @@ from tqdm import tqdm
 from ctgpp.data.catalog import Catalog
 from ctgpp.eval.records import append_records, metric_cell, read_records, record_key
 from ctgpp.guidance.base import GuidanceLoss
+from ctgpp.guidance.scope import LossScope
 from ctgpp.interfaces import Policy, Rollout
+from ctgpp.language.client import LLMConfig
 from ctgpp.language.compiler import CompiledQuery
-from ctgpp.language.query import resolve_query
+from ctgpp.language.query import QueryLoss, fall_back, resolve_query
+from ctgpp.language.remote import GeneratedLossError
 from ctgpp.language.satisfaction import check_satisfied
 from ctgpp.metrics import compute_metrics
 from ctgpp.metrics.rules import fail_excluding
@@ -38,10 +41,13 @@ from ctgpp.sim.closed_loop import DURATION_S, SimConfig, episode_config, initial
 KEY = ("family", "query", "scene", "start_s", "seed")
 SIDES = ("guided", "unguided")
 MEASURED = ("satisfied", "fail", "fail_excl", "real", "measured")
-FIELDS = (*KEY, "vehicles", *(f"{m}_{s}" for m in MEASURED for s in SIDES), "wall_s")
+# path: where the guided loss came from (compiler, llm, cache, fallback); rounds: the language model's
+# replies (0 for the compiler and the cache); llm_s: seconds the model took, all rounds together
+FIELDS = (*KEY, "vehicles", *(f"{m}_{s}" for m in MEASURED for s in SIDES), "path", "rounds", "llm_s",
+          "wall_s")
 # parameters naming the vehicles that a collision part asks to crash (left out of fail_excl)
 COLLIDING = {"collision": ("vehicle_a", "vehicle_b"), "collide_from_behind": ("vehicle", "target")}
-PolicyMaker = Callable[[str, GuidanceLoss | None], Policy]
+PolicyMaker = Callable[[str, GuidanceLoss | None, LossScope | None], Policy]
 
 
 @dataclass(frozen=True)
@@ -127,14 +133,19 @@ def run_query_cases(
     progress: bool = True,
     duration_s: float = DURATION_S,
     history_s: float | None = None,
+    llm: LLMConfig | None = None,
 ) -> list[dict[str, str]]:
     """Simulate every case × seed not yet in ``results`` guided and unguided; append one row each.
 
-    ``make_policy(method, guidance)`` builds a policy; ``methods`` are the guided and the unguided
-    method names. Episodes run ``duration_s`` simulated seconds after ``history_s`` of log (None: 3 s,
-    less down to 1 s where a scene is short; the duration is not part of a row's key: one duration
-    per ``results`` file). Every query is compiled, and every episode fitted to its scene, before any
-    simulation, so a bad case fails at once. Returns every finished row of ``results`` (:data:`FIELDS`).
+    ``make_policy(method, guidance, scope)`` builds a policy; ``methods`` are the guided and the
+    unguided method names (the unguided one gets no guidance: with guards in the factory, "ctgpp"
+    there is the guards alone). Episodes run ``duration_s`` simulated seconds after ``history_s`` of
+    log (None: 3 s, less down to 1 s where a scene is short; the duration is not part of a row's key:
+    one duration per ``results`` file). Every query is compiled, and every episode fitted to its
+    scene, before any simulation, so a bad case fails at once. With ``llm`` the guided loss is the
+    language model's program (the compiler's when the model's fails, as ``ctgpp simulate`` does);
+    the verdict is always the compiled query's independent check. Returns every finished row of
+    ``results`` (:data:`FIELDS`).
     """
     scenes = {sid: catalog.load(sid) for sid in dict.fromkeys(c.scene for c in cases)}
     configs = {sid: episode_config(scene, duration_s, history_s) for sid, scene in scenes.items()}
@@ -148,18 +159,58 @@ def run_query_cases(
             began = time.perf_counter()
             scene, config = scenes[case.scene], configs[case.scene]
             compiled = _compile(scene, case, config)
-            guided = simulate(scene, make_policy(methods[0], compiled.loss), case.start_s, seed, config)
+            query = _query_loss(scene, case, config, compiled, llm)
+            try:
+                guided, query = _guided(scene, case, seed, config, query, make_policy, methods[0])
+            finally:
+                query.close()
             base_key = (case.scene, case.start_s, seed)
             if base_key not in unguided:
-                base = make_policy(methods[1], None)
+                base = make_policy(methods[1], None, None)
                 unguided[base_key] = simulate(scene, base, case.start_s, seed, config)
             row = dict(zip(KEY, case.key(seed), strict=True))
             row["vehicles"] = str(int(guided.controlled.sum()))
             row.update(_measure(guided, compiled, "guided"))
             row.update(_measure(unguided[base_key], compiled, "unguided"))
+            row.update(_provenance(query))
             row["wall_s"] = f"{time.perf_counter() - began:.1f}"
             write(row)
     return read_records(results, KEY)
+
+
+def _query_loss(scene: Scene, case: QueryCase, config: SimConfig, compiled: CompiledQuery,
+                llm: LLMConfig | None) -> QueryLoss:
+    """The guided loss of a case: the compiled query's, or the language model's program."""
+    if llm is None:
+        return QueryLoss(compiled.loss, compiled.code, "offline query compiler", compiled)
+    return resolve_query(case.query, initial_observation(scene, case.start_s, config), llm)
+
+
+def _guided(scene: Scene, case: QueryCase, seed: int, config: SimConfig, query: QueryLoss,
+            make_policy: PolicyMaker, method: str) -> tuple[Rollout, QueryLoss]:
+    """The guided episode; a language model's program stopped during sampling is replaced by the
+    compiler's loss and the episode simulated again (:func:`fall_back`)."""
+    def run(q: QueryLoss) -> Rollout:
+        return simulate(scene, make_policy(method, q.loss, q.scope), case.start_s, seed, config)
+
+    try:
+        return run(query), query
+    except GeneratedLossError as err:
+        query = fall_back(query, err)
+        return run(query), query
+
+
+def _provenance(query: QueryLoss) -> dict[str, str]:
+    """Where the guided loss came from: path (compiler, llm, cache, fallback), the model's replies and
+    their seconds."""
+    if query.fallback is not None:
+        path = "fallback"
+    elif query.path.startswith("language model"):
+        path = "cache" if query.path.endswith("(cache)") else "llm"
+    else:
+        path = "compiler"
+    seconds = sum(float(r["seconds"]) for r in query.rounds)
+    return {"path": path, "rounds": str(len(query.rounds)), "llm_s": f"{seconds:.1f}" if query.rounds else ""}
 
 
 def _mean(rows: list[dict[str, str]], column: str) -> float:
@@ -205,4 +256,29 @@ def markdown_table(records: list[dict[str, str]], cases: Sequence[QueryCase] | N
     missing = sorted(families - won)
     if missing:
         lines.append(f"Not satisfied guided: {', '.join(missing)}.")
+    lines.extend(_paths_summary(records))
     return "\n".join(lines) + "\n"
+
+
+def _paths_summary(records: list[dict[str, str]]) -> list[str]:
+    """Where the guided losses came from, when a language model was asked: accepted in which round,
+    fallbacks, satisfied and fail per path, the model's seconds per query."""
+    if not any(r.get("path") in ("llm", "cache", "fallback") for r in records):
+        return []
+    n = len(records)
+    llm = [r for r in records if r["path"] == "llm"]
+    by_round = {k: sum(r["rounds"] == str(k) for r in llm) for k in sorted({int(r["rounds"]) for r in llm})}
+    rounds = ", ".join(f"round {k}: {v}" for k, v in by_round.items()) or "none"
+    asked = [r for r in records if r["path"] in ("llm", "fallback") and r.get("llm_s")]
+    seconds = _mean(asked, "llm_s")
+    out = ["", f"Language model: {len(llm)} of {n} case-seeds guided by its program (accepted in {rounds}), "
+           f"{sum(r['path'] == 'cache' for r in records)} from the cache, "
+           f"{sum(r['path'] == 'fallback' for r in records)} by the compiler after the model's failed; "
+           f"{_num(seconds)} s of the model per query."]
+    for path in ("llm", "cache", "fallback"):
+        rows = [r for r in records if r["path"] == path]
+        if rows:
+            hits = sum(r["satisfied_guided"] == "1" for r in rows)
+            out.append(f"- {path}: satisfied {hits}/{len(rows)}, fail guided "
+                       f"{_num(_mean(rows, 'fail_guided'))} (unguided {_num(_mean(rows, 'fail_unguided'))})")
+    return out
