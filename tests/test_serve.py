@@ -279,7 +279,25 @@ def _screenshot(driver: Any, tmp_path: Path, name: str) -> None:
         shutil.copy(path, Path(folder) / name)
 
 
+def _hover(driver: Any, number: int) -> str:
+    """Move the mouse onto vehicle ``number`` on the canvas; the tooltip's text."""
+    from selenium.webdriver.common.action_chains import ActionChains
+    from selenium.webdriver.common.by import By
+
+    driver.execute_script("window.scrollTo(0, 0)")  # the offsets below are of the page unscrolled
+    canvas = driver.find_element(By.ID, "canvas")
+    point = driver.execute_script("return window.ctgppVehicleAt(arguments[0])", number)
+    dx, dy = point["x"] - canvas.size["width"] / 2, point["y"] - canvas.size["height"] / 2
+    ActionChains(driver).move_to_element_with_offset(canvas, int(dx), int(dy)).perform()
+    tooltip = driver.find_element(By.ID, "tooltip")
+    assert tooltip.is_displayed()
+    return str(tooltip.text)
+
+
 def test_the_page_runs_a_sentence_and_plays_it(server: Server, browser: Any, tmp_path: Path) -> None:
+    """Pick scene-0103, hover a vehicle, type a sentence the compiler refuses (the closest phrasings
+    appear), then one it takes, run it: the first frame is drawn, the animation advances, the verdict
+    and the results appear. With $CTGPP_SCREENSHOTS the episode is 4 s (the collision happens)."""
     from selenium.webdriver.common.by import By
     from selenium.webdriver.support import expected_conditions as ec
     from selenium.webdriver.support.ui import WebDriverWait
@@ -289,11 +307,13 @@ def test_the_page_runs_a_sentence_and_plays_it(server: Server, browser: Any, tmp
     row = wait.until(ec.element_to_be_clickable((By.CSS_SELECTOR, "tr[data-key='embedded:scene-0103']")))
     duration = browser.find_element(By.ID, "duration")
     duration.clear()
-    duration.send_keys("2")
+    duration.send_keys("4" if os.environ.get("CTGPP_SCREENSHOTS") else "2")
     row.click()
     wait.until(ec.text_to_be_present_in_element((By.ID, "status"), "12 vehicles at the start"))
     wait.until(ec.element_to_be_clickable((By.ID, "run")))
     assert LLM_MODEL in browser.find_element(By.ID, "llm-option").text
+    tip = _hover(browser, 1)
+    assert tip.startswith("vehicle 1 · vehicle · ") and "m/s · moving at the start" in tip
     sentence = browser.find_element(By.ID, "sentence")
     sentence.send_keys("vehicle 3 should fly to the moon")
     browser.find_element(By.ID, "run").click()
@@ -325,7 +345,11 @@ def test_the_page_runs_a_sentence_and_plays_it(server: Server, browser: Any, tmp
     browser.find_element(By.ID, "play").click()
     start = float(browser.find_element(By.ID, "time-label").text.split()[2])
     wait.until(lambda d: float(d.find_element(By.ID, "time-label").text.split()[2]) > start + 0.5)
-    browser.execute_script("document.getElementById('play').click()")  # pause, then show the last second
-    browser.execute_script("const s = document.getElementById('scrub'); s.value = s.max - 5;"
-                           "s.dispatchEvent(new Event('input'));")
+    browser.find_element(By.ID, "play").click()  # pause
+    collisions = [td for td in browser.find_elements(By.CSS_SELECTOR, "#events td") if " s with " in td.text]
+    if collisions:  # a click on an event's time shows that moment
+        collisions[0].click()
+        clock = float(collisions[0].text.split()[0])
+        assert abs(float(browser.find_element(By.ID, "time-label").text.split()[2]) - clock) < 0.051
+    assert _hover(browser, 2).startswith("vehicle 2 · vehicle · ")
     _screenshot(browser, tmp_path, "serve-run.png")

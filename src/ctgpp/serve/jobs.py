@@ -266,6 +266,9 @@ class WorkerHandle:
         if process.is_alive():
             process.kill()
             process.join(timeout=5)
+        for channel in (self._tasks, self._messages):  # their pipes and locks go with the process
+            channel.close()
+            channel.cancel_join_thread()
 
     def _restart(self) -> None:
         self._kill()

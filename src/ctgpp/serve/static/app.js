@@ -675,6 +675,15 @@
     draw();
   }
 
+  // where vehicle `number` is drawn now, in CSS pixels from the canvas's top left (for tests)
+
+  window.ctgppVehicleAt = (number) => {
+    const a = agentsNow().find((agent) => agent.number === number);
+    if (!a || !state.view) return null;
+    const tf = transform(), canvas = $("canvas"), ratio = canvas.clientWidth / canvas.width;
+    return { x: tf.x(a.x) * ratio, y: tf.y(a.y) * ratio };
+  };
+
   // --- start -------------------------------------------------------------------------------------
 
   async function start() {
