@@ -130,7 +130,8 @@ CASES: list[tuple[str, list[tuple[str, dict, tuple[int, ...] | None]]]] = [
     ),
     (
         "vehicle 1 should collide with vehicle 2 while everyone else obeys a 10 m/s speed limit",
-        [("collision", {"vehicle_a": 1}, None), ("speed_limit", {"limit_mps": 10.0}, None)],
+        [("collision", {"vehicle_a": 1}, None),  # "everyone else": every vehicle but 1 and 2
+         ("speed_limit", {"limit_mps": 10.0}, (0, *range(3, N_VEHICLES)))],
     ),
     (
         "vehicle 1 and vehicle 2 collide; no collisions for vehicle 5 and stay on the road",
@@ -234,6 +235,9 @@ def _contract_queries(batch: GuidanceBatch) -> list[str]:
         "every vehicle keeps its acceleration under 0.05 m/s²",
         f"vehicle 0 should reach its goal waypoint ({far[0]:.1f}, {far[1]:.1f})",
         "vehicles 0 and 1 slow down to under 1 m/s",
+        "vehicle 0 drives faster than vehicle 1",
+        "vehicle 2 goes to the spot 120 m in front of it",
+        "vehicle 0 stops within 2 s",
     ]
 
 

@@ -52,6 +52,8 @@ def _active_params(batch: GuidanceBatch) -> dict[str, dict]:
         "same_direction": {"vehicle": 3, "other": 1},
         "stay_away": {"vehicle": 1, "other": 2, "min_m": 100.0},
         "collide_from_behind": {"vehicle": 1, "target": 0},
+        "faster_than": {"vehicle": 0, "other": 1, "margin_mps": 20.0},
+        "reach_ahead": {"vehicle": 2, "distance_m": 120.0},
     }
 
 

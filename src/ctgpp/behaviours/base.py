@@ -24,6 +24,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
+from ctgpp.behaviours.timing import TimeWindow, windowed
 from ctgpp.rule_params import ParamInfo, resolve_params, rule_params
 from ctgpp.sim.rollout import Rollout
 
@@ -54,6 +55,9 @@ class Verdict:
     window: str
 
 
+HOLDS = "holds"  # "within N s": from N s to the end (limits, bands, reach and stay)
+HAPPENS = "happens"  # "within N s": between t = 0 and N s (events, manoeuvres)
+
 Measure = Callable[[Rollout, Mapping[str, Any], Vehicles], float]
 Check = Callable[[Rollout, Mapping[str, Any], Vehicles], Verdict]
 
@@ -70,7 +74,10 @@ class Behaviour:
     paragraph, for ``ctgpp rules`` and the prompt; measure: ``(rollout, params, vehicles) -> value``
     in ``unit``, what ``meaning`` says; check: ``(rollout, params, vehicles) -> Verdict``; window: when
     the check judges, in words; phrasings: sentences the compiler turns into this behaviour; loss:
-    the registered guidance rule when its name differs from the behaviour's (none does so far).
+    the registered guidance rule when its name differs from the behaviour's (none does so far);
+    deadline: how "within N s" reads, :data:`HOLDS` (the behaviour holds from N s to the end: limits,
+    bands, reach and stay) or :data:`HAPPENS` (it happens between t = 0 and N s: events, manoeuvres).
+    ``violation`` and ``verdict`` take an optional time window (:mod:`~ctgpp.behaviours.timing`).
     """
 
     name: str
@@ -82,6 +89,7 @@ class Behaviour:
     window: str
     phrasings: tuple[str, ...]
     loss: str = ""
+    deadline: str = HOLDS
 
     @property
     def rule(self) -> str:
@@ -109,20 +117,32 @@ class Behaviour:
 
         return make_loss(self.rule, **params)
 
-    def violation(self, rollout: Rollout, params: Mapping[str, Any], vehicles: Vehicles = None) -> Violation:
-        """The measured violation on ``rollout`` (NaN when undefined, e.g. a vehicle not controlled)."""
+    def within(self, deadline_s: float) -> TimeWindow:
+        """The window "within ``deadline_s`` s" means for this behaviour (``deadline``)."""
+        if self.deadline == HAPPENS:
+            return TimeWindow(0.0, deadline_s)
+        return TimeWindow(deadline_s, None, hold=True)
+
+    def violation(self, rollout: Rollout, params: Mapping[str, Any], vehicles: Vehicles = None,
+                  window: TimeWindow | None = None) -> Violation:
+        """The measured violation on ``rollout`` (in ``window``; NaN when undefined, e.g. a vehicle not
+        controlled)."""
         try:
-            value = float(self.measure(rollout, self.resolve(params), vehicles))
+            value = float(self.measure(windowed(rollout, window), self.resolve(params), vehicles))
         except MissingVehicle:
             value = math.nan
         return Violation(value, self.unit, self.meaning)
 
-    def verdict(self, rollout: Rollout, params: Mapping[str, Any], vehicles: Vehicles = None) -> Verdict:
-        """The independent check on ``rollout``; a vehicle that is not controlled fails it, said."""
+    def verdict(self, rollout: Rollout, params: Mapping[str, Any], vehicles: Vehicles = None,
+                window: TimeWindow | None = None) -> Verdict:
+        """The independent check on ``rollout`` (in ``window``: the check's own window inside it); a
+        vehicle that is not controlled fails it, said."""
+        where = self.window if window is None else f"{window.words()}; inside it: {self.window}"
         try:
-            return self.check(rollout, self.resolve(params), vehicles)
+            found = self.check(windowed(rollout, window), self.resolve(params), vehicles)
         except MissingVehicle as err:
-            return Verdict(False, str(err), self.window)
+            return Verdict(False, str(err), where)
+        return found if window is None else Verdict(found.satisfied, found.measured, where)
 
 
 _REGISTRY: dict[str, Behaviour] = {}

@@ -8,7 +8,9 @@ There is one factory per kind of behaviour, reading that kind's module: :func:`m
 vehicle's speed, acceleration, the road, points: :mod:`~ctgpp.behaviours.motion`), :func:`pair_rule`
 (two vehicles: :mod:`~ctgpp.behaviours.pairs`) and :func:`lane_rule` (the lane graph:
 :mod:`~ctgpp.behaviours.lanes`). ``measures`` names the pair ``<measures>_violation`` /
-``<measures>_check`` of the module (the behaviour's name when not given).
+``<measures>_check`` of the module (the behaviour's name when not given); ``deadline`` how "within N s"
+reads (:data:`~ctgpp.behaviours.base.HOLDS`: from N s on; :data:`~ctgpp.behaviours.base.HAPPENS`: by
+N s), by kind unless given.
 """
 
 from __future__ import annotations
@@ -17,28 +19,28 @@ from collections.abc import Callable
 from types import ModuleType
 
 from ctgpp.behaviours import lanes, motion, pairs
-from ctgpp.behaviours.base import Behaviour, register
+from ctgpp.behaviours.base import HAPPENS, HOLDS, Behaviour, register
 
 Factory = Callable[..., Behaviour]
 
 
-def _kind(module: ModuleType, default_window: str) -> Factory:
+def _kind(module: ModuleType, default_window: str, default_deadline: str) -> Factory:
     """A factory registering behaviours whose measure and check live in ``module``."""
 
     def make(name: str, summary: str, unit: str, meaning: str, phrasings: tuple[str, ...], *,
-             measures: str = "", window: str = default_window) -> Behaviour:
+             measures: str = "", window: str = default_window, deadline: str = default_deadline) -> Behaviour:
         stem = measures or name
         return register(Behaviour(name, summary, getattr(module, f"{stem}_violation"), unit, meaning,
-                                  getattr(module, f"{stem}_check"), window, phrasings))
+                                  getattr(module, f"{stem}_check"), window, phrasings, deadline=deadline))
 
     make.__doc__ = (f"Register a behaviour measured and checked by :mod:`{module.__name__}` (judged on "
                     f"{default_window!r} unless ``window`` says otherwise).")
     return make
 
 
-motion_rule = _kind(motion, motion.EVERY_STEP)
-pair_rule = _kind(pairs, pairs.EVERY_STEP)
-lane_rule = _kind(lanes, lanes.END)
+motion_rule = _kind(motion, motion.EVERY_STEP, HOLDS)
+pair_rule = _kind(pairs, pairs.EVERY_STEP, HOLDS)
+lane_rule = _kind(lanes, lanes.END, HAPPENS)
 
 # --- two vehicles ------------------------------------------------------------------------------------
 
@@ -46,13 +48,14 @@ pair_rule(
     "collision", "Two vehicles collide: their boxes overlap at some step.",
     "indicator", "1 when the pair never collides, 0 when it does",
     ("vehicle 1 should collide with vehicle 2", "vehicle 3 crashes into vehicle 5"),
+    deadline=HAPPENS,
 )
 pair_rule(
     "collide_from_behind", "A vehicle hits another from behind: their boxes overlap, the hitting vehicle's "
     "centre behind the target's, headings less than 60° apart.",
     "indicator", "1 when the vehicle never hits the target from behind, 0 when it does",
     ("vehicle 2 should rear-end vehicle 4", "vehicle 2 collides with vehicle 4 from behind"),
-    measures="rear_end",
+    measures="rear_end", deadline=HAPPENS,
 )
 pair_rule(
     "no_collision", "No vehicle collides with any agent (vehicles, pedestrians, cyclists, obstacles).",
@@ -79,7 +82,7 @@ pair_rule(
     "same_direction", "A vehicle ends heading the same way as another (within 30°).",
     "°", "heading difference at the end",
     ("vehicle 4 should drive in the same direction as vehicle 2",),
-    window="the last step both vehicles are present",
+    window="the last step both vehicles are present", deadline=HAPPENS,
 )
 pair_rule(
     "stay_side_of", "A vehicle is on the left or right of another (lateral coordinate in its frame) from "
@@ -87,6 +90,14 @@ pair_rule(
     "m", "mean lateral distance on the wrong side",
     ("vehicle 6 should stay on the left of vehicle 2",),
     measures="side", window=pairs.SIDE_WINDOW,
+)
+pair_rule(
+    "faster_than", "A vehicle drives faster than another: its mean speed over the episode is higher than "
+    "the other's (\"vehicle 1 faster than vehicle 2\", \"vehicle 2 fast while vehicle 3 drives slowly\").",
+    "m/s", "mean shortfall of its speed below the other's",
+    ("vehicle 1 should drive faster than vehicle 2",
+     "vehicle 2 must drive fast while vehicle 3 drives slowly"),
+    window=pairs.COMPARE_WINDOW,
 )
 
 # --- one vehicle: speeds, accelerations, the road, points --------------------------------------------
@@ -138,19 +149,26 @@ motion_rule(
     "goal_waypoint", "A vehicle reaches its goal waypoint (evaluation rule 7): passes within 2 m of it.",
     "m", "closest approach to the goal",
     ("vehicle 4 should reach its goal waypoint (612.0, 1655.3)",),
-    measures="goal", window="closest approach over the episode",
+    measures="goal", window="closest approach over the episode", deadline=HAPPENS,
 )
 motion_rule(
     "reach_point", "A vehicle drives along its lanes to a point and passes within reach_m of it.",
     "m", "closest approach beyond reach_m",
     ("vehicle 4 should reach (612.0, 1655.3)", "vehicle 1 should drive to (620.5, 1640.2) at 5 m/s"),
-    measures="reach", window="closest approach over the episode",
+    measures="reach", window="closest approach over the episode", deadline=HAPPENS,
+)
+motion_rule(
+    "reach_ahead", "A vehicle reaches the point distance_m ahead of where it starts, along its lane (along "
+    "its heading off the lanes), passing within reach_m of it.",
+    "m", "closest approach beyond reach_m",
+    ("vehicle 1 goes to the spot 30 m in front of it", "vehicle 2 should drive 50 m down its lane"),
+    window="closest approach over the episode", deadline=HAPPENS,
 )
 motion_rule(
     "stop_region", "A vehicle stops (under 0.5 m/s) inside a disc of radius_m around a point.",
     "m/s", "lowest speed inside the region (the start speed when never inside)",
     ("vehicle 1 should stop at (620.5, 1640.2)",),
-    window="the steps inside the region",
+    window="the steps inside the region", deadline=HAPPENS,
 )
 
 # --- lanes -------------------------------------------------------------------------------------------

@@ -19,6 +19,7 @@ from ctgpp.behaviours.base import Vehicles, Verdict, vehicle_list
 from ctgpp.behaviours.tracks import Track, earliest_speed_step, held_from, hold_steps, track, tracks
 from ctgpp.metrics import rules as paper
 from ctgpp.metrics.offroad import offroad_steps
+from ctgpp.scene.lanes import point_ahead
 from ctgpp.sim.rollout import Rollout
 
 STOP_SPEED_MPS = 0.5  # slower than this is stopped
@@ -45,7 +46,7 @@ def speed_limit_check(rollout: Rollout, p: Params, vehicles: Vehicles) -> Verdic
     10 m/s² from its start speed) to the end; says when each complied."""
     limit, bad, notes = float(p["limit_mps"]), [], []
     for t in tracks(rollout, vehicles):
-        first = earliest_speed_step(t.speed0, limit, True, t.dt_s)
+        first = 0 if t.hold else earliest_speed_step(t.speed0, limit, True, t.dt_s)
         ok = (t.speed <= limit) | ~t.valid
         if not ok[first:].all():
             k = first + int(np.flatnonzero(~ok[first:])[0])
@@ -84,10 +85,13 @@ def _targets(rollout: Rollout, t: Track, p: Params) -> np.ndarray:
 
 def _reach_and_stay(t: Track, ok: np.ndarray, what: str) -> tuple[bool, str]:
     """Whether ``ok`` (T,) holds from some valid step to the last valid one, for at least the last
-    second of them."""
+    second of them (in a deadline's window, ``t.hold``: from its first valid step)."""
     steps = np.flatnonzero(t.valid)
     since = held_from(ok[steps])
-    if since is None or len(steps) - since < hold_steps(t.dt_s):
+    if t.hold and steps.size and since != 0:  # a deadline: held from the window's first step
+        late = "never to the end" if since is None else f"only from t = {t.time(int(steps[since])):.1f} s"
+        return False, f"vehicle {t.number} not {what} from t = {t.time(int(steps[0])):.1f} s ({late})"
+    if since is None or (len(steps) - since < hold_steps(t.dt_s) and not t.hold):
         return False, f"vehicle {t.number} not {what} over its last {hold_steps(t.dt_s) * t.dt_s:g} s"
     return True, f"vehicle {t.number} {what} from t = {t.time(int(steps[since])):.1f} s"
 
@@ -262,3 +266,25 @@ def stop_region_check(rollout: Rollout, p: Params, vehicles: Vehicles) -> Verdic
         ok_all &= low < STOP_SPEED_MPS
         words.append(f"vehicle {v}: lowest speed inside {low:.2f} m/s")
     return Verdict(ok_all, "; ".join(words), "the steps inside the region")
+
+
+def _ahead_goal(rollout: Rollout, p: Params) -> tuple[int, np.ndarray]:
+    t = track(rollout, p["vehicle"])
+    return t.number, point_ahead(rollout.scene.lanes, t.xy0, t.yaw0, float(p["distance_m"]))
+
+
+def reach_ahead_violation(rollout: Rollout, p: Params, vehicles: Vehicles) -> float:
+    """Closest approach (m) beyond ``reach_m`` to the point ``distance_m`` ahead of the start along the
+    vehicle's lane (:func:`~ctgpp.scene.lanes.point_ahead`)."""
+    v, goal = _ahead_goal(rollout, p)
+    return max(_closest(rollout, v, goal) - float(p["reach_m"]), 0.0)
+
+
+def reach_ahead_check(rollout: Rollout, p: Params, vehicles: Vehicles) -> Verdict:
+    """The vehicle passes within ``reach_m`` of the point ``distance_m`` ahead of its start along its
+    lane (along its heading off the lane graph)."""
+    v, goal = _ahead_goal(rollout, p)
+    d = _closest(rollout, v, goal)
+    said = (f"vehicle {v} passes {d:.1f} m from the point {float(p['distance_m']):g} m ahead of its start, "
+            f"({goal[0]:.1f}, {goal[1]:.1f}) (needs {float(p['reach_m']):g})")
+    return Verdict(d <= float(p["reach_m"]), said, "closest approach over the episode")

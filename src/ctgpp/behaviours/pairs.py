@@ -114,7 +114,7 @@ def _band_verdict(a: Track, b: Track, ok: np.ndarray, d: np.ndarray, asked: str)
     span = f"distance {d.min():.1f}-{d.max():.1f} m (asked {asked})"
     if not ok.any():
         return Verdict(False, f"{span}; never inside", BAND_WINDOW)
-    start = int(np.argmax(ok))
+    start = 0 if a.hold else int(np.argmax(ok))  # a deadline: inside from the window's first step
     late = f"; inside from t = {a.time(int(steps[start])):.1f} s" if start else ""
     if ok[start:].all():
         return Verdict(True, span + late, BAND_WINDOW)
@@ -212,3 +212,31 @@ def side_check(rollout: Rollout, p: Params, vehicles: Vehicles) -> Verdict:
 
 
 SIDE_WINDOW = "every step from the first one on that side (t = 0.1 s when it starts there) to the end"
+
+
+# --- comparisons -------------------------------------------------------------------------------------
+
+
+def _speeds_together(rollout: Rollout, p: Params) -> tuple[Track, Track, np.ndarray, np.ndarray]:
+    a, b = _pair(rollout, p, ("vehicle", "other"))
+    both = both_valid(a, b)
+    return a, b, a.speed[both], b.speed[both]
+
+
+def faster_than_violation(rollout: Rollout, p: Params, vehicles: Vehicles) -> float:
+    """Mean over the steps both are present of how much slower (m/s) the vehicle is than the other."""
+    _, _, va, vb = _speeds_together(rollout, p)
+    return float(np.maximum(vb - va, 0.0).mean()) if va.size else math.nan
+
+
+def faster_than_check(rollout: Rollout, p: Params, vehicles: Vehicles) -> Verdict:
+    """The vehicle's mean speed over the steps both are present is higher than the other's."""
+    a, b, va, vb = _speeds_together(rollout, p)
+    if not va.size:
+        return Verdict(False, "the two vehicles are never present together", COMPARE_WINDOW)
+    said = (f"vehicle {a.number} {va.mean():.1f} m/s on average, vehicle {b.number} {vb.mean():.1f} m/s "
+            f"(faster at {int((va > vb).sum())} of {va.size} steps)")
+    return Verdict(bool(va.mean() > vb.mean()), said, COMPARE_WINDOW)
+
+
+COMPARE_WINDOW = "the mean over every simulated step both vehicles are present"

@@ -25,7 +25,9 @@ HOLD_S = 1.0  # "reach and stay": the condition must hold at least this long bef
 class Track:
     """One controlled vehicle: its ``number``, agent index, start state (xy0 (2,) m, yaw0 rad, speed0
     m/s at t = 0) and future (t > 0): xy (T, 2) m, yaw (T,) rad, speed (T,) m/s, valid (T,), extent (2,)
-    length, width m; ``dt_s`` the step."""
+    length, width m; ``dt_s`` the step. In a time window (:mod:`~ctgpp.behaviours.timing`) the start is the
+    window's, ``shift_steps`` steps after the episode's, and ``hold`` asks the behaviour to hold from
+    the window's first step."""
 
     number: int
     agent: int
@@ -38,16 +40,19 @@ class Track:
     valid: np.ndarray
     extent: np.ndarray
     dt_s: float
+    shift_steps: int = 0
+    hold: bool = False
 
     def time(self, k: int) -> float:
-        """Time (s) of future index k (index 0 is t = 0.1 s)."""
-        return (k + 1) * self.dt_s
+        """Episode time (s) of future index k (index 0 is t = 0.1 s; in a time window,
+        :mod:`~ctgpp.behaviours.timing`, ``shift_steps`` steps later)."""
+        return (k + 1 + self.shift_steps) * self.dt_s
 
     def valid_part(self) -> Track:
         """The track with its invalid future steps dropped."""
         keep = self.valid
         return Track(self.number, self.agent, self.xy0, self.yaw0, self.speed0, self.xy[keep], self.yaw[keep],
-                     self.speed[keep], self.valid[keep], self.extent, self.dt_s)
+                     self.speed[keep], self.valid[keep], self.extent, self.dt_s, self.shift_steps, self.hold)
 
 
 def track(rollout: Rollout, number: int) -> Track:
@@ -57,7 +62,8 @@ def track(rollout: Rollout, number: int) -> Track:
         raise MissingVehicle(f"vehicle {number} is not controlled in this episode")
     a, sim, f, c = int(hit[0]), rollout.sim, rollout.future, rollout.current
     return Track(int(number), a, sim.xy[a, c], float(sim.yaw[a, c]), float(sim.speed[a, c]), sim.xy[a, f],
-                 sim.yaw[a, f], sim.speed[a, f], sim.valid[a, f], sim.extent[a], rollout.dt_s)
+                 sim.yaw[a, f], sim.speed[a, f], sim.valid[a, f], sim.extent[a], rollout.dt_s,
+                 int(getattr(rollout, "shift_steps", 0)), bool(getattr(rollout, "hold", False)))
 
 
 def tracks(rollout: Rollout, vehicles: Vehicles | Sequence[int]) -> list[Track]:

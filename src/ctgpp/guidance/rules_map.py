@@ -20,6 +20,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+import ctgpp.guidance.rules_compare  # noqa: F401  (registers faster_than and reach_ahead)
 import ctgpp.guidance.rules_relative  # noqa: F401  (registers the relative rules)
 import ctgpp.guidance.rules_route  # noqa: F401  (registers cut_in and reach_point)
 from ctgpp.guidance.base import register_loss

@@ -19,13 +19,15 @@ from __future__ import annotations
 
 import difflib
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
-from ctgpp.behaviours import behaviours
+from ctgpp.behaviours import behaviours, get_behaviour
+from ctgpp.behaviours.timing import TimeWindow
 from ctgpp.guidance import CompositeLoss, GuidanceLoss, make_loss
 from ctgpp.guidance.composite import check_quantity
 from ctgpp.guidance.rules_relative import ForVehicles, SteerOnly
+from ctgpp.guidance.timing import During
 from ctgpp.language.compiler_families import Context, PartSpec, QueryError, recognise
 from ctgpp.language.compiler_patterns import Clause, analyse, split_points
 
@@ -65,7 +67,10 @@ class QueryPart:
     what :mod:`ctgpp.language.satisfaction` checks); vehicles: the vehicles a global rule is
     restricted to (None: the rule's own scope, every vehicle for speed limits and the like);
     steers: the only vehicles the rule's gradient moves (None: every vehicle it involves), the
-    subject of a relation to another vehicle, which then keeps driving as sampled.
+    subject of a relation to another vehicle, which then keeps driving as sampled; window: the
+    episode time the clause names ("within 5 s", "after 3 s", :mod:`ctgpp.behaviours.timing`; None:
+    the behaviour's own window); stage: the part's place in a sequence ("then", "one by one": 0, 1,
+    ...; parts of one stage have no order among them).
     """
 
     rule: str
@@ -75,11 +80,15 @@ class QueryPart:
     family: str
     vehicles: tuple[int, ...] | None = None
     steers: tuple[int, ...] | None = None
+    window: TimeWindow | None = None
+    stage: int = 0
 
     def build(self) -> GuidanceLoss:
-        """The loss of this part: the registered rule, restricted to ``vehicles`` and steering only
-        ``steers`` when given."""
+        """The loss of this part: the registered rule, on the steps of ``window``, restricted to
+        ``vehicles`` and steering only ``steers`` when given."""
         loss = make_loss(self.rule, **self.params)
+        if self.window is not None:
+            loss = During(loss, self.window.start_s, self.window.end_s)
         if self.vehicles is not None:
             loss = ForVehicles(loss, list(self.vehicles))
         return loss if self.steers is None else SteerOnly(loss, list(self.steers))
@@ -88,6 +97,8 @@ class QueryPart:
         """Python source of :meth:`build`."""
         args = "".join(f", {k}={v!r}" for k, v in self.params.items())
         call = f"make_loss({self.rule!r}{args})".replace("'", '"')
+        if self.window is not None:
+            call = f"During({call}, start_s={self.window.start_s!r}, end_s={self.window.end_s!r})"
         if self.vehicles is not None:
             call = f"ForVehicles({call}, vehicles={list(self.vehicles)})"
         return call if self.steers is None else f"SteerOnly({call}, vehicles={list(self.steers)})"
@@ -166,9 +177,12 @@ _FILLER = re.compile(
 
 
 def _is_filler(text: str) -> bool:
-    """Whether a piece of a query only names vehicles ("vehicle 1", "for car 3", "make 2"): such a
-    piece joins its neighbour; any other word that no family recognises makes the query unsupported."""
-    return not _FILLER.sub(" ", text.lower()).strip()
+    """Whether a piece of a query only names vehicles or times ("vehicle 1", "for car 3", "make 2",
+    "within 5 s", "one by one"): such a piece joins its neighbour; any other word that no family
+    recognises makes the query unsupported."""
+    blank = analyse(text, 0).text  # time phrases blanked
+    blank = re.sub(r"\b(?:one\s+by\s+one|one\s+after\s+(?:the\s+)?other|in\s+turn)\b", " ", blank)
+    return not _FILLER.sub(" ", blank).strip()
 
 
 def _check_vehicles(spec: PartSpec, num_vehicles: int, text: str) -> None:
@@ -192,27 +206,150 @@ def _check_quantities(spec: PartSpec, text: str) -> None:
 _VEHICLE_PARAMS = {"vehicle", "vehicle_a", "vehicle_b", "follower", "leader", "other", "target", "ahead_of"}
 
 
+def _part_vehicles(spec: PartSpec) -> set[int] | None:
+    """The vehicles a spec involves (None: every vehicle, a global rule with no restriction)."""
+    named = {int(v) for k, v in spec.params.items() if k in _VEHICLE_PARAMS and v is not None}
+    if spec.only is not None:
+        return named | set(spec.only)
+    if named:
+        return named
+    return None
+
+
+def _check_none_dropped(clause: Clause, specs: list[PartSpec], text: str) -> None:
+    """Every vehicle a clause names is in some part it compiled to (never silently left out)."""
+    covered: set[int] = set()
+    for spec in specs:
+        got = _part_vehicles(spec)
+        if got is None:
+            return
+        covered |= got
+    if clause.others:  # "every car but vehicle 3": the vehicles named are those left out on purpose
+        covered |= set(clause.vehicles)
+    missing = [v for v in clause.vehicles if v not in covered]
+    if missing:
+        raise QueryError(f"{text.strip()!r}: vehicle(s) {missing} would be left out of the compiled rules "
+                         f"({', '.join(s.rule or s.family for s in specs)}); name each vehicle's part")
+
+
+def _window(clause: Clause, rule: str, text: str) -> TimeWindow | None:
+    """The time window the clause names for ``rule`` (None: the behaviour's own)."""
+    if clause.deadline_s is not None:
+        if clause.start_s is not None or clause.end_s is not None:
+            raise QueryError(f"{text.strip()!r}: a deadline ('within N s') with another time is not "
+                             "supported")
+        return get_behaviour(rule).within(clause.deadline_s)
+    if clause.start_s is None and clause.end_s is None:
+        return None
+    try:
+        return TimeWindow(clause.start_s or 0.0, clause.end_s)
+    except ValueError as err:
+        raise QueryError(f"{text.strip()!r}: {err}") from None
+
+
+def _pair_paces(paces: list[QueryPart], query: str) -> list[QueryPart]:
+    """"Vehicle 2 drives fast while vehicle 3 drives slowly": each fast vehicle faster than each slow
+    one; a pace with no counterpart is refused (a speed needs a number)."""
+    fast = [p for p in paces if p.params["pace"] == "fast"]
+    slow = [p for p in paces if p.params["pace"] == "slow"]
+    if paces and (not fast or not slow):
+        lone = paces[0]
+        raise UnsupportedQuery(
+            f"cannot compile {lone.text!r} (in {query!r}): 'fast' or 'slow' needs a number "
+            f"('drives at 15 m/s') "
+            f"or another vehicle to compare with ('vehicle 2 drives fast while vehicle 3 drives slowly', "
+            f"'vehicle 2 drives faster than vehicle 3')", suggest(lone.text))
+    out = []
+    for f in fast:
+        for w in slow:
+            a, b = f.params["vehicle"], w.params["vehicle"]
+            if a != b:
+                lo, hi = min(f.span[0], w.span[0]), max(f.span[1], w.span[1])
+                params = {"vehicle": a, "other": b}
+                out.append(QueryPart("faster_than", params, query[lo:hi].strip(), (lo, hi), "faster_than",
+                                     None, None, f.window or w.window, min(f.stage, w.stage)))
+    return out
+
+
+def _refines(parts: list[QueryPart], part: QueryPart, refinable: set[int]) -> int | None:
+    """Index of an earlier default band on the same pair that ``part`` (a band) refines."""
+    if part.rule != "keep_distance":
+        return None
+    pair = (part.params["follower"], part.params["leader"])
+    for k in refinable:
+        p = parts[k]
+        if (p.params["follower"], p.params["leader"]) == pair:
+            return k
+    return None
+
+
+def _vehicle_of(spec: PartSpec) -> int | None:
+    got = _part_vehicles(spec)
+    return min(got) if got and len(got) == 1 else None
+
+
 def compile_query(query: str, num_vehicles: int) -> CompiledQuery:
     """Compile a query for a scene with ``num_vehicles`` controlled vehicles (displayed 0 … n-1).
 
     Returns the loss, its parts and its code. Raises :class:`UnsupportedQuery` (with suggestions)
     when a clause matches no supported phrasing, :class:`VehicleOutOfRange` for a vehicle number
-    outside the scene and :class:`QueryError` when a clause lacks something (a second vehicle, ...).
-    All three are ValueErrors.
+    outside the scene and :class:`QueryError` when a clause lacks something (a second vehicle, ...)
+    or a vehicle it names would be left out. All three are ValueErrors.
     """
     parts: list[QueryPart] = []
-    subject: int | None = None
+    paces: list[QueryPart] = []
+    refinable: set[int] = set()
+    ctx = Context(num_vehicles=num_vehicles)
+    stage = 0
     for k, (clause, _family, handler) in enumerate(_segments(query)):
-        joiner = query[: clause.start].lower().rstrip()
-        joined = k > 0 and bool(re.search(r"(?:while|whilst|then)$", joiner))
+        joiner = query[: clause.start].lower().rstrip(" ,;")
+        then = k > 0 and bool(re.search(r"(?:\bthen|after\s+that|afterwards)$", joiner))
+        joined = k > 0 and bool(re.search(r"(?:\bwhile|\bwhilst|\bthen|after\s+that|afterwards)$", joiner))
+        if then and (parts or paces):
+            stage = max(p.stage for p in [*parts, *paces]) + 1
+        ctx = replace(ctx, joined=joined)
         text = query[clause.start : clause.end]
-        for spec in handler(clause, Context(subject, joined)):
+        specs = handler(clause, ctx)
+        _check_none_dropped(clause, specs, text)
+        if clause.one_by_one:  # one part per vehicle, in turn
+            specs = [one for s in specs for one in ([replace(s, only=(v,)) for v in s.only or ()] or [s])]
+        order = list(clause.subjects or clause.vehicles or ctx.previous or ctx.subjects)  # "one by one"
+        for spec in specs:
             _check_vehicles(spec, num_vehicles, text)
             _check_quantities(spec, text)
-            parts.append(QueryPart(spec.rule, dict(spec.params), text.strip(), (clause.start, clause.end),
-                                   spec.family, spec.only, spec.steers))
-        if clause.vehicles:
-            subject = clause.vehicles[0]
+            step = stage
+            if clause.one_by_one and (v := _vehicle_of(spec)) is not None and v in order:
+                step = stage + order.index(v)
+            window = _window(clause, spec.rule, text) if spec.rule else None
+            span = (clause.start, clause.end)
+            part = QueryPart(spec.rule, dict(spec.params), text.strip(), span, spec.family, spec.only,
+                             spec.steers, window, step)
+            if spec.family == "pace":
+                paces.append(part)
+                continue
+            hit = _refines(parts, part, refinable)
+            if hit is not None:
+                old = parts[hit]
+                span = (old.span[0], part.span[1])
+                parts[hit] = replace(part, text=query[span[0] : span[1]].strip(), span=span, stage=old.stage)
+                refinable.discard(hit)
+                continue
+            if spec.refinable:
+                refinable.add(len(parts))
+            parts.append(part)
+        involved = tuple(sorted({v for s in specs for v in (_part_vehicles(s) or ())}))
+        subjects = clause.subjects or (tuple(clause.vehicles) if not clause.objects else ())
+        if clause.others and not clause.vehicles:
+            subjects = involved
+        ctx = replace(ctx, subjects=subjects or ctx.subjects,
+                      objects=clause.objects or ctx.objects,
+                      named=tuple(dict.fromkeys([*ctx.named, *clause.vehicles])),
+                      previous=involved or ctx.previous,
+                      had_subject=bool(clause.subjects) or (not clause.vehicles and bool(ctx.subjects)
+                                                            and involved == ctx.subjects))
+    parts += _pair_paces(paces, query)
+    if not parts:
+        raise _unsupported(query, query)
     loss = CompositeLoss([(part.build(), 1.0) for part in parts])
     return CompiledQuery(query, loss, parts, render_code(parts))
 
@@ -224,6 +361,8 @@ def render_code(parts: list[QueryPart]) -> str:
                                         ("SteerOnly", any(p.steers is not None for p in parts))) if used]
     if wrappers:
         lines.append(f"from ctgpp.guidance.rules_relative import {', '.join(wrappers)}")
+    if any(p.window is not None for p in parts):
+        lines.append("from ctgpp.guidance.timing import During")
     lines += ["", "loss = CompositeLoss(["]
     for p in parts:
         lines.append(f"    ({p.code()}, 1.0),  # {p.text}")

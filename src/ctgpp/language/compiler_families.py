@@ -37,56 +37,101 @@ class PartSpec:
     """A rule to build: ``rule`` name, its ``params``, ``only`` (vehicles it is restricted to, None
     for the rule's own scope), ``steers`` (the only vehicles its gradient moves, None for all: the
     subject of a relation to another vehicle, which keeps driving as sampled) and the query
-    ``family`` it came from."""
+    ``family`` it came from; ``refinable``: a default a later clause on the same pair may refine
+    ("follows vehicle 1, staying at most 12 m behind it")."""
 
     family: str
     rule: str
     params: dict[str, Any]
     only: tuple[int, ...] | None = None
     steers: tuple[int, ...] | None = None
+    refinable: bool = False
 
 
 @dataclass(frozen=True)
 class Context:
-    """What a clause inherits: the subject vehicle of the previous clause (None at the start) and
-    whether the clause is joined by "while"/"then" (so a global rule applies to that subject)."""
+    """What a clause inherits: the previous clause's ``subjects`` and ``objects``, every vehicle
+    ``named`` so far, the scene's ``num_vehicles`` and whether the clause is ``joined`` by
+    "while"/"then" (so a global rule applies to the previous subjects); ``previous``: every vehicle the
+    previous clause involved ("both", "they"); ``had_subject``: whether the previous clause had a
+    subject ("vehicle 6 keeps its lane and stays below 8 m/s", not "no collisions and stay on the road")."""
 
-    subject: int | None
-    joined: bool
+    subjects: tuple[int, ...] = ()
+    objects: tuple[int, ...] = ()
+    named: tuple[int, ...] = ()
+    previous: tuple[int, ...] = ()
+    had_subject: bool = False
+    num_vehicles: int = 0
+    joined: bool = False
+
+    @property
+    def subject(self) -> int | None:
+        return self.subjects[0] if self.subjects else None
 
 
 Handler = Callable[[Clause, Context], list[PartSpec]]
 
 
+def others(c: Clause, ctx: Context) -> tuple[int, ...]:
+    """The vehicles "the others" / "every other car" means: every vehicle of the scene but those the
+    clause names, or when it names none, those the query named before."""
+    if not c.vehicles and not ctx.named:
+        raise QueryError(f"{c.text.strip()!r}: 'the others' needs the vehicles it excludes named before it")
+    named = set(c.vehicles or ctx.named)
+    rest = tuple(v for v in range(ctx.num_vehicles) if v not in named)
+    if not rest:
+        raise QueryError(f"{c.text.strip()!r}: no other vehicle is left in this scene")
+    return rest
+
+
 def _subjects(c: Clause, ctx: Context) -> list[int]:
-    """The vehicles a one-vehicle rule applies to: those named, else the inherited subject."""
+    """The vehicles a one-vehicle rule applies to: the others, those named, everyone, else the
+    previous clause's subjects."""
+    if c.others:
+        return list(others(c, ctx))
     if c.vehicles:
         return list(c.vehicles)
-    if ctx.subject is not None:
-        return [ctx.subject]
+    if c.everyone and ctx.num_vehicles:
+        return list(range(ctx.num_vehicles))
+    if c.group and ctx.previous:
+        return list(ctx.previous)
+    if ctx.subjects:
+        return list(ctx.subjects)
     raise QueryError(f"{c.text.strip()!r} does not say which vehicle (e.g. 'vehicle 3 should ...')")
 
 
 def _scope(c: Clause, ctx: Context) -> tuple[int, ...] | None:
     """The vehicles a global rule is restricted to: None for everyone."""
+    if c.others:
+        return others(c, ctx)
     if c.vehicles:
         return c.vehicles
     if c.everyone:
         return None
-    if ctx.subject is not None and (c.pronoun or c.modal_start or ctx.joined):
-        return (ctx.subject,)
+    if c.group and ctx.previous:
+        return ctx.previous
+    inherits = c.pronoun or c.group or c.modal_start or ctx.joined or (c.verb_start and ctx.had_subject)
+    if ctx.subjects and inherits:
+        return ctx.subjects
     return None
 
 
 def _pairs(c: Clause, ctx: Context, what: str) -> list[tuple[int, int]]:
-    """(subject, other) pairs of a two-vehicle rule: the first named vehicle with each other one,
-    or the inherited subject with the one named."""
-    v = list(c.vehicles)
-    if len(v) == 1 and ctx.subject is not None and ctx.subject != v[0]:
-        v = [ctx.subject, *v]
-    if len(v) < 2:
+    """(subject, other) pairs of a two-vehicle rule: each subject (the clause's leading vehicles, else
+    the previous clause's) with each object (the other vehicles it names, "it": the previous clause's
+    object, "the others"); with no object, the first subject with each other one."""
+    own = c.subjects
+    subjects = list(own) if own else list(ctx.subjects)
+    objects = [v for v in c.vehicles if v not in own]
+    if not objects and c.others:
+        objects = [v for v in others(c, ctx) if v not in subjects]
+    if not objects and not own and c.pronoun and ctx.objects:
+        objects = [v for v in ctx.objects if v not in subjects]
+    if not objects and len(subjects) >= 2:
+        subjects, objects = subjects[:1], subjects[1:]
+    if not subjects or not objects:
         raise QueryError(f"{c.text.strip()!r}: {what} needs two vehicles (e.g. 'vehicle 1 ... vehicle 2')")
-    return [(v[0], other) for other in v[1:]]
+    return [(a, b) for a in subjects for b in objects if a != b]
 
 
 def _speed(c: Clause) -> float | None:
@@ -120,7 +165,7 @@ def _cut_in(c: Clause, ctx: Context) -> list[PartSpec]:
 
 
 def _follow_lane(c: Clause, ctx: Context) -> list[PartSpec]:
-    if c.everyone or (not c.vehicles and ctx.subject is None):
+    if not c.others and (c.everyone or (not c.vehicles and ctx.subject is None)):
         return [PartSpec("follow_lane", "follow_lane", {"vehicle": None})]
     return [PartSpec("follow_lane", "follow_lane", {"vehicle": v}) for v in _subjects(c, ctx)]
 
@@ -221,7 +266,7 @@ def _goal(c: Clause, ctx: Context) -> list[PartSpec]:
 
 
 def _keep_lane(c: Clause, ctx: Context) -> list[PartSpec]:
-    if c.everyone or (not c.vehicles and ctx.subject is None):
+    if not c.others and (c.everyone or (not c.vehicles and ctx.subject is None)):
         return [PartSpec("keep_lane", "keep_lane", {"vehicle": None})]
     return [PartSpec("keep_lane", "keep_lane", {"vehicle": v}) for v in _subjects(c, ctx)]
 
@@ -251,7 +296,7 @@ def _keep_within(c: Clause, ctx: Context) -> list[PartSpec]:
 def _follow_vehicle(c: Clause, ctx: Context) -> list[PartSpec]:
     lo, hi = FOLLOW_RANGE_M
     return [PartSpec("keep_distance", "keep_distance", {"follower": a, "leader": b, "min_m": lo, "max_m": hi},
-                     steers=(a,)) for a, b in _pairs(c, ctx, "following a vehicle")]
+                     steers=(a,), refinable=True) for a, b in _pairs(c, ctx, "following a vehicle")]
 
 
 def _offroad(c: Clause, ctx: Context) -> list[PartSpec]:
@@ -268,6 +313,7 @@ _RIGHTMOST = r"right-?\s?most\s+lane|far(?:thest)?[- ]right\s+lane"
 _FOLLOW_VEHICLE = r"\bfollow\w*|\btail\w*|\bbehind\b"
 _SPEED_LIMIT = (
     r"speed\s+limit|exceed|slower\s+than|(?:no|not)\s+(?:faster|quicker|more)\s+than|at\s+most|\bbelow\b"
+    r"|(?<!speeds\s)(?<!speed\s)(?<!speeding\s)\bup\s+to\b|(?:never|not|n't)\s+(?:go|drive|get)\w*\s+(?:over|above)"
     r"|\bunder\b|max(?:imum)?\s+(?:speed|of)|\blimit\w*|(?:faster|above|over)\s+than"
 )
 _TARGET_SPEED = (
@@ -280,7 +326,7 @@ _STAY_AWAY = (
 )
 _WITHIN = (
     r"within|close\s+to|\bnear\b|closer\s+than|less\s+than|no\s+more\s+than|no\s+(?:farther|further)\s+than"
-    r"|at\s+most|\bstay\w*\s+with\b|\bstick\w*\s+(?:close\s+)?to\b"
+    r"|at\s+most|\bstay\w*\s+with\b|\bstick\w*\s+(?:close\s+)?to\b|\bup\s+to\b|\bunder\b|\bmax(?:imum)?\b"
 )
 _FOLLOW_LANE = (
     r"follow\w*\s+(?:its|their|his|her|the|a|current)?\s*(?:own\s+|current\s+)?lanes?\b"
@@ -301,16 +347,66 @@ _REACH_ABOVE = (
 )
 _OFFROAD = (
     r"(?:stay|remain|keep|drive)\w*\s+on\s+(?:the\s+)?(?:road|drivable|pavement|street)|off[- ]?road"
-    r"|leave\s+the\s+road|drivable\s+area"
+    r"|leav\w*\s+the\s+(?:road|drivable\s+area)|drivable\s+area"
 )
+_STOP = r"\bstop\w*|\bhalt\w*|standstill|\bpark(?:s|ed)?\b"
 _REACH = (
     r"\breach\w*|\b(?:go|drive|head|move|navigate|travel|get)\w*\s+(?:\w+\s+)?(?:to|towards?)\b|arriv\w*"
     r"|\bgoal\b|destination|waypoint"
 )
 
 
+_COMPARE = r"\b(?:faster|quicker|slower|more\s+slowly|more\s+quickly)\s+than\b"
+_PACE = r"\b(?:fast|quickly|rapidly|speedily|slow|slowly)\b(?!\s+(?:down|up))"
+
+
+def _faster_than(c: Clause, ctx: Context) -> list[PartSpec]:
+    slower = bool(c.has(r"\b(?:slower|more\s+slowly)\s+than"))
+    return [PartSpec("faster_than", "faster_than", {"vehicle": b, "other": a} if slower else
+                     {"vehicle": a, "other": b}) for a, b in _pairs(c, ctx, "a comparison")]
+
+
+def _pace(c: Clause, ctx: Context) -> list[PartSpec]:
+    """"Drives fast" / "drives slowly": half of a comparison, paired by the compiler with a vehicle
+    of the other pace in the same query ("vehicle 2 drives fast while vehicle 3 drives slowly")."""
+    m = c.has(_PACE)
+    pace = "fast" if m is not None and m.group(0) in ("fast", "quickly", "rapidly", "speedily") else "slow"
+    return [PartSpec("pace", "", {"vehicle": v, "pace": pace}) for v in _subjects(c, ctx)]
+
+
+_AHEAD = (
+    rf"({NUM})\s*(?:m|meters?|metres?|ft|feet)\s+(?:further\s+|farther\s+)?"
+    r"(?:ahead|in\s+front|down|along|forward|on|up)\b"
+)
+
+
+def _reach_ahead(c: Clause, ctx: Context) -> list[PartSpec]:
+    distance = c.distances[0] if c.distances else float(c.bare[0])
+    return [PartSpec("reach_ahead", "reach_ahead", {"vehicle": v, "distance_m": distance})
+            for v in _subjects(c, ctx)]
+
+
+def _speed_range(c: Clause, ctx: Context) -> list[PartSpec]:
+    lo, hi = c.speed_ranges[0]
+    scope = _scope(c, ctx)
+    return [PartSpec("speed_limit", "speed_limit", {"limit_mps": hi, "margin_mps": SPEED_MARGIN_MPS}, scope),
+            PartSpec("reach_speed", "reach_speed", {"speed_mps": lo, "bound": "above"}, scope)]
+
+
+_MIN_SPEED = (
+    r"\bat\s+least|\bno\s+(?:less|slower)\s+than|\bnot\s+(?:less|slower)\s+than|\bminimum(?:\s+speed)?"
+    r"|(?:never|not|n't)\s+(?:drop|go|fall|get|slow)\w*\s+(?:down\s+)?(?:below|under)"
+)
+
+
+def _min_speed(c: Clause, ctx: Context) -> list[PartSpec]:
+    params = {"speed_mps": c.speeds[0], "bound": "above"}
+    return [PartSpec("reach_speed", "reach_speed", params, _scope(c, ctx))]
+
+
 def _names_vehicle(c: Clause) -> bool:
-    return len(c.vehicles) >= 1
+    """Whether a clause names a vehicle, or one by a pronoun or as "the others"."""
+    return len(c.vehicles) >= 1 or c.pronoun or c.others
 
 
 # (family, recogniser, handler): the first recogniser that holds handles the clause.
@@ -325,13 +421,17 @@ FAMILIES: tuple[tuple[str, Callable[[Clause], bool], Handler], ...] = (
     ("stay_side_of", lambda c: bool(c.has(_SIDE_OF)) and _names_vehicle(c), _side_of),
     ("same_direction", lambda c: bool(c.has(r"same\s+(?:direction|heading|way)|parallel\s+(?:to|with)")),
      _same_direction),
+    ("reach_ahead", lambda c: bool(c.has(_AHEAD)) and not c.objects and not c.points, _reach_ahead),
     ("collision", lambda c: bool(c.has(_COLLIDE)), _collision),
-    ("stop", lambda c: bool(c.has(r"\bstop\w*|\bhalt\w*|standstill|\bpark\w*")) and not c.negated, _stop),
+    ("stop", lambda c: bool(c.has(_STOP)) and not c.negated, _stop),
     ("goal_waypoint", lambda c: bool(c.points) and bool(c.has(r"\bgoal\b|waypoint")), _goal),
     ("reach", lambda c: bool(c.points) and bool(c.has(_REACH)), _reach),
     ("acceleration_limit", lambda c: bool(_ACCELERATION.search(c.text)), _acceleration),
     ("reach_speed", lambda c: bool(c.has(_REACH_BELOW) or c.has(_REACH_ABOVE)) and _speed(c) is not None,
      _reach_speed),
+    ("speed_range", lambda c: bool(c.speed_ranges), _speed_range),
+    ("min_speed", lambda c: bool(c.has(_MIN_SPEED)) and bool(c.speeds), _min_speed),
+    ("faster_than", lambda c: bool(c.has(_COMPARE)) and _speed(c) is None, _faster_than),
     ("speed_limit", lambda c: bool(c.has(_SPEED_LIMIT)) and _speed(c) is not None
      and (bool(c.speeds) or bool(c.has(r"speed|fast|slow"))), _speed_limit),
     ("target_speed", lambda c: bool(c.has(_TARGET_SPEED)) and _speed(c) is not None
@@ -341,6 +441,7 @@ FAMILIES: tuple[tuple[str, Callable[[Clause], bool], Handler], ...] = (
     ("keep_within", lambda c: bool(c.has(_WITHIN)) and _names_vehicle(c), _keep_within),
     ("follow_vehicle", lambda c: bool(c.has(_FOLLOW_VEHICLE)) and _names_vehicle(c), _follow_vehicle),
     ("no_offroad", lambda c: bool(c.has(_OFFROAD)), _offroad),
+    ("pace", lambda c: bool(c.has(_PACE)) and _speed(c) is None and not c.distances, _pace),
 )
 
 

@@ -25,10 +25,11 @@ _BARE_PAIR = re.compile(r"\b(?:make|let|have|get)\s+(\d+)\s*(?:and|&|,)\s*(\d+)\
 _POINT = re.compile(
     rf"\(\s*({NUM})\s*,\s*({NUM})\s*\)|\bx\s*=\s*({NUM})\s*,?\s*(?:and\s+)?y\s*=\s*({NUM})"
 )
-_SPEED = re.compile(
-    rf"({NUM})\s*(m/s|mps|m\s*s-1|(?:meters?|metres?)\s+(?:per|a|/)\s+second|km/h|kmh|kph|km\s+per\s+hour"
-    r"|(?:kilometers?|kilometres?)\s+(?:per|an|/)\s+hour|mph|miles?\s+(?:per|an|/)\s+hour)"
+_SPEED_UNIT = (
+    r"m/s|mps|m\s*s-1|(?:meters?|metres?)\s+(?:per|a|/)\s+second|km/h|kmh|kph|km\s+per\s+hour"
+    r"|(?:kilometers?|kilometres?)\s+(?:per|an|/)\s+hour|mph|miles?\s+(?:per|an|/)\s+hour"
 )
+_SPEED = re.compile(rf"({NUM})\s*({_SPEED_UNIT})(?![²2^])")
 _DIST_UNIT = r"(?:m|meters?|metres?|ft|feet)\b(?!/)"
 _RANGE = re.compile(
     rf"\bbetween\s+({NUM})\s*(?:{_DIST_UNIT})?\s*(?:and|to|-)\s*({NUM})\s*({_DIST_UNIT})?"
@@ -38,27 +39,67 @@ _DIST = re.compile(rf"({NUM})\s*({_DIST_UNIT})")
 _BARE = re.compile(rf"(?<![\w.])({NUM})(?![\w.])")
 _EVERYONE = re.compile(
     r"\b(?:everyone|everybody|every\s+(?:vehicle|car|agent|one)|each\s+(?:vehicle|car)"
-    r"|all\s+(?:the\s+)?(?:vehicles|cars|agents|traffic)|all\s+of\s+them|the\s+whole\s+scene)\b"
+    r"|all\s+(?:the\s+)?(?:vehicles|cars|agents|traffic)|the\s+whole\s+scene)\b(?!\s+(?:else|other))"
 )
 _NEGATION = re.compile(
     r"\b(?:no|not|never|avoid\w*|without|prevent\w*|nobody|none)\b|n't\b|\bdont\b|\bdoesnt\b"
 )
 _PRONOUN = re.compile(r"\b(?:it|its|itself|they|their|them|he|she|his|her)\b")
 _MODAL_START = re.compile(r"^\s*(?:should|must|will|shall|has\s+to|have\s+to|needs?\s+to|then|also)\b")
+_VERB_START = re.compile(  # a clause that starts with its verb: "... and stays below 8 m/s"
+    r"^\s*(?:never|does|doesn't|is|are"
+    r"|(?:stay|keep|driv|go|travel|mov|slow|speed|accelerat|brak|stop|remain|turn|chang|switch|reach|get|head"
+    r"|cruis|maintain|hold|obey|follow|come|halt|park|cut|merg|collid|hit|crash|decelerat|arriv)\w*)\b"
+)
+
+_OTHERS = re.compile(  # the vehicles not named: "every other car", "the others", "everyone else"
+    r"\b(?:every\s+other\s+(?:vehicle|car|agent|one)|(?:all\s+)?(?:the\s+)?other\s+(?:vehicles|cars|agents)"
+    r"|all\s+the\s+others|the\s+others|(?:everyone|everybody|all)\s+else|the\s+rest(?:\s+of\s+(?:the\s+)?"
+    r"(?:vehicles|cars|traffic))?|(?:every|each|any|all)\s+(?:vehicles?|cars?)\s+(?:other\s+than|except|but)"
+    r"|(?:everyone|everybody)\s+(?:except|but|other\s+than))\b"
+)
+_GROUP = re.compile(r"\b(?:both|they|them|their|all\s+of\s+them|each\s+of\s+them|the\s+two)\b")
+_ONE_BY_ONE = re.compile(r"\b(?:one\s+by\s+one|one\s+after\s+(?:the\s+)?other|in\s+turn|in\s+sequence)\b")
+_SECONDS = r"(?:s|secs?|seconds?)\b"
+_DEADLINE = re.compile(
+    rf"\b(?:within(?:\s+the\s+first)?|in(?:\s+(?:under|less\s+than|at\s+most))?|by(?:\s+t\s*=)?|before(?:\s+t\s*=)?"
+    rf"|no\s+later\s+than)\s+({NUM})\s*{_SECONDS}"
+)
+_START = re.compile(
+    rf"\b(?:after(?:\s+the\s+first)?|from(?:\s+t\s*=)?|starting(?:\s+(?:at|from|after))?(?:\s+t\s*=)?|once)\s+"
+    rf"({NUM})\s*{_SECONDS}(?:\s+(?:on|onwards?|have\s+passed|passed|in))?"
+)
+_END = re.compile(
+    rf"\b(?:for|during)\s+the\s+first\s+({NUM})\s*{_SECONDS}|\b(?:until|till|up\s+to)\s+(?:t\s*=\s*)?({NUM})\s*{_SECONDS}"
+)
+_ALWAYS = re.compile(
+    r"\b(?:at\s+all\s+times|always|throughout(?:\s+the\s+(?:episode|scene|drive))?|the\s+whole\s+time"
+    r"|all\s+the\s+time|for\s+the\s+whole\s+(?:episode|scene|drive))\b"
+)
+_SPEED_RANGE = re.compile(
+    rf"\bbetween\s+({NUM})\s*(?:and|to|-)\s*({NUM})\s*({_SPEED_UNIT})|\b({NUM})\s*(?:-|–|to)\s*({NUM})\s*({_SPEED_UNIT})"
+)
 
 # protected spans: separators inside them do not split clauses
-PROTECTED = (_POINT, re.compile(rf"\bbetween\s+{NUM}\s*(?:{_DIST_UNIT})?\s*and\s+{NUM}"))
+PROTECTED = (_POINT, re.compile(rf"\bbetween\s+{NUM}\s*(?:{_DIST_UNIT}|{_SPEED_UNIT})?\s*and\s+{NUM}"),
+             _ONE_BY_ONE)
 SEPARATOR = re.compile(
-    r"\s*[,;]\s*(?:and\s+|while\s+|but\s+|then\s+)*|\.\s+"
-    r"|\s+(?:and\s+then|and\s+also|and|while|whilst|then|but|also|as\s+well\s+as|plus)\s+"
+    r"\s*[,;]\s*(?:and\s+|while\s+|but\s+|then\s+|after\s+that,?\s+|afterwards,?\s+)*|\.\s+"
+    r"|\s+(?:and\s+then|and\s+after\s+that|after\s+that|afterwards|and\s+also|and|while|whilst|then|but|also"
+    r"|as\s+well\s+as|plus)\s+"
 )
 
 
 @dataclass(frozen=True)
 class Clause:
-    """One conjunct of a query. text: lower-case; start/end: its span in the query; vehicles:
-    displayed numbers named, in order of appearance; speeds m/s; distances m; ranges (lo, hi) m;
-    points (x, y) m; bare: numbers without a unit (not vehicle numbers)."""
+    """One conjunct of a query. text: lower-case, with its time phrases blanked; start/end: its span in
+    the query; vehicles: displayed numbers named, in order of appearance; subjects: the leading group
+    of them (the clause's subject, "vehicles 1, 2 and 3 follow vehicle 4": 1, 2, 3) and objects the
+    rest (4); speeds m/s; speed_ranges (lo, hi) m/s; distances m; ranges (lo, hi) m; points (x, y) m;
+    bare: numbers without a unit (not vehicle numbers). Times (s from the episode start): deadline_s
+    ("within 5 s"), start_s ("after 3 s"), end_s ("for the first 4 s", "until 4 s"), always ("at all
+    times"). Flags: everyone, others ("every other car", "the others"), group ("both", "they"),
+    one_by_one, negated, pronoun, modal_start ("should ..."), verb_start ("stays below ...")."""
 
     text: str
     start: int
@@ -73,10 +114,26 @@ class Clause:
     negated: bool
     pronoun: bool
     modal_start: bool
+    subjects: tuple[int, ...] = ()
+    objects: tuple[int, ...] = ()
+    speed_ranges: tuple[tuple[float, float], ...] = ()
+    deadline_s: float | None = None
+    start_s: float | None = None
+    end_s: float | None = None
+    always: bool = False
+    others: bool = False
+    group: bool = False
+    one_by_one: bool = False
+    verb_start: bool = False
 
     def has(self, pattern: str) -> re.Match[str] | None:
         """The first match of a regular expression in the clause's text."""
         return re.search(pattern, self.text)
+
+    @property
+    def timed(self) -> bool:
+        """Whether the clause names a time window."""
+        return self.deadline_s is not None or self.start_s is not None or self.end_s is not None
 
 
 def _mask(text: str, m: re.Match[str]) -> str:
@@ -96,34 +153,84 @@ def _metres(value: float, unit: str | None) -> float:
     return value * 0.3048 if unit and unit.startswith(("ft", "feet")) else value
 
 
-def _vehicles(text: str) -> tuple[list[tuple[int, int]], str]:
-    """Displayed vehicle numbers with their positions, and the text with them blanked."""
-    found: list[tuple[int, int]] = []
+_LIST_GLUE = re.compile(r"^(?:\s|,|&|\band\b|\bor\b|\bas\s+well\s+as\b|\bvehicles?\b|\bcars?\b)*$")
+
+
+def _vehicles(text: str) -> tuple[list[tuple[int, int, int]], str]:
+    """Displayed vehicle numbers with their spans (start, end, number), and the text with them blanked."""
+    found: list[tuple[int, int, int]] = []
     for pattern in (_VEHICLE_LIST, _BARE_PAIR):
         for m in pattern.finditer(text):
             for d in re.finditer(r"\d+", m.group(0)):
-                found.append((m.start() + d.start(), int(d.group(0))))
+                found.append((m.start() + d.start(), m.start() + d.end(), int(d.group(0))))
             text = _mask(text, m)
     for m in _VEHICLE.finditer(text):
         digits = next((g for g in m.groups() if g is not None), None)
-        found.append((m.start(), 0 if digits is None else int(digits)))
+        found.append((m.start(), m.end(), 0 if digits is None else int(digits)))
         text = _mask(text, m)
     found.sort()
     return found, text
 
 
+_LEAD = re.compile(
+    r"^(?:\s|,|#|\b(?:the|make|let|have|get|keep|for|both|and|then|also|now|please|that|i|we|want|would|like"
+    r"|vehicles?|cars?|agents?"
+    r"|trucks?|number|no\.?)\b)*$"
+)
+
+
+def _groups(refs: list[tuple[int, int, int]], low: str) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    """The leading group of vehicle references (joined by "and", ",", "&" only), when only filler
+    precedes it (else no subject: "stay within 20 m of vehicle 4"), and the rest."""
+    if not refs:
+        return (), ()
+    if not _LEAD.match(low[: refs[0][0]]):
+        return (), tuple(dict.fromkeys(v for _, _, v in refs))
+    lead = [refs[0][2]]
+    k = 1
+    while k < len(refs) and _LIST_GLUE.match(low[refs[k - 1][1] : refs[k][0]]):
+        lead.append(refs[k][2])
+        k += 1
+    rest = [v for _, _, v in refs[k:] if v not in lead]
+    return tuple(dict.fromkeys(lead)), tuple(dict.fromkeys(rest))
+
+
+def _times(low: str) -> tuple[str, float | None, float | None, float | None, bool]:
+    """The text with its time phrases blanked, and deadline_s, start_s, end_s, always."""
+    deadline = start = end = None
+    m = _DEADLINE.search(low)
+    if m:
+        deadline, low = float(m.group(1)), _mask(low, m)
+    m = _START.search(low)
+    if m:
+        start, low = float(m.group(1)), _mask(low, m)
+    m = _END.search(low)
+    if m:
+        end, low = float(m.group(1) or m.group(2)), _mask(low, m)
+    m = _ALWAYS.search(low)
+    if m:
+        low = _mask(low, m)
+    return low, deadline, start, end, m is not None
+
+
 def analyse(text: str, start: int) -> Clause:
     """The :class:`Clause` of ``text`` (any case), which starts at ``start`` in the query."""
-    low = text.lower()
+    low, deadline, start_s, end_s, always = _times(text.lower())
     refs, rest = _vehicles(low)
     vehicles: list[int] = []
-    for _, v in refs:
+    for _, _, v in refs:
         if v not in vehicles:
             vehicles.append(v)
-    points, speeds, ranges, dists = [], [], [], []
+    subjects, objects = _groups(refs, low)
+    points, speeds, ranges, dists, speed_ranges = [], [], [], [], []
     for m in _POINT.finditer(rest):
         g = [v for v in m.groups() if v is not None]
         points.append((float(g[0]), float(g[1])))
+        rest = _mask(rest, m)
+    for m in _SPEED_RANGE.finditer(rest):
+        lo, hi, unit = (m.group(1), m.group(2), m.group(3)) if m.group(1) else m.group(4, 5, 6)
+        a, b = sorted((_speed_mps(float(lo), unit), _speed_mps(float(hi), unit)))
+        speed_ranges.append((a, b))
         rest = _mask(rest, m)
     for m in _SPEED.finditer(rest):
         speeds.append(_speed_mps(float(m.group(1)), m.group(2)))
@@ -137,6 +244,7 @@ def analyse(text: str, start: int) -> Clause:
         dists.append(_metres(float(m.group(1)), m.group(2)))
         rest = _mask(rest, m)
     bare = tuple(float(m.group(1)) for m in _BARE.finditer(rest))
+    others = bool(_OTHERS.search(low))
     return Clause(
         text=low,
         start=start,
@@ -147,10 +255,21 @@ def analyse(text: str, start: int) -> Clause:
         ranges=tuple(ranges),
         points=tuple(points),
         bare=bare,
-        everyone=bool(_EVERYONE.search(low)),
+        everyone=bool(_EVERYONE.search(low)) and not others,
         negated=bool(_NEGATION.search(low)),
         pronoun=bool(_PRONOUN.search(low)),
         modal_start=bool(_MODAL_START.search(low)),
+        subjects=subjects,
+        objects=objects,
+        speed_ranges=tuple(speed_ranges),
+        deadline_s=deadline,
+        start_s=start_s,
+        end_s=end_s,
+        always=always,
+        others=others,
+        group=bool(_GROUP.search(low)),
+        one_by_one=bool(_ONE_BY_ONE.search(low)),
+        verb_start=bool(_VERB_START.search(low)),
     )
 
 

@@ -33,8 +33,8 @@ class PartReport:
 def check_part(rollout: Rollout, part: QueryPart) -> PartReport:
     """The verdict and violation of one compiled part, by its behaviour."""
     behaviour = get_behaviour(part.rule)
-    verdict = behaviour.verdict(rollout, part.params, part.vehicles)
-    violation = behaviour.violation(rollout, part.params, part.vehicles)
+    verdict = behaviour.verdict(rollout, part.params, part.vehicles, part.window)
+    violation = behaviour.violation(rollout, part.params, part.vehicles, part.window)
     return PartReport(part.text, verdict.satisfied, verdict.measured, verdict.window, violation.value,
                       violation.unit)
 

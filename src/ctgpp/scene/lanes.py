@@ -248,6 +248,24 @@ def lane_points_ahead(
     return np.stack([np.interp(s, cum, line[:, 0]), np.interp(s, cum, line[:, 1])], axis=1)
 
 
+def point_ahead(lanes: LaneGraph, xy: np.ndarray, yaw: float, distance_m: float) -> np.ndarray:
+    """The point (2,) scene world metres ``distance_m`` ahead of a vehicle at ``xy`` (2,) heading ``yaw``
+    (rad): along the straightest lane chain from its lane, or along its heading off the lane graph
+    (and beyond where the chain ends)."""
+    proj = nearest_lane(lanes, xy, yaw)
+    if proj is not None:
+        pts = lane_points_ahead(lanes, proj, distance_m, 1.0)  # (n, 2) from its foot on the lane
+        covered = float(np.linalg.norm(np.diff(pts, axis=0), axis=1).sum()) if len(pts) > 1 else 0.0
+        if len(pts) > 1:
+            d = pts[-1] - pts[-2]
+            heading = math.atan2(d[1], d[0])
+        else:
+            heading = yaw
+        rest = distance_m - covered
+        return pts[-1] + max(rest, 0.0) * np.array([math.cos(heading), math.sin(heading)])
+    return np.asarray(xy, dtype=np.float64) + distance_m * np.array([math.cos(yaw), math.sin(yaw)])
+
+
 def follow_lane(
     lanes: LaneGraph,
     current: LaneProjection | None,
