@@ -2,17 +2,34 @@
 rules library, with no model and no network.
 
 ``compile_query("vehicle 3 should cut in ahead of vehicle 7 and no collisions", 12)`` splits the
-query into clauses at "and", ",", ";", "while", "then", "but" (not inside "between 10 and 30 m" or
-a point "(x, y)"; a piece that names no rule, such as "vehicle 1" in "vehicle 1 and vehicle 2
-collide", is joined with the next one), recognises each clause's family
-(:mod:`ctgpp.language.compiler_families`) and joins the rules in a :class:`CompositeLoss` (the
-conjunction, every part weighted 1). A relation of one vehicle to another ("vehicle 2 stays within
-25 m of vehicle 0") steers only its subject (:class:`SteerOnly`); the other keeps driving as sampled.
-A clause without its own vehicle inherits the previous one's ("vehicle 3 should change to the left
-lane and then turn right at the next intersection").
+query into clauses at "and", ",", ";", "while", "then", "after that", "but" (not inside "between 10
+and 30 m", a point "(x, y)" or "one by one"; a piece that only names vehicles or times, such as
+"vehicle 1" in "vehicle 1 and vehicle 2 collide", is joined with the next one), reads each clause
+(:mod:`ctgpp.language.compiler_patterns`: its subjects and objects, quantities in SI units, its
+times), recognises its family (:mod:`ctgpp.language.compiler_families`) and joins the rules in a
+:class:`CompositeLoss` (the conjunction, every part weighted 1).
+
+How a sentence is read:
+
+- Subjects: the leading vehicle group ("vehicles 1, 2 and 3 follow vehicle 4": each of 1, 2, 3
+  follows 4), "all vehicles", "the others" / "every other car" / "everyone else" (every vehicle the
+  query did not name before), "all vehicles except vehicle 3"; a clause without its own vehicle
+  inherits the previous clause's subjects ("... and then stops"), "both" / "they" every vehicle
+  the previous clause involved, "it" its object ("staying at most 12 m behind it").
+- Times (:mod:`ctgpp.behaviours.timing`): "within 5 s" (a behaviour that holds, from 5 s to the end;
+  an event, by 5 s: :attr:`Behaviour.deadline`), "after 3 s", "for the first 4 s", "until 4 s";
+  "at all times" is the behaviour's own window. The loss is the rule on the window's steps
+  (:class:`~ctgpp.guidance.timing.During`), the verdict the check on the window.
+- Sequences: "then", "after that" and "one by one" number the parts' ``stage`` (0, 1, ...).
+- Comparisons: "A faster than B", "A fast while B slow" (one ``faster_than`` part). A later clause
+  on the same pair refines a "follow" ("follows vehicle 1, staying at most 12 m behind it").
+
+A relation of one vehicle to another ("vehicle 2 stays within 25 m of vehicle 0") steers only its
+subject (:class:`SteerOnly`); the other keeps driving as sampled.
 Vehicles are displayed numbers: "vehicle 3", "car 3", "v3", "#3", "the ego" (= 0).
-Nothing is guessed: a clause no family recognises raises :class:`UnsupportedQuery` with the closest
-supported phrasings, a vehicle outside the scene raises :class:`VehicleOutOfRange`.
+Nothing is guessed or dropped: a clause no family recognises raises :class:`UnsupportedQuery` with
+the closest supported phrasings, a vehicle a clause names that no part would involve raises
+:class:`QueryError`, a vehicle outside the scene :class:`VehicleOutOfRange`.
 """
 
 from __future__ import annotations
@@ -28,8 +45,9 @@ from ctgpp.guidance import CompositeLoss, GuidanceLoss, make_loss
 from ctgpp.guidance.composite import check_quantity
 from ctgpp.guidance.rules_relative import ForVehicles, SteerOnly
 from ctgpp.guidance.timing import During
-from ctgpp.language.compiler_families import Context, PartSpec, QueryError, recognise
+from ctgpp.language.compiler_families import recognise
 from ctgpp.language.compiler_patterns import Clause, analyse, split_points
+from ctgpp.language.compiler_subjects import Context, PartSpec, QueryError
 
 __all__ = [
     "CompiledQuery",

@@ -3,7 +3,8 @@ the library it becomes.
 
 Families are tried in order; the first whose ``matches`` holds handles the clause. A handler returns
 :class:`PartSpec` values (rule name, parameters, an optional restriction to some vehicles) or raises
-:class:`QueryError` when the clause names too few vehicles or a needed quantity is missing.
+:class:`QueryError` when the clause names too few vehicles or a needed quantity is missing. Whom a
+clause is about (subjects, objects, "the others") is read by :mod:`ctgpp.language.compiler_subjects`.
 
 Relations of a subject to another vehicle (keep a distance, stay within or away, stay on a side, same
 direction) steer only the subject: moving the other vehicle as well (slowing the leader down to wait
@@ -15,10 +16,10 @@ from __future__ import annotations
 
 import re
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any
 
 from ctgpp.language.compiler_patterns import NUM, Clause
+from ctgpp.language.compiler_subjects import Context, PartSpec, QueryError, pairs, scope, subjects
 
 DEFAULT_NEAR_M = 10.0  # "stay close to" without a distance
 DEFAULT_AWAY_M = 10.0  # "stay away from" without a distance
@@ -28,110 +29,7 @@ FOLLOW_RANGE_M = (10.0, 30.0)  # "follow vehicle N": the paper's keep-distance r
 SPEED_MARGIN_MPS = 0.5  # a compiled speed limit aims this far under the limit the verdict holds
 
 
-class QueryError(ValueError):
-    """A query the compiler cannot turn into a loss (the message says why)."""
-
-
-@dataclass(frozen=True)
-class PartSpec:
-    """A rule to build: ``rule`` name, its ``params``, ``only`` (vehicles it is restricted to, None
-    for the rule's own scope), ``steers`` (the only vehicles its gradient moves, None for all: the
-    subject of a relation to another vehicle, which keeps driving as sampled) and the query
-    ``family`` it came from; ``refinable``: a default a later clause on the same pair may refine
-    ("follows vehicle 1, staying at most 12 m behind it")."""
-
-    family: str
-    rule: str
-    params: dict[str, Any]
-    only: tuple[int, ...] | None = None
-    steers: tuple[int, ...] | None = None
-    refinable: bool = False
-
-
-@dataclass(frozen=True)
-class Context:
-    """What a clause inherits: the previous clause's ``subjects`` and ``objects``, every vehicle
-    ``named`` so far, the scene's ``num_vehicles`` and whether the clause is ``joined`` by
-    "while"/"then" (so a global rule applies to the previous subjects); ``previous``: every vehicle the
-    previous clause involved ("both", "they"); ``had_subject``: whether the previous clause had a
-    subject ("vehicle 6 keeps its lane and stays below 8 m/s", not "no collisions and stay on the road")."""
-
-    subjects: tuple[int, ...] = ()
-    objects: tuple[int, ...] = ()
-    named: tuple[int, ...] = ()
-    previous: tuple[int, ...] = ()
-    had_subject: bool = False
-    num_vehicles: int = 0
-    joined: bool = False
-
-    @property
-    def subject(self) -> int | None:
-        return self.subjects[0] if self.subjects else None
-
-
 Handler = Callable[[Clause, Context], list[PartSpec]]
-
-
-def others(c: Clause, ctx: Context) -> tuple[int, ...]:
-    """The vehicles "the others" / "every other car" means: every vehicle of the scene but those the
-    clause names, or when it names none, those the query named before."""
-    if not c.vehicles and not ctx.named:
-        raise QueryError(f"{c.text.strip()!r}: 'the others' needs the vehicles it excludes named before it")
-    named = set(c.vehicles or ctx.named)
-    rest = tuple(v for v in range(ctx.num_vehicles) if v not in named)
-    if not rest:
-        raise QueryError(f"{c.text.strip()!r}: no other vehicle is left in this scene")
-    return rest
-
-
-def _subjects(c: Clause, ctx: Context) -> list[int]:
-    """The vehicles a one-vehicle rule applies to: the others, those named, everyone, else the
-    previous clause's subjects."""
-    if c.others:
-        return list(others(c, ctx))
-    if c.vehicles:
-        return list(c.vehicles)
-    if c.everyone and ctx.num_vehicles:
-        return list(range(ctx.num_vehicles))
-    if c.group and ctx.previous:
-        return list(ctx.previous)
-    if ctx.subjects:
-        return list(ctx.subjects)
-    raise QueryError(f"{c.text.strip()!r} does not say which vehicle (e.g. 'vehicle 3 should ...')")
-
-
-def _scope(c: Clause, ctx: Context) -> tuple[int, ...] | None:
-    """The vehicles a global rule is restricted to: None for everyone."""
-    if c.others:
-        return others(c, ctx)
-    if c.vehicles:
-        return c.vehicles
-    if c.everyone:
-        return None
-    if c.group and ctx.previous:
-        return ctx.previous
-    inherits = c.pronoun or c.group or c.modal_start or ctx.joined or (c.verb_start and ctx.had_subject)
-    if ctx.subjects and inherits:
-        return ctx.subjects
-    return None
-
-
-def _pairs(c: Clause, ctx: Context, what: str) -> list[tuple[int, int]]:
-    """(subject, other) pairs of a two-vehicle rule: each subject (the clause's leading vehicles, else
-    the previous clause's) with each object (the other vehicles it names, "it": the previous clause's
-    object, "the others"); with no object, the first subject with each other one."""
-    own = c.subjects
-    subjects = list(own) if own else list(ctx.subjects)
-    objects = [v for v in c.vehicles if v not in own]
-    if not objects and c.others:
-        objects = [v for v in others(c, ctx) if v not in subjects]
-    if not objects and not own and c.pronoun and ctx.objects:
-        objects = [v for v in ctx.objects if v not in subjects]
-    if not objects and len(subjects) >= 2:
-        subjects, objects = subjects[:1], subjects[1:]
-    if not subjects or not objects:
-        raise QueryError(f"{c.text.strip()!r}: {what} needs two vehicles (e.g. 'vehicle 1 ... vehicle 2')")
-    return [(a, b) for a in subjects for b in objects if a != b]
 
 
 def _speed(c: Clause) -> float | None:
@@ -148,30 +46,30 @@ def _distance(c: Clause, default: float) -> float:
 
 def _rear_end(c: Clause, ctx: Context) -> list[PartSpec]:
     return [PartSpec("collide_from_behind", "collide_from_behind", {"vehicle": a, "target": b})
-            for a, b in _pairs(c, ctx, "a rear-end collision")]
+            for a, b in pairs(c, ctx, "a rear-end collision")]
 
 
 def _collision(c: Clause, ctx: Context) -> list[PartSpec]:
     if c.negated or c.has(r"collision[- ]free"):
-        return [PartSpec("no_collision", "no_collision", {}, _scope(c, ctx))]
+        return [PartSpec("no_collision", "no_collision", {}, scope(c, ctx))]
     return [PartSpec("collision", "collision", {"vehicle_a": a, "vehicle_b": b})
-            for a, b in _pairs(c, ctx, "a collision")]
+            for a, b in pairs(c, ctx, "a collision")]
 
 
 def _cut_in(c: Clause, ctx: Context) -> list[PartSpec]:
     gap = _distance(c, DEFAULT_CUT_IN_GAP_M)
     return [PartSpec("cut_in", "cut_in", {"vehicle": a, "ahead_of": b, "gap_m": gap})
-            for a, b in _pairs(c, ctx, "a cut-in")]
+            for a, b in pairs(c, ctx, "a cut-in")]
 
 
 def _follow_lane(c: Clause, ctx: Context) -> list[PartSpec]:
     if not c.others and (c.everyone or (not c.vehicles and ctx.subject is None)):
         return [PartSpec("follow_lane", "follow_lane", {"vehicle": None})]
-    return [PartSpec("follow_lane", "follow_lane", {"vehicle": v}) for v in _subjects(c, ctx)]
+    return [PartSpec("follow_lane", "follow_lane", {"vehicle": v}) for v in subjects(c, ctx)]
 
 
 def _rightmost(c: Clause, ctx: Context) -> list[PartSpec]:
-    return [PartSpec("rightmost_lane", "move_to_rightmost_lane", {"vehicle": v}) for v in _subjects(c, ctx)]
+    return [PartSpec("rightmost_lane", "move_to_rightmost_lane", {"vehicle": v}) for v in subjects(c, ctx)]
 
 
 def _side_word(c: Clause, pattern: str) -> str:
@@ -189,7 +87,7 @@ _LANE_CHANGE = (
 
 def _lane_change(c: Clause, ctx: Context) -> list[PartSpec]:
     side = _side_word(c, _LANE_CHANGE)
-    return [PartSpec("lane_change", "lane_change", {"vehicle": v, "side": side}) for v in _subjects(c, ctx)]
+    return [PartSpec("lane_change", "lane_change", {"vehicle": v, "side": side}) for v in subjects(c, ctx)]
 
 
 _TURN = (
@@ -202,7 +100,7 @@ _STRAIGHT = r"\b(?:go|goes|going|drive\w*|continu\w*|head\w*|keep\w*\s+going)\s+
 def _turn(c: Clause, ctx: Context) -> list[PartSpec]:
     direction = "straight" if c.has(_STRAIGHT) else _side_word(c, _TURN)
     return [PartSpec("turn", "turn_at_next_intersection", {"vehicle": v, "direction": direction})
-            for v in _subjects(c, ctx)]
+            for v in subjects(c, ctx)]
 
 
 _SIDE_OF = r"(?:on|to)\s+(?:the\s+)?(?:left|right)(?:[- ]hand)?\s+(?:side\s+)?of\b"
@@ -211,12 +109,12 @@ _SIDE_OF = r"(?:on|to)\s+(?:the\s+)?(?:left|right)(?:[- ]hand)?\s+(?:side\s+)?of
 def _side_of(c: Clause, ctx: Context) -> list[PartSpec]:
     side = _side_word(c, _SIDE_OF)
     return [PartSpec("stay_side_of", "stay_side_of", {"vehicle": a, "other": b, "side": side}, steers=(a,))
-            for a, b in _pairs(c, ctx, "staying beside a vehicle")]
+            for a, b in pairs(c, ctx, "staying beside a vehicle")]
 
 
 def _same_direction(c: Clause, ctx: Context) -> list[PartSpec]:
     return [PartSpec("same_direction", "same_direction", {"vehicle": a, "other": b}, steers=(a,))
-            for a, b in _pairs(c, ctx, "driving in the same direction")]
+            for a, b in pairs(c, ctx, "driving in the same direction")]
 
 
 def _stop(c: Clause, ctx: Context) -> list[PartSpec]:
@@ -224,8 +122,8 @@ def _stop(c: Clause, ctx: Context) -> list[PartSpec]:
         radius = _distance(c, DEFAULT_STOP_RADIUS_M)
         x, y = c.points[0]
         return [PartSpec("stop_region", "stop_region", {"vehicle": v, "x": x, "y": y, "radius_m": radius})
-                for v in _subjects(c, ctx)]
-    return [PartSpec("stop", "stop", {}, _scope(c, ctx))]
+                for v in subjects(c, ctx)]
+    return [PartSpec("stop", "stop", {}, scope(c, ctx))]
 
 
 def _reach(c: Clause, ctx: Context) -> list[PartSpec]:
@@ -233,17 +131,17 @@ def _reach(c: Clause, ctx: Context) -> list[PartSpec]:
     params: dict[str, Any] = {"x": x, "y": y}
     if c.speeds:
         params["target_speed_mps"] = c.speeds[0]
-    return [PartSpec("reach", "reach_point", {"vehicle": v, **params}) for v in _subjects(c, ctx)]
+    return [PartSpec("reach", "reach_point", {"vehicle": v, **params}) for v in subjects(c, ctx)]
 
 
 def _speed_limit(c: Clause, ctx: Context) -> list[PartSpec]:
     params = {"limit_mps": _speed(c), "margin_mps": SPEED_MARGIN_MPS}
-    return [PartSpec("speed_limit", "speed_limit", params, _scope(c, ctx))]
+    return [PartSpec("speed_limit", "speed_limit", params, scope(c, ctx))]
 
 
 def _reach_speed(c: Clause, ctx: Context) -> list[PartSpec]:
     bound = "below" if c.has(_REACH_BELOW) else "above"
-    return [PartSpec("reach_speed", "reach_speed", {"speed_mps": _speed(c), "bound": bound}, _scope(c, ctx))]
+    return [PartSpec("reach_speed", "reach_speed", {"speed_mps": _speed(c), "bound": bound}, scope(c, ctx))]
 
 
 _ACCELERATION = re.compile(
@@ -256,51 +154,51 @@ def _acceleration(c: Clause, ctx: Context) -> list[PartSpec]:
     if m is None:
         raise QueryError(f"{c.text.strip()!r}: an acceleration limit needs a value in m/s² (e.g. '3 m/s²')")
     params = {"max_mps2": float(m.group(1))}
-    return [PartSpec("acceleration_limit", "acceleration_limit", params, _scope(c, ctx))]
+    return [PartSpec("acceleration_limit", "acceleration_limit", params, scope(c, ctx))]
 
 
 def _goal(c: Clause, ctx: Context) -> list[PartSpec]:
     x, y = c.points[0]
     return [PartSpec("goal_waypoint", "goal_waypoint", {"vehicle": v, "x": x, "y": y})
-            for v in _subjects(c, ctx)]
+            for v in subjects(c, ctx)]
 
 
 def _keep_lane(c: Clause, ctx: Context) -> list[PartSpec]:
     if not c.others and (c.everyone or (not c.vehicles and ctx.subject is None)):
         return [PartSpec("keep_lane", "keep_lane", {"vehicle": None})]
-    return [PartSpec("keep_lane", "keep_lane", {"vehicle": v}) for v in _subjects(c, ctx)]
+    return [PartSpec("keep_lane", "keep_lane", {"vehicle": v}) for v in subjects(c, ctx)]
 
 
 def _target_speed(c: Clause, ctx: Context) -> list[PartSpec]:
-    return [PartSpec("target_speed", "target_speed", {"speed_mps": _speed(c)}, _scope(c, ctx))]
+    return [PartSpec("target_speed", "target_speed", {"speed_mps": _speed(c)}, scope(c, ctx))]
 
 
 def _keep_range(c: Clause, ctx: Context) -> list[PartSpec]:
     lo, hi = c.ranges[0]
     return [PartSpec("keep_distance", "keep_distance", {"follower": a, "leader": b, "min_m": lo, "max_m": hi},
-                     steers=(a,)) for a, b in _pairs(c, ctx, "keeping a distance")]
+                     steers=(a,)) for a, b in pairs(c, ctx, "keeping a distance")]
 
 
 def _stay_away(c: Clause, ctx: Context) -> list[PartSpec]:
     d = _distance(c, DEFAULT_AWAY_M)
     return [PartSpec("stay_away", "stay_away", {"vehicle": a, "other": b, "min_m": d}, steers=(a,))
-            for a, b in _pairs(c, ctx, "staying away")]
+            for a, b in pairs(c, ctx, "staying away")]
 
 
 def _keep_within(c: Clause, ctx: Context) -> list[PartSpec]:
     d = _distance(c, DEFAULT_NEAR_M)
     return [PartSpec("keep_within", "keep_distance", {"follower": a, "leader": b, "min_m": 0.0, "max_m": d},
-                     steers=(a,)) for a, b in _pairs(c, ctx, "staying close")]
+                     steers=(a,)) for a, b in pairs(c, ctx, "staying close")]
 
 
 def _follow_vehicle(c: Clause, ctx: Context) -> list[PartSpec]:
     lo, hi = FOLLOW_RANGE_M
     return [PartSpec("keep_distance", "keep_distance", {"follower": a, "leader": b, "min_m": lo, "max_m": hi},
-                     steers=(a,), refinable=True) for a, b in _pairs(c, ctx, "following a vehicle")]
+                     steers=(a,), refinable=True) for a, b in pairs(c, ctx, "following a vehicle")]
 
 
 def _offroad(c: Clause, ctx: Context) -> list[PartSpec]:
-    return [PartSpec("no_offroad", "no_offroad", {}, _scope(c, ctx))]
+    return [PartSpec("no_offroad", "no_offroad", {}, scope(c, ctx))]
 
 
 _COLLIDE = (
@@ -363,7 +261,7 @@ _PACE = r"\b(?:fast|quickly|rapidly|speedily|slow|slowly)\b(?!\s+(?:down|up))"
 def _faster_than(c: Clause, ctx: Context) -> list[PartSpec]:
     slower = bool(c.has(r"\b(?:slower|more\s+slowly)\s+than"))
     return [PartSpec("faster_than", "faster_than", {"vehicle": b, "other": a} if slower else
-                     {"vehicle": a, "other": b}) for a, b in _pairs(c, ctx, "a comparison")]
+                     {"vehicle": a, "other": b}) for a, b in pairs(c, ctx, "a comparison")]
 
 
 def _pace(c: Clause, ctx: Context) -> list[PartSpec]:
@@ -371,7 +269,7 @@ def _pace(c: Clause, ctx: Context) -> list[PartSpec]:
     of the other pace in the same query ("vehicle 2 drives fast while vehicle 3 drives slowly")."""
     m = c.has(_PACE)
     pace = "fast" if m is not None and m.group(0) in ("fast", "quickly", "rapidly", "speedily") else "slow"
-    return [PartSpec("pace", "", {"vehicle": v, "pace": pace}) for v in _subjects(c, ctx)]
+    return [PartSpec("pace", "", {"vehicle": v, "pace": pace}) for v in subjects(c, ctx)]
 
 
 _AHEAD = (
@@ -383,14 +281,14 @@ _AHEAD = (
 def _reach_ahead(c: Clause, ctx: Context) -> list[PartSpec]:
     distance = c.distances[0] if c.distances else float(c.bare[0])
     return [PartSpec("reach_ahead", "reach_ahead", {"vehicle": v, "distance_m": distance})
-            for v in _subjects(c, ctx)]
+            for v in subjects(c, ctx)]
 
 
 def _speed_range(c: Clause, ctx: Context) -> list[PartSpec]:
     lo, hi = c.speed_ranges[0]
-    scope = _scope(c, ctx)
-    return [PartSpec("speed_limit", "speed_limit", {"limit_mps": hi, "margin_mps": SPEED_MARGIN_MPS}, scope),
-            PartSpec("reach_speed", "reach_speed", {"speed_mps": lo, "bound": "above"}, scope)]
+    only = scope(c, ctx)
+    return [PartSpec("speed_limit", "speed_limit", {"limit_mps": hi, "margin_mps": SPEED_MARGIN_MPS}, only),
+            PartSpec("reach_speed", "reach_speed", {"speed_mps": lo, "bound": "above"}, only)]
 
 
 _MIN_SPEED = (
@@ -401,7 +299,7 @@ _MIN_SPEED = (
 
 def _min_speed(c: Clause, ctx: Context) -> list[PartSpec]:
     params = {"speed_mps": c.speeds[0], "bound": "above"}
-    return [PartSpec("reach_speed", "reach_speed", params, _scope(c, ctx))]
+    return [PartSpec("reach_speed", "reach_speed", params, scope(c, ctx))]
 
 
 def _names_vehicle(c: Clause) -> bool:
