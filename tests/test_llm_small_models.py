@@ -95,6 +95,9 @@ def test_repair_hints_cover_the_checks_refusals() -> None:
         "the loss did not finish within its time limit (5 s with the worker)",
         "could not build L() without arguments (missing x): give every parameter a default value",
         "the reply contains no Python program: answer with one ```python code block",
+        "RuntimeError: expand(torch.FloatTensor{[33, 1]}, size=[1]): the number of sizes provided (1) must "
+        "be greater or equal to the number of dimensions in the tensor (2) (at line 21 of the program)",
+        "IndexError: index 14 is out of bounds for dimension 0 with size 12 (at line 9 of the program)",
     ]:
         assert repair_hint(message), message
     assert repair_hint("import os is not allowed (only `import torch`, `import math`)") is None

@@ -56,7 +56,7 @@ def load_template(name: str) -> str:
     """The text of one template file (package data of ``ctgpp.language``)."""
     if name not in TEMPLATE_NAMES:
         raise ValueError(f"unknown template {name!r}; templates: {', '.join(TEMPLATE_NAMES)}")
-    return resources.files("ctgpp.language").joinpath("templates", name).read_text(encoding="utf-8")
+    return (resources.files("ctgpp.language") / "templates" / name).read_text(encoding="utf-8")
 
 
 def _fill(template: str, **values: str) -> str:
@@ -168,6 +168,12 @@ REPAIR_HINTS: tuple[tuple[str, str], ...] = (
      "compute everything from x and data_batch on each call."),
     ("did not finish within its time limit", "vectorize: no Python loops over time steps, samples "
      "or vehicles; use tensor operations over whole dimensions."),
+    ("out of bounds", "a vehicle index is not in the scene: vehicles are numbered 0 to B - 1 "
+     "(x.shape[0] = B), and the query's numbers are those indices."),
+    ("RuntimeError", "a tensor operation got shapes it cannot combine at that line. x is (B, N, T, 6): "
+     "vehicles, samples, time steps, features (x, y, speed, yaw, acceleration, yaw rate); "
+     "select_agent_ind(t, i) gives vehicle i's (N, T, ...). Index with slices that keep dimensions, "
+     "use unsqueeze/reshape rather than expand, and combine tensors whose dimensions line up."),
     ("without arguments", "give every parameter of __init__ a default value, e.g. "
      "def __init__(self, target_ind=1, speed_mps=10.0)."),
     ("no Python program", "reply with the whole program in one ```python code block."),
