@@ -64,6 +64,7 @@ class Job:
     rollout_at: float | None = None
     finished: float | None = None
     cancel_asked: float | None = None
+    worker: int = -1  # the index of the worker that runs it
 
     @property
     def out_dir(self) -> Path:
@@ -167,8 +168,7 @@ class JobQueue:
                 self._finish(job, "cancelled", "cancelled before it started")
             elif job.state == "running" and job.cancel_asked is None:
                 job.cancel_asked = time.time()
-                for worker in self.workers:
-                    worker.cancel(job.serial)
+                self.workers[job.worker].cancel(job.serial)
             return job.status(self._position(job))
 
     def _position(self, job: Job) -> int | None:
@@ -177,15 +177,15 @@ class JobQueue:
 
     # --- called by the workers' threads ---------------------------------------------------------
 
-    def next_job(self, timeout: float) -> Job | None:
-        """The next waiting run, marked running; None after ``timeout`` s or when stopping."""
+    def next_job(self, timeout: float, worker: int) -> Job | None:
+        """The next waiting run, marked running on ``worker``; None after ``timeout`` s or when stopping."""
         with self._lock:
             if not self._waiting and not self._stopping:
                 self._lock.wait(timeout)
             if self._stopping or not self._waiting:
                 return None
             job = self._waiting.popleft()
-            job.state, job.started, job.phase = "running", time.time(), "starting"
+            job.state, job.started, job.phase, job.worker = "running", time.time(), "starting", worker
             return job
 
     def update(self, job: Job, kind: str, payload: dict[str, Any]) -> bool:
@@ -282,7 +282,7 @@ class WorkerHandle:
                 log.warning("worker %d stopped (exit code %s); starting a new one", self.index,
                             self._process.exitcode)
                 self._restart()
-            job = self.jobs.next_job(POLL_S)
+            job = self.jobs.next_job(POLL_S, self.index)
             if job is not None:
                 self._run(job)
 

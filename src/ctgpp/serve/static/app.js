@@ -11,7 +11,7 @@
 
   const state = {
     scenes: [], options: null, sceneKey: null, scene: null,   // scene: the scene view (first frame)
-    jobId: null, job: null, pollTimer: null, playback: null, playbackOf: null,
+    jobId: null, job: null, pollTimer: null, playback: null, playbackOf: null, firstFramePending: false,
     frame: 0, playing: false, clock: null, speed: 1,
     view: null, drag: null, staticLayer: null, staticKey: "", drivable: null,
     timings: {},
@@ -154,6 +154,7 @@
     };
     $("refusal").hidden = true;
     for (const key of Object.keys(state.timings)) delete state.timings[key];
+    state.firstFramePending = false;
     state.timings.run_clicked = performance.now();
     $("run").disabled = true;
     setStatus("Sending the run…");
@@ -363,6 +364,7 @@
       const data = await api(`/api/runs/${id}/playback`);
       if (id !== state.jobId) return;
       state.playback = data;
+      state.firstFramePending = true;
       state.frame = data.current;
       updatePlayer();
       play();
@@ -533,7 +535,8 @@
     ctx.font = `${Math.round(13 * (window.devicePixelRatio || 1))}px system-ui, sans-serif`;
     ctx.fillStyle = "rgba(20, 24, 36, 0.8)";
     ctx.fillText(`${state.scene.id}   ${label}${p && state.frame < p.current ? " (logged history)" : ""}`, 10, 20);
-    if (p && state.timings.first_frame === undefined && state.playbackOf === state.jobId) {
+    if (p && state.firstFramePending) {  // the first frame of the run's rollout is on the canvas
+      state.firstFramePending = false;
       state.timings.first_frame = performance.now();
       state.timings.seconds = (state.timings.first_frame - state.timings.run_clicked) / 1000;
       if (state.job) showJob(state.job);
