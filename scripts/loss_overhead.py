@@ -29,6 +29,7 @@ import statistics
 import sys
 import time
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 import torch
 from torch import Tensor
@@ -47,49 +48,14 @@ from ctgpp.sim.closed_loop import episode_bounds, initial_observation, simulate
 from ctgpp.sim.factory import make_policy
 from ctgpp.sim.presets import preset
 
-# query for the offline compiler -> the language model's program for it, the paper's way
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the checkout's tests/, for the programs
+from tests import model_programs  # noqa: E402
+
+# query for the offline compiler -> the language model's program for it, the paper's way: the replies
+# tests/test_llm_steering.py runs through ctgpp simulate on the same scene (tests/model_programs.py)
 QUERIES = {
-    "vehicle 18 should stay at least 25 m away from vehicle 17": """
-import torch
-
-
-class KeepAway(GuidanceLoss):
-    def __init__(self, target_ind=18, ref_ind=17, min_dist=25.0, decay_rate=0.98):
-        super().__init__()
-        self.target_ind = target_ind
-        self.ref_ind = ref_ind
-        self.min_dist = min_dist
-        self.decay_rate = decay_rate
-
-    def forward(self, x, data_batch, agt_mask=None):
-        if agt_mask is not None:
-            x = x[agt_mask]
-        pos_world, yaw_world = transform_coord_agents_to_world(x[..., :2], x[..., 3:4], data_batch)
-        pos_ref, _ = transform_coord_world_to_agent_i(pos_world, yaw_world, data_batch, self.ref_ind)
-        gap = select_agent_ind(pos_ref, self.target_ind) - select_agent_ind(pos_ref, self.ref_ind)
-        dist = torch.norm(gap, dim=-1)  # (N, T, 2) -> (N, T)
-        weights = self.decay_rate ** torch.arange(x.shape[2], dtype=torch.float)  # (T,)
-        return torch.mean(torch.clip(self.min_dist - dist, min=0) * weights, dim=-1)  # (N,)
-""",
-    "vehicle 17 should change to the right lane": """
-import torch
-
-
-class ToTheRightLane(GuidanceLoss):
-    def __init__(self, target_ind=17, growth=1.03):
-        super().__init__()
-        self.target_ind = target_ind
-        self.growth = growth
-
-    def forward(self, x, data_batch, agt_mask=None):
-        if agt_mask is not None:
-            x = x[agt_mask]
-        pos_pred, yaw_pred = x[..., :2], x[..., 3:4]  # (B, N, T, 2), (B, N, T, 1)
-        right = get_right_lane_projection(pos_pred, yaw_pred, data_batch)  # (B, N, T, 3)
-        gap = select_agent_ind(pos_pred, self.target_ind) - select_agent_ind(right, self.target_ind)[..., :2]
-        weights = self.growth ** torch.arange(x.shape[2], dtype=torch.float)  # (T,)
-        return (torch.norm(gap, dim=-1) * weights).sum(-1) / weights.sum()  # (N,)
-""",
+    "vehicle 18 should stay at least 25 m behind vehicle 17": model_programs.STAY_BEHIND,
+    "vehicle 17 should change to the right lane": model_programs.RIGHT_LANE,
 }
 WAYS = ("unguided", "compiler", "in-process", "worker")
 
@@ -194,7 +160,7 @@ def time_calls(scene: Scene, start_s: float, code: str, remote: RemoteLoss, pid:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--scene", default="scene-0553", help="scene id of the embedded data")
+    parser.add_argument("--scene", default=model_programs.SCENE, help="scene id of the embedded data")
     parser.add_argument("--seeds", default="0,1,2", help="comma-separated seeds, one episode each per query")
     parser.add_argument("--queries", type=int, default=len(QUERIES), help="how many of the queries, in order")
     parser.add_argument(

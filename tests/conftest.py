@@ -1,12 +1,18 @@
-"""Shared fixtures: real scenes from ../shared/data and the embedded default data."""
+"""Shared fixtures: real scenes from ../shared/data and the embedded default data; a local
+OpenAI-compatible model (``llm_env``, with tests/llm_server.py)."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import pytest
 
 from ctgpp.scene.types import Scene
+
+if TYPE_CHECKING:
+    from tests.test_llm_client import CannedServer
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 NUSCENES = SHARED_DATA / "nuscenes-mini"
@@ -28,3 +34,19 @@ def scene_0103(shared_data: Path) -> Scene:
     return load_scenarionet(
         NUSCENES / "scenarionet" / "sd_nuscenes_v1.0-mini_scene-0103.pkl", NUSCENES / "drivable"
     )
+
+
+@pytest.fixture()
+def llm_env(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> Iterator[CannedServer]:
+    """A local OpenAI-compatible server (its ``replies`` are the model's answers), an empty program
+    cache, no proxy between them and no model configured in the environment."""
+    from tests.test_llm_client import CannedServer
+
+    for name in ("HTTP_PROXY", "HTTPS_PROXY", "ALL_PROXY", "http_proxy", "https_proxy", "all_proxy",
+                 "CTGPP_LLM_MODEL", "OPENAI_BASE_URL"):
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setenv("NO_PROXY", "127.0.0.1,localhost")
+    monkeypatch.setenv("CTGPP_CACHE_DIR", str(tmp_path / "cache"))
+    server = CannedServer()
+    yield server
+    server.close()

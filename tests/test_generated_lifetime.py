@@ -30,6 +30,7 @@ from ctgpp.language.checks import GRACE_S, LossChecker, LossCheckError
 from ctgpp.language.generate import generate_loss
 from ctgpp.language.remote import GeneratedLossError, RemoteLoss
 from ctgpp.language.trial import REPEATS, SAMPLE_COUNTS
+from tests.llm_server import model_argv
 from tests.test_guidance_helpers import logged_x, real_observation
 from tests.test_llm_client import MODEL, CannedServer, reply
 
@@ -307,22 +308,13 @@ def test_stopped_loss_that_owns_its_worker_stops_it(workers: tuple[LossChecker, 
 # ---- end to end: ctgpp simulate with a local OpenAI-compatible server -----------------------------
 
 
-@pytest.fixture()
-def llm_env(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> Iterator[CannedServer]:
-    monkeypatch.setenv("CTGPP_CACHE_DIR", str(tmp_path / "cache"))
-    server = CannedServer()
-    yield server
-    server.close()
-
-
 # NaN as soon as sampling uses more samples than the trial's (N > 5), in the first guidance step
 NAN_FOR_MORE_SAMPLES = program("cost = cost * float('nan')", f"x.shape[1] > {max(SAMPLE_COUNTS)}")
 
 
 def simulate_argv(query: str, server: CannedServer, out: Path) -> list[str]:
-    return ["simulate", query, "--llm-model", MODEL, "--llm-base-url", server.url, "--scene", "0103",
-            "--steps", "1", "--samples", str(max(SAMPLE_COUNTS) + 1), "--animation", "none",
-            "--guards", "off", "--out", str(out)]
+    return model_argv(query, server, out, "--scene", "0103", "--steps", "1", "--samples",
+                      str(max(SAMPLE_COUNTS) + 1), "--animation", "none", "--guards", "off")
 
 
 def test_simulate_stops_with_one_line_and_writes_nothing(llm_env: CannedServer, tmp_path: Path,

@@ -27,10 +27,11 @@ from ctgpp.language.extract import loss_class_name
 from ctgpp.language.generate import generate_loss
 from ctgpp.language.prompt import Message, examples
 from ctgpp.language.sandbox import SandboxError, load_loss_class
+from tests import model_programs
 from tests.test_guidance_helpers import logged_x, real_observation
 
 TIME_LIMIT_S = 60.0  # generous: the trial's speed is not what these tests are about
-LANES_SCENE = "scene-0553"  # scene-0103 at step 30 has no lane beside anyone's; this one has both sides
+LANES_SCENE = model_programs.SCENE  # scene-0103 at step 30 has no lane beside anyone's; this has both
 
 
 @pytest.fixture(scope="module")
@@ -455,6 +456,9 @@ class Both(GuidanceLoss):
     def forward(self, x, data_batch, agt_mask=None):
         return self.acc(x, data_batch).sum(0) + self.left(x, data_batch)  # (N,)
 '''),
+    # the replies tests/test_llm_steering.py runs through ctgpp simulate on the same scene
+    "stay behind another vehicle (steering test)": ("multi_lane", model_programs.STAY_BEHIND),
+    "to the right lane with a helper loss (steering test)": ("multi_lane", model_programs.RIGHT_LANE),
 }
 
 
