@@ -161,12 +161,12 @@ def select_pair(
                 best = (dist0, int(i), int(j))
     if best is None:
         return None
-    _, i, j = best
-    a, b = controlled[i], controlled[j]
+    _, first, second = best
+    a, b = controlled[first], controlled[second]
     ahead = log.xy[b, start_step] - log.xy[a, start_step]
     yaw_a = log.yaw[a, start_step]
     b_ahead_of_a = ahead[0] * np.cos(yaw_a) + ahead[1] * np.sin(yaw_a) > 0
-    return (i, j) if b_ahead_of_a else (j, i)
+    return (first, second) if b_ahead_of_a else (second, first)
 
 
 def _target_table(scene: Scene, controlled: np.ndarray) -> np.ndarray:

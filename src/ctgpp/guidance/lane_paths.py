@@ -14,6 +14,7 @@ map-aware ones on these.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
 
@@ -82,7 +83,7 @@ def _to_tensor(data_batch: GuidanceBatch, world: np.ndarray) -> Tensor:
     return torch.as_tensor(local, dtype=data_batch.pose.dtype, device=data_batch.device)
 
 
-def _memo(data_batch: GuidanceBatch, key: tuple, build) -> Tensor | None:  # type: ignore[no-untyped-def]
+def _memo(data_batch: GuidanceBatch, key: tuple, build: Callable[[], Tensor | None]) -> Tensor | None:
     if key not in data_batch.memo:
         data_batch.memo[key] = build()
     return data_batch.memo[key]

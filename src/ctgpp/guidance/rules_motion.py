@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import replace
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -101,7 +101,7 @@ class Stop(TargetSpeed):
     """Every vehicle comes to a stop and stays stopped: the mean speed (m/s) over the horizon (the
     target speed 0)."""
 
-    param_doc: dict[str, tuple[str, str]] = {}
+    param_doc: ClassVar[dict[str, tuple[str, str]]] = {}
 
     def __init__(self) -> None:
         super().__init__(0.0)

@@ -77,8 +77,12 @@ def _ids(rollout: Rollout) -> tuple[np.ndarray, np.ndarray]:
     if lane_ids is None or len(np.unique(lane_ids)) != len(lane_ids) or (lane_ids <= 0).any():
         lane_ids = np.arange(1, rollout.scene.lanes.num_lanes + 1, dtype=np.int64)
     agent_ids = _as_ints(rollout.sim.ids)
-    clash = agent_ids is None or len(np.unique(agent_ids)) != len(agent_ids) or (agent_ids <= 0).any()
-    if clash or np.isin(agent_ids, lane_ids).any():
+    if (
+        agent_ids is None
+        or len(np.unique(agent_ids)) != len(agent_ids)
+        or (agent_ids <= 0).any()
+        or np.isin(agent_ids, lane_ids).any()
+    ):
         top = int(lane_ids.max()) if len(lane_ids) else 0
         base = 10 ** len(str(top)) if top > 0 else 1
         agent_ids = base + np.arange(rollout.sim.num_agents, dtype=np.int64)

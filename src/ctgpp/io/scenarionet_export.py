@@ -113,6 +113,11 @@ class _Numpy1Pickler(pickle._Pickler):
     """The pure-Python pickler, writing numpy 2's ``numpy._core.multiarray._reconstruct`` under its
     numpy 1.x module name (numpy 2 still resolves that name; numpy 1.x knows no other)."""
 
+    if TYPE_CHECKING:  # the pure-Python pickler's methods used here, which typeshed leaves out
+        def save(self, obj: object) -> None: ...
+        def write(self, data: bytes) -> None: ...
+        def memoize(self, obj: object) -> None: ...
+
     def save_global(self, obj: Any, name: str | None = None) -> None:
         if getattr(obj, "__name__", None) == "_reconstruct" and str(obj.__module__).endswith(
             "core.multiarray"
@@ -122,7 +127,7 @@ class _Numpy1Pickler(pickle._Pickler):
             self.write(pickle.STACK_GLOBAL)
             self.memoize(obj)
             return
-        super().save_global(obj, name)
+        super().save_global(obj, name)  # type: ignore[misc]  # (not in typeshed either)
 
 
 def _type_name(kind: int, extent: np.ndarray) -> str:

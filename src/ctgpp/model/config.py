@@ -123,7 +123,7 @@ class ModelConfig:
         if unknown:
             raise ValueError(f"unknown ModelConfig keys: {', '.join(unknown)}")
         data = {**LEGACY, **data}
-        values = {k: tuple(v) if isinstance(v, list) else v for k, v in data.items()}
+        values: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in data.items()}
         if values["context"] is not None:
             values["context"] = ContextConfig(**values["context"])
         if values["map"] is not None:

@@ -10,6 +10,7 @@ vehicles, replayed agents) → map attention (per token over its agent's lane an
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
+from typing import cast
 
 import torch
 from torch import Tensor, nn
@@ -154,6 +155,11 @@ class Denoiser(nn.Module):
         self.out_norm = nn.LayerNorm(d)
         self.out = nn.Linear(d, 2)
 
+    @property
+    def block_list(self) -> list[Block]:
+        """The blocks, typed as what they are (iterating an ``nn.ModuleList`` gives ``nn.Module``)."""
+        return cast("list[Block]", list(self.blocks))
+
     def encode_context(self, batch: SceneBatch) -> DenoiserContext:
         """Encode everything that does not depend on the noisy actions (history, edges, map, context)."""
         cfg = self.config
@@ -205,7 +211,7 @@ class Denoiser(nn.Module):
         feats = self._state_features(inputs.ctx_states, inputs.ctx_valid)  # (S, C, T, 5)
         tokens = self.context_encoder(feats, inputs.ctx_valid, self.time_emb(), agent)  # (S, C, T, d)
         tokens = tokens.transpose(1, 2)  # (S, T, C, d)
-        return tuple(block.spatial.context_keys(tokens) for block in self.blocks)
+        return tuple(block.spatial.context_keys(tokens) for block in self.block_list)
 
     def _fold_lanes(self, lane_tokens: Tensor, lane_valid: Tensor) -> tuple[FoldedKeys, ...]:
         """Each block's map-attention keys from the lane tokens (S, A, L, d) and their mask (S, A, L):
@@ -214,7 +220,7 @@ class Denoiser(nn.Module):
         tokens, valid = lane_tokens.reshape(s * a, n_lanes, d), lane_valid.reshape(s * a, n_lanes)
         return tuple(
             block.map.fold(tokens, valid).map(lambda value: value.reshape(s, a, *value.shape[1:]))
-            for block in self.blocks
+            for block in self.block_list
         )
 
     def forward(

@@ -14,6 +14,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.colors import to_rgba
 from PIL import Image
 
@@ -70,17 +71,21 @@ class Clip:
         self.figure, ax = new_figure(size_px, dpi)
         parked = parked_agents(sim, numbers).unseen_at(sim.valid, self.indices)
         self.painter = ScenePainter(ax, scene, view, numbers, fontsize=7.0, query=query, parked=parked)
-        self.painter.add_legend(sim.valid[:, future].any(axis=1), futures=False, events=self.events)
+        present = np.asarray(sim.valid[:, future].any(axis=1))  # (A,)
+        self.painter.add_legend(present, futures=False, events=self.events)
         self.title = self.painter.add_caption("", query, fontsize=9)
         self._dynamic = [*self.painter.dynamic_artists, self.title]  # in drawing order
         for artist in self._dynamic:
             artist.set_animated(True)
-        self.figure.canvas.draw()  # the static layers once; frames blit the dynamic artists over them
-        self._background = self.figure.canvas.copy_from_bbox(self.figure.bbox)
+        canvas = self.figure.canvas
+        assert isinstance(canvas, FigureCanvasAgg)  # new_figure's
+        self.canvas = canvas
+        canvas.draw()  # the static layers once; frames blit the dynamic artists over them
+        self._background = canvas.copy_from_bbox(self.figure.bbox)
 
     def frame(self, index: int) -> np.ndarray:
         """The RGB frame (size_px, size_px, 3) uint8 of window index ``index``."""
-        r, canvas = self.rollout, self.figure.canvas
+        r, canvas = self.rollout, self.canvas
         t_s = (index - r.current) * r.dt_s
         self.painter.show_agents(r.sim, int(index))
         self.painter.show_events(self.events, until_s=t_s)

@@ -10,6 +10,7 @@ they happen and listed (time, vehicle, partner) in a box in the lower left corne
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import TypedDict
 
 import numpy as np
 from matplotlib.artist import Artist
@@ -18,7 +19,7 @@ from matplotlib.collections import LineCollection, PolyCollection
 from matplotlib.colors import to_rgba
 from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
-from matplotlib.text import Text
+from matplotlib.text import Annotation, Text
 
 from ctgpp.geometry import rotate
 from ctgpp.metrics.boxes import box_corners
@@ -39,7 +40,18 @@ REPLAYED_NAMES = {
     "cyclist": "cyclist",
     "static": "static object",
 }
-EVENT_STYLE = {
+
+
+class EventStyle(TypedDict):
+    """How an event kind is marked: matplotlib marker, colour, size (points) and legend label."""
+
+    marker: str
+    color: str
+    markersize: float
+    label: str
+
+
+EVENT_STYLE: dict[str, EventStyle] = {
     "collision": {"marker": "*", "color": "#ffd700", "markersize": 17, "label": "collision"},
     "offroad": {"marker": "^", "color": "#ff00ff", "markersize": 12, "label": "off-road"},
 }
@@ -83,14 +95,15 @@ class ScenePainter:
         self.edge_widths = np.where(highlighted, 2.6, 0.5)  # (A,) box outline in points
         draw_drivable(ax, scene, view)
         draw_lanes(ax, scene.lanes, view)
-        self._trails = ax.add_collection(LineCollection([], linewidths=2.6, zorder=Z["trail"]))
-        self._ghosts = ax.add_collection(PolyCollection(
+        self._trails = LineCollection([], linewidths=2.6, zorder=Z["trail"])
+        self._ghosts = PolyCollection(
             [], facecolors=(*to_rgba(REPLAYED_COLORS["vehicle"])[:3], 0.45), edgecolors="#707070",
-            linestyles="--", linewidths=0.6, zorder=Z["parked"], gid="parked-ghosts"))
-        self._boxes = ax.add_collection(
-            PolyCollection([], edgecolors="black", zorder=Z["box"], gid="agent-boxes"))
-        self._heads = ax.add_collection(LineCollection([], colors="black", linewidths=0.7, zorder=Z["head"]))
-        self._labels: dict[int, Text] = {}
+            linestyles="--", linewidths=0.6, zorder=Z["parked"], gid="parked-ghosts")
+        self._boxes = PolyCollection([], edgecolors="black", zorder=Z["box"], gid="agent-boxes")
+        self._heads = LineCollection([], colors="black", linewidths=0.7, zorder=Z["head"])
+        for collection in (self._trails, self._ghosts, self._boxes, self._heads):
+            ax.add_collection(collection)
+        self._labels: dict[int, Annotation] = {}
         for a in np.flatnonzero(self.numbers >= 0):
             n = int(self.numbers[a])
             face = vehicle_color(n)
@@ -103,11 +116,12 @@ class ScenePainter:
         self._events = {}
         for kind, s in EVENT_STYLE.items():
             # see-through faces, so that the agents at the place of the event still show
-            for age, size, face, edge in (("recent", 1.0, MARKER_FACE_ALPHA[0], 1.0),
-                                          ("past", 0.55, MARKER_FACE_ALPHA[1], 0.5)):
+            for age, size, face_alpha, edge_alpha in (("recent", 1.0, MARKER_FACE_ALPHA[0], 1.0),
+                                                      ("past", 0.55, MARKER_FACE_ALPHA[1], 0.5)):
                 self._events[kind, age] = ax.plot(
                     [], [], linestyle="none", marker=s["marker"], markersize=s["markersize"] * size,
-                    markerfacecolor=to_rgba(s["color"], face), markeredgecolor=to_rgba("black", edge),
+                    markerfacecolor=to_rgba(s["color"], face_alpha),
+                    markeredgecolor=to_rgba("black", edge_alpha),
                     markeredgewidth=0.9, zorder=Z["event"],
                     gid=f"event-{kind}" if age == "recent" else f"event-{kind}-past")[0]
         self._event_list = ax.text(
@@ -134,8 +148,8 @@ class ScenePainter:
         shown = np.flatnonzero(tracks.valid[:, index])
         xy, yaw, ext = tracks.xy[shown, index], tracks.yaw[shown, index], tracks.extent[shown]
         self._boxes.set_verts(list(box_corners(xy, yaw, ext)))
-        self._boxes.set_facecolor(self.colors[shown])
-        self._boxes.set_linewidth(self.edge_widths[shown])
+        self._boxes.set_facecolor(self.colors[shown])  # type: ignore[arg-type]  # (n, 4) RGBA: stubs omit arrays
+        self._boxes.set_linewidth(self.edge_widths[shown].tolist())
         nose = xy + rotate(np.stack([ext[:, 0] / 2.0, np.zeros(len(shown))], axis=-1), yaw)
         self._heads.set_segments(list(np.stack([xy, nose], axis=1)))
         if self.parked is not None:
@@ -145,11 +159,11 @@ class ScenePainter:
             self._ghosts.set_verts(list(corners))
         first = max(0, index - round(HISTORY_S / self.scene.dt_s))
         trails, trail_colors = [], []
-        for a in shown:
-            path = tracks.xy[a, first : index + 1][tracks.valid[a, first : index + 1]]
+        for agent in shown:
+            path = tracks.xy[agent, first : index + 1][tracks.valid[agent, first : index + 1]]
             if len(path) >= 2:
                 trails.append(path)
-                trail_colors.append((*self.colors[a][:3], 0.35))
+                trail_colors.append((*self.colors[agent][:3], 0.35))
         self._trails.set_segments(trails)
         self._trails.set_color(trail_colors)
         for a, label in self._labels.items():
