@@ -224,10 +224,10 @@ def test_evaluate_queries_fits_its_episodes_to_short_scenes(
     simple = PolicyFactory()
     calls: list[str] = []
 
-    def factory(*_: object) -> Callable[[str, object], object]:  # the model's methods as simple policies
-        def make(method: str, guidance: object) -> object:
+    def factory(*_: object, **__: object) -> Callable[[str, object, object], object]:  # as simple policies
+        def make(method: str, guidance: object, scope: object) -> object:
             calls.append(method)
-            return simple({"ctgpp": "constvel", "ctgpp-unguided": "replay"}[method], guidance)
+            return simple({"ctgpp": "constvel", "ctgpp-unguided": "replay"}[method], guidance, scope)
 
         return make
 
@@ -248,7 +248,7 @@ def test_evaluate_queries_fits_its_episodes_to_short_scenes(
     assert run(2.0) == 2  # 10 s: too short
     assert "7.0 s long" in capsys.readouterr().err and calls == []
     assert run(2.0, "--duration", "5") == 0
-    assert calls == ["ctgpp", "ctgpp-unguided"]
+    assert calls == ["ctgpp", "ctgpp"]  # guards on: the side without the query is the guards alone
     assert run(1.0, "--duration", "5") == 2  # 2 s of history by default
     assert "--start 1 is outside 2.0-2.0 s" in capsys.readouterr().err
     assert run(1.0, "--duration", "6", "--history", "1") == 0
