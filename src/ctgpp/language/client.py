@@ -3,7 +3,8 @@
 Configuration comes from flags or the environment, never module globals: ``OPENAI_BASE_URL``,
 ``OPENAI_API_KEY``, ``CTGPP_LLM_MODEL``, ``CTGPP_LLM_TIMEOUT`` and ``CTGPP_LLM_MAX_TOKENS`` (flags
 win). The defaults fit a small model on a CPU server as well as a hosted one: a request may take
-minutes (a cold ~6k-token prompt is read at 50-100 tokens/s on two cores), and one that times out is
+minutes (the cold ~8.5k-token prompt is read at 50-100 tokens/s on two quiet cores, at ~12 under
+load), and one that times out is
 never sent again (the server would still be busy with it); only a refused connection, HTTP 429 and
 5xx are retried. The ``openai`` package is an optional
 dependency (``pip install 'ctgpp[llm]'``), imported only when a client is built. Failures become an
