@@ -103,7 +103,8 @@ def test_repair_hints_cover_the_checks_refusals() -> None:
     assert repair_hint("import os is not allowed (only `import torch`, `import math`)") is None
 
 
-def test_the_result_states_the_fallback_and_keeps_the_rounds(server: CannedServer) -> None:
+def test_the_result_states_the_fallback_and_keeps_the_rounds(llm_env: CannedServer) -> None:
+    server = llm_env  # an empty program cache
     from ctgpp.api import simulate
 
     server.replies = [reply(FLAT)] * 3
@@ -117,13 +118,14 @@ def test_the_result_states_the_fallback_and_keeps_the_rounds(server: CannedServe
     assert result.record()["query"]["fallback"] == report["fallback"]  # metrics.json keeps it
 
 
-def test_evaluate_queries_measures_a_language_model(server: CannedServer, tmp_path: Any) -> None:
+def test_evaluate_queries_measures_a_language_model(llm_env: CannedServer, tmp_path: Any) -> None:
     """The query benchmark with a model: the guided loss is its program (accepted in round 2 after a
     repair here), the row keeps the path, rounds and seconds, and the table says so."""
     from ctgpp.data.catalog import Catalog
     from ctgpp.eval.queries import QueryCase, markdown_table, run_query_cases
     from ctgpp.sim.factory import PolicyFactory
 
+    server = llm_env  # an empty program cache
     server.replies = [reply(FLAT), reply(GOOD)]
     llm = LLMConfig(base_url=server.url, model=MODEL, api_key="k", timeout_s=20.0, max_retries=0)
     cases = [QueryCase("collision", QUERY, "scene-0103", 3.0)]
