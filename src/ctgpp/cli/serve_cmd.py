@@ -9,6 +9,8 @@ import argparse
 import os
 from pathlib import Path
 
+from ctgpp.cli.common import add_llm_args, llm_config
+
 SERVE_EXTRA = "ctgpp serve needs the web server packages: pip install 'ctgpp[serve]'"
 
 
@@ -36,14 +38,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         help="where each run's folder is written (rollout table, metrics.json, exports)",
     )
     p.add_argument("--workers", type=int, default=1, help="simulation processes (runs at once)")
-    p.add_argument(
-        "--llm-model",
-        default=None,
-        help="language model for sentences (default: env CTGPP_LLM_MODEL; none: the offline query compiler)",
-    )
-    p.add_argument(
-        "--llm-base-url", default=None, help="OpenAI-compatible endpoint (default: env OPENAI_BASE_URL)"
-    )
+    add_llm_args(p)
     p.set_defaults(run=run_serve)
 
 
@@ -63,10 +58,10 @@ def run_serve(args: argparse.Namespace) -> int:
         raise ValueError(f"{SERVE_EXTRA} ({err.name} is missing)") from None
     llm = None
     if args.llm_model or os.environ.get("CTGPP_LLM_MODEL"):  # resolving imports torch: only when named
-        from ctgpp.language.client import LLMConfig, LLMError
+        from ctgpp.language.client import LLMError
 
         try:
-            llm = LLMConfig.resolve(base_url=args.llm_base_url, model=args.llm_model)
+            llm = llm_config(args)
         except LLMError as err:
             raise ValueError(str(err)) from None
     config = ServeConfig(data=tuple(args.data), out=args.out, llm=llm, workers=args.workers)
