@@ -5,12 +5,12 @@ example runs, light commands start without torch, every --help shows its default
 from __future__ import annotations
 
 import argparse
+import csv
 import json
 import re
 import shutil
 import subprocess
 import sys
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -82,6 +82,59 @@ def test_user_mistakes_are_one_line_value_errors() -> None:
         ctgpp.simulate("0103", rules=["speed_limit:limit_mps=x"], policy="replay")
     with pytest.raises(KeyError, match="scene-9999"):
         ctgpp.load_scene("scene-9999")
+
+
+def test_evaluate_and_evaluate_queries_run_the_episodes_of_simulate(tmp_path: Path) -> None:
+    """``ctgpp evaluate-queries`` with its defaults simulates each case as ``ctgpp.simulate`` does with
+    its own (the real model, guards on): the guided row is the API's episode for the same case and
+    seed to the last digit (another seed's differs), the unguided one the API's without the query;
+    ``ctgpp evaluate``'s row under a rule is the API's episode with that rule."""
+    from ctgpp.eval.episode import Episode, episode_rule, run_episode
+    from ctgpp.eval.records import metric_cell
+    from ctgpp.sim.factory import PolicyFactory
+
+    query, start, seconds = "vehicle 1 should collide with vehicle 2", 3.0, 2.0
+    cases = tmp_path / "cases.json"
+    case = {"family": "collision", "query": query, "scene": "scene-0103", "start_s": start}
+    cases.write_text(json.dumps([case]))
+    out = tmp_path / "q"
+    assert main(["evaluate-queries", "--cases", str(cases), "--duration", "2", "--out", str(out)]) == 0
+    with (out / "queries.csv").open(newline="") as f:
+        (row,) = list(csv.DictReader(f))
+
+    def same(result: ctgpp.Result, side: str) -> None:
+        assert row[f"fail_{side}"] == metric_cell(result.metrics["fail"])
+        assert row[f"real_{side}"] == metric_cell(result.metrics["real"]) != ""
+
+    guided = ctgpp.simulate("scene-0103", query, seed=0, start_s=start, duration_s=seconds)
+    same(guided, "guided")
+    assert guided.query is not None and row["path"] == "compiler" and row["rounds"] == "0"
+    checks = [f"[{'ok' if p['satisfied'] else 'no'}] {p['measured']}" for p in guided.query["parts"]]
+    assert row["measured_guided"] == "; ".join(checks)
+    assert row["satisfied_guided"] == str(int(guided.query["satisfied"]))
+    same(ctgpp.simulate("scene-0103", seed=0, start_s=start, duration_s=seconds), "unguided")
+    other = ctgpp.simulate("scene-0103", query, seed=1, start_s=start, duration_s=seconds)
+    assert metric_cell(other.metrics["real"]) != row["real_guided"]
+
+    scene = ctgpp.load_scene("scene-0103")
+    ep = Episode("ctgpp", "speed_limit", scene.id, start, 0, "mini_val", seconds)
+    evaluated = run_episode(scene, ep, PolicyFactory())  # evaluate's factory: no guards
+    spec = episode_rule(scene, start, "speed_limit", episode_config(scene, seconds))
+    assert spec is not None and spec.measure is not None
+    limit = f"speed_limit:limit_mps={spec.measure.params['limit_mps']!r}"  # the rule as text
+    api = ctgpp.simulate(scene, rules=[limit], seed=0, start_s=start, duration_s=seconds, guards="off")
+    assert evaluated.row["real"] == metric_cell(api.metrics["real"]) != ""
+    assert evaluated.row["rule_violation"] == metric_cell(api.rules[limit]["violation"])
+
+
+def test_simulate_takes_a_policy_factory_and_no_settings_beside_it() -> None:
+    from ctgpp.sim.factory import PolicyFactory
+
+    factory = PolicyFactory()
+    result = ctgpp.simulate("0103", policy="constvel", start_s=4.0, duration_s=1.0, policies=factory)
+    assert result.policy == "constvel" and result.guards["ran"] == []
+    with pytest.raises(ValueError, match="give checkpoint, guards to the PolicyFactory"):
+        ctgpp.simulate("0103", policy="constvel", guards="off", checkpoint="x", policies=factory)
 
 
 def test_readme_python_example_runs(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -219,19 +272,21 @@ def test_evaluate_queries_fits_its_episodes_to_short_scenes(
     """--duration and --history reach evaluate-queries: the 7 s scene hosts a query's 5-s episodes
     from 2 s on, 6-s ones from 1 s on with 1 s of history; 10 s is refused before any simulation."""
     from ctgpp.cli import queries_cmd
+    from ctgpp.guidance.base import GuidanceLoss
+    from ctgpp.guidance.scope import LossScope
+    from ctgpp.interfaces import Policy
     from ctgpp.sim.factory import PolicyFactory
 
-    simple = PolicyFactory()
     calls: list[str] = []
 
-    def factory(*_: object, **__: object) -> Callable[[str, object, object], object]:  # as simple policies
-        def make(method: str, guidance: object, scope: object) -> object:
-            calls.append(method)
-            return simple({"ctgpp": "constvel", "ctgpp-unguided": "replay"}[method], guidance, scope)
+    class Simple(PolicyFactory):  # the command's factory, with simple policies for the model's
+        def __call__(
+            self, name: str, guidance: GuidanceLoss | None = None, scope: LossScope | None = None
+        ) -> Policy:
+            calls.append(name)
+            return super().__call__({"ctgpp": "constvel", "ctgpp-unguided": "replay"}[name], guidance, scope)
 
-        return make
-
-    monkeypatch.setattr(queries_cmd, "PolicyFactory", factory)
+    monkeypatch.setattr(queries_cmd, "PolicyFactory", Simple)
     cases = tmp_path / "cases.json"
 
     def run(start_s: float, *flags: str) -> int:

@@ -16,20 +16,23 @@ from ctgpp.eval.records import append_json_lines, metric_cell, read_json_lines
 from ctgpp.eval.runner import KEY, METRICS, EvalSet, plan_episodes, read_records, run_episodes
 from ctgpp.eval.table import markdown_table, summarize
 from ctgpp.guidance.base import GuidanceLoss
+from ctgpp.guidance.scope import LossScope
 from ctgpp.sim.factory import PolicyFactory, default_checkpoint
 from ctgpp.sim.policy import Policy
 
 
-class CountingFactory:
+class CountingFactory(PolicyFactory):
     """Builds the simple policies and counts the episodes it was asked for."""
 
     def __init__(self) -> None:
-        self.factory = PolicyFactory()
+        super().__init__()
         self.calls = 0
 
-    def __call__(self, name: str, guidance: GuidanceLoss | None) -> Policy:
+    def __call__(
+        self, name: str, guidance: GuidanceLoss | None = None, scope: LossScope | None = None
+    ) -> Policy:
         self.calls += 1
-        return self.factory(name, guidance)
+        return super().__call__(name, guidance, scope)
 
 
 @pytest.fixture(scope="module")
@@ -70,19 +73,22 @@ def test_rules_are_measured_and_the_collision_pair_is_exempt(catalog: Catalog, t
     assert "| speed_limit | constvel |" in table
 
 
-class LoggingFactory:
+class LoggingFactory(PolicyFactory):
     """Builds the simple policies and appends a line to ``log`` per episode: it counts across worker
     processes (each gets a pickled copy); ``fail_on`` names a method that raises a user error."""
 
     def __init__(self, log: Path, fail_on: str | None = None) -> None:
+        super().__init__()
         self.log, self.fail_on = log, fail_on
 
-    def __call__(self, name: str, guidance: GuidanceLoss | None) -> Policy:
+    def __call__(
+        self, name: str, guidance: GuidanceLoss | None = None, scope: LossScope | None = None
+    ) -> Policy:
         with self.log.open("a") as f:
             f.write(f"{name}\n")
         if name == self.fail_on:
             raise ValueError("no such model")
-        return PolicyFactory()(name, guidance)
+        return super().__call__(name, guidance, scope)
 
     def calls(self) -> int:
         return len(self.log.read_text().splitlines()) if self.log.exists() else 0

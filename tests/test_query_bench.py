@@ -30,16 +30,18 @@ ISSUE_FAMILIES = {
 }
 
 
-class CountingFactory:
+class CountingFactory(PolicyFactory):
     """Builds the simple policies and records which ones it was asked for."""
 
     def __init__(self) -> None:
-        self.factory = PolicyFactory()
+        super().__init__()
         self.calls: list[tuple[str, bool]] = []
 
-    def __call__(self, name: str, guidance: GuidanceLoss | None, scope: LossScope | None) -> Policy:
+    def __call__(
+        self, name: str, guidance: GuidanceLoss | None = None, scope: LossScope | None = None
+    ) -> Policy:
         self.calls.append((name, guidance is not None))
-        return self.factory(name, guidance, scope)
+        return super().__call__(name, guidance, scope)
 
 
 @pytest.fixture(scope="module")

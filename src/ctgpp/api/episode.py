@@ -1,9 +1,11 @@
 """One guided closed-loop episode from Python: :func:`load_scene` and :func:`simulate`.
 
-This is the orchestration ``ctgpp simulate`` runs (the CLI parses its flags into these arguments and
-writes the :class:`~ctgpp.api.result.Result` as files): the rules and the query become one guidance
-loss, the realism guards go around it, the policy drives every vehicle present at the start for
-``duration_s`` seconds, and the rollout is measured.
+This is the one orchestration of an episode: the rules and the query become one guidance loss (a
+language model's program that fails during sampling is replaced by the compiler's and the episode
+simulated again), the realism guards go around it, the policy drives every vehicle present at the start
+for ``duration_s`` seconds, and the rollout is measured. ``ctgpp simulate`` parses its flags into these
+arguments and writes the :class:`~ctgpp.api.result.Result` as files; ``ctgpp evaluate`` and
+``ctgpp evaluate-queries`` call it for each of their episodes with their own policy factory.
 """
 
 from __future__ import annotations
@@ -45,7 +47,7 @@ from ctgpp.sim.closed_loop import (
 )
 from ctgpp.sim.closed_loop import simulate as run_closed_loop
 from ctgpp.sim.diffusion_policy import SamplingConfig
-from ctgpp.sim.factory import GUARDED_POLICIES, POLICY_NAMES, make_policy
+from ctgpp.sim.factory import GUARDED_POLICIES, POLICY_NAMES, UNGUIDED_POLICIES, PolicyFactory
 
 log = logging.getLogger(__name__)
 
@@ -81,7 +83,7 @@ def default_scene_id(catalog: Catalog, duration_s: float = DURATION_S) -> str:
 def simulate(
     scene: Scene | str,
     query: str | None = None,
-    rules: Sequence[str] = (),
+    rules: Sequence[str | RuleSpec] = (),
     policy: str = "ctgpp",
     seed: int = 0,
     *,
@@ -92,7 +94,8 @@ def simulate(
     checkpoint: str | Path | None = None,
     sampling: SamplingConfig | None = None,
     guidance: GuidanceConfig | None = None,
-    guards: str | GuardConfig = "on",
+    guards: str | GuardConfig | None = None,
+    policies: PolicyFactory | None = None,
     llm: LLMConfig | None = None,
     progress: bool = False,
     echo: Echo | None = None,
@@ -103,15 +106,21 @@ def simulate(
     scene: a :class:`~ctgpp.scene.types.Scene` or a scene id of ``data`` (None: the embedded data).
     query: a sentence, e.g. ``"vehicle 1 should collide with vehicle 2"`` (vehicles are the numbers of
     ``ctgpp show``): compiled offline, or by the language model ``llm`` when given. rules: rules as
-    ``ctgpp simulate --rule`` writes them, e.g. ``"speed_limit:limit_mps=3"`` (all must hold; see
-    ``ctgpp rules``). policy: one of ``POLICY_NAMES`` (``ctgpp``, ``replay``, ``constvel``, the
-    ablations and baselines); only the diffusion policies are guided, the others are only measured.
+    ``ctgpp simulate --rule`` writes them, e.g. ``"speed_limit:limit_mps=3"``, or already made for
+    the episode (a :class:`~ctgpp.eval.rule_setup.RuleSpec`, e.g. an evaluation rule of
+    :func:`~ctgpp.eval.rule_setup.setup_rule`); all must hold (see ``ctgpp rules``). policy: one of
+    ``POLICY_NAMES`` (``ctgpp``, ``replay``, ``constvel``, the ablations and baselines); ``replay``,
+    ``constvel`` and ``ctgpp-unguided`` are not guided, the rules and the query are only measured.
     seed: the sampling seed (same arguments and seed, same rollout). start_s: the simulation start
     in s of the scene (default: the earliest). duration_s: simulated seconds (default 10).
     history_s: logged seconds before the start (default 3 s, less down to 1 s where the scene is
     short). checkpoint: the model directory (default: the shipped model). sampling, guidance: the
     sampler and Algorithm 2's settings (default: the ``fast`` preset). guards: the realism guards,
-    ``"on"``, ``"off"`` or a comma-separated subset of ``offroad,collision,lane``. progress: a
+    ``"on"`` (default), ``"off"`` or a comma-separated subset of ``offroad,collision,lane``.
+    policies: the :class:`~ctgpp.sim.factory.PolicyFactory` that makes the policy, for many episodes
+    (its models load once; ``ctgpp evaluate`` and ``evaluate-queries`` pass theirs); it holds the
+    checkpoints, the sampler, Algorithm 2's settings and the guards, so ``checkpoint``, ``sampling``,
+    ``guidance`` and ``guards`` are then not given (ValueError). Default: a factory of those. progress: a
     progress bar over the re-plans. echo: called with each line worth telling (the query's loss).
     on_replan: called as ``on_replan(done, total)`` after each re-plan (what ``ctgpp serve`` shows;
     an exception it raises stops the episode).
@@ -132,10 +141,8 @@ def simulate(
     controlled = controlled_vehicles(scene, step0)
     if len(controlled) == 0:
         raise ValueError(f"scene {scene.id} has no vehicle at {start:g} s: nothing to simulate")
-    guard_config = guards if isinstance(guards, GuardConfig) else _parse_guards(guards)
-    sampling = SamplingConfig() if sampling is None else sampling
-    guidance = GuidanceConfig() if guidance is None else guidance
-    specs = [_rule(text, scene, step0, controlled) for text in rules]
+    factory = _factory(policy, policies, checkpoint, sampling, guidance, guards)
+    specs = [rule if isinstance(rule, RuleSpec) else _rule(rule, scene, step0, controlled) for rule in rules]
     query_loss = None
     if query:
         query_loss = resolve_query(query, initial_observation(scene, start, config), llm)
@@ -149,11 +156,10 @@ def simulate(
         scope = scope.union(item)
 
     def episode(loss: GuidanceLoss | None) -> tuple[Policy, Rollout]:
-        made = make_policy(policy, None if checkpoint is None else Path(checkpoint), sampling, loss,
-                           guidance, guard_config, scope)
+        made = factory(policy, loss, scope)
         return made, _run(scene, made, start, seed, config, progress, on_replan)
 
-    if losses and policy != "ctgpp":
+    if losses and policy in UNGUIDED_POLICIES:
         say(f"policy {policy} is not guided: the rules and the query are only measured")
     try:
         used, rollout = episode(_combined(losses))
@@ -176,7 +182,33 @@ def simulate(
         rules={spec.description: _rule_record(spec, rollout) for spec in specs},
         fail_excluding_rule_pairs=_fail_excluding(specs, rollout),
         query=None if query_loss is None or query is None else _query_report(query, query_loss, rollout),
-        guards=_guards_record(policy, used, guard_config, scope, scene, step0),
+        guards=_guards_record(policy, used, factory.guards, scope, scene, step0),
+    )
+
+
+def _factory(
+    policy: str,
+    policies: PolicyFactory | None,
+    checkpoint: str | Path | None,
+    sampling: SamplingConfig | None,
+    guidance: GuidanceConfig | None,
+    guards: str | GuardConfig | None,
+) -> PolicyFactory:
+    """``policies``, or the factory of ``policy`` with these settings when it is None."""
+    if policies is not None:
+        given = [name for name, value in (("checkpoint", checkpoint), ("sampling", sampling),
+                                          ("guidance", guidance), ("guards", guards)) if value is not None]
+        if given:
+            raise ValueError(f"simulate: give {', '.join(given)} to the PolicyFactory passed as policies")
+        return policies
+    if not isinstance(guards, GuardConfig):
+        guards = _parse_guards("on" if guards is None else guards)
+    return PolicyFactory.of(
+        policy,
+        None if checkpoint is None else Path(checkpoint),
+        SamplingConfig() if sampling is None else sampling,
+        GuidanceConfig() if guidance is None else guidance,
+        guards,
     )
 
 

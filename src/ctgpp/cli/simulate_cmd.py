@@ -24,7 +24,7 @@ from ctgpp.cli.common import (
     sampling_config,
 )
 from ctgpp.io.atomic import check_output_dir, staged_dir, write_text_atomic
-from ctgpp.io.export import EXPORT_KINDS, check_export_kind, export, export_name
+from ctgpp.io.export import EXPORT_KINDS, check_export_kind, export_name
 from ctgpp.io.strict_json import dumps_strict
 from ctgpp.sim.factory import POLICY_NAMES
 
@@ -128,7 +128,7 @@ def run_simulate(args: argparse.Namespace) -> int:
         if args.animation != "none":
             files.append(result.animate(stage.path(f"rollout.{args.animation}")))
         for kind in dict.fromkeys(args.export):
-            files.append(export(result.rollout, kind, stage.path(export_name(kind, scene.id))))
+            files.append(result.export(kind, stage.path(export_name(kind, scene.id))))
         files = [stage.final(f) for f in files]
     metrics = result.metrics
     print(f"{scene.id} from {result.start_s:g} s for {result.duration_s:g} s, "

@@ -8,17 +8,16 @@ them, ``metrics.moving``) and the histograms of the realism statistics behind ``
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from ctgpp.api.episode import simulate
 from ctgpp.data.catalog import Catalog
 from ctgpp.eval.records import metric_cell
 from ctgpp.eval.rule_setup import RuleSpec, setup_rule
-from ctgpp.guidance.base import GuidanceLoss
-from ctgpp.interfaces import Policy, Rollout
-from ctgpp.metrics import MOVING_COUNTS, MOVING_METRICS, compute_metrics, moving_counts
+from ctgpp.interfaces import Rollout
+from ctgpp.metrics import MOVING_COUNTS, MOVING_METRICS, moving_counts
 from ctgpp.metrics.realism import (
     FEATURES,
     bin_counts,
@@ -28,14 +27,14 @@ from ctgpp.metrics.realism import (
 )
 from ctgpp.scene.types import Scene
 from ctgpp.scene.vehicles import controlled_vehicles
-from ctgpp.sim.closed_loop import DURATION_S, SimConfig, episode_config, simulate, start_step
+from ctgpp.sim.closed_loop import DURATION_S, SimConfig, episode_config, start_step
+from ctgpp.sim.factory import PolicyFactory
 
 NO_RULE = "none"
 KEY = ("set", "method", "rule", "scene", "start_s", "seed")
 METRICS = ("fail", "collision_rate", "offroad_rate", "real", "rel_real", "rule_violation")
 FIELDS = (*KEY, "vehicles", *METRICS, *MOVING_COUNTS, *MOVING_METRICS)
 STATISTICS = ("real", "rel_real")  # the realism metrics whose histograms are kept
-PolicyMaker = Callable[[str, GuidanceLoss | None], Policy]
 
 
 @dataclass(frozen=True)
@@ -124,26 +123,25 @@ def realism_histograms(rollout: Rollout) -> dict[str, dict[str, dict[str, list[i
     return out
 
 
-def run_episode(scene: Scene, ep: Episode, make_policy: PolicyMaker) -> EpisodeResult:
-    """Simulate ``ep`` on ``scene`` and measure it.
+def run_episode(scene: Scene, ep: Episode, policies: PolicyFactory) -> EpisodeResult:
+    """Simulate ``ep`` on ``scene`` (:func:`ctgpp.simulate`, guided by the episode's rule) and measure it.
 
-    ``make_policy(method, guidance)`` builds the episode's policy; the guidance is the episode's rule
-    loss. Under a rule, ``fail`` leaves out the pair a collision rule asks to crash, and
-    ``rule_violation`` is the rule's measure (appendix E); the figures over the moving vehicles count
-    every one of them, that pair too.
+    ``policies`` makes the episode's policy (with the evaluation's checkpoints, sampler and guards).
+    Under a rule, ``fail`` leaves out the pair a collision rule asks to crash, and ``rule_violation``
+    is the rule's measure (appendix E); the figures over the moving vehicles count every one of them,
+    that pair too.
     """
-    config = episode_config(scene, ep.duration_s)
-    spec = episode_rule(scene, ep.start_s, ep.rule, config)
-    policy = make_policy(ep.method, None if spec is None else spec.loss)
-    rollout = simulate(scene, policy, ep.start_s, seed=ep.seed, config=config)
-    metrics = compute_metrics(rollout, METRICS[:-1])
+    spec = episode_rule(scene, ep.start_s, ep.rule, episode_config(scene, ep.duration_s))
+    result = simulate(scene, rules=() if spec is None else (spec,), policy=ep.method, seed=ep.seed,
+                      start_s=ep.start_s, duration_s=ep.duration_s, policies=policies)
+    rollout = result.rollout
+    metrics = {name: result.metrics[name] for name in (*METRICS[:-1], *MOVING_METRICS)}
     if spec is not None:
         metrics["fail"] = spec.fail(rollout)
-        metrics["rule_violation"] = spec.violation(rollout)
+        metrics["rule_violation"] = result.rules[spec.description]["violation"]
     row = dict(zip(KEY, ep.key, strict=True))
-    row["vehicles"] = str(int(rollout.controlled.sum()))
+    row["vehicles"] = str(result.num_vehicles)
     row.update({k: str(v) for k, v in moving_counts(rollout).items()})
-    metrics.update(compute_metrics(rollout, MOVING_METRICS))
     row.update({k: metric_cell(v) for k, v in metrics.items()})  # undefined: empty
     return EpisodeResult(row, realism_histograms(rollout))
 

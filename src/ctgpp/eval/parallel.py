@@ -1,7 +1,7 @@
 """Episodes over worker processes; the parent alone writes the results, so files never interleave.
 
 Each worker (a fresh interpreter: spawn) opens the catalogs of the sets and keeps its own copy of the
-policy maker (so a PolicyFactory loads each model once per worker), runs one torch thread, and takes
+policy factory (so it loads each model once per worker), runs one torch thread, and takes
 episodes from a shared queue one at a time, so that fast and slow episodes balance out. Finished
 episodes come back in the order they finish. A worker whose parent is gone stops at its next episode;
 Ctrl-C is left to the parent, which ends the workers. Errors come back labelled with their episode.
@@ -26,13 +26,13 @@ from ctgpp.eval.episode import (
     USER_ERRORS,
     Episode,
     EpisodeResult,
-    PolicyMaker,
     episode_failure,
     message_of,
     run_episode,
     user_error_kind,
 )
 from ctgpp.scene.types import Scene
+from ctgpp.sim.factory import PolicyFactory
 
 POLL_S = 1.0  # how often a waiting worker checks its parent, and the parent its workers
 
@@ -55,12 +55,12 @@ class EpisodeFailed:
 def parallel_results(
     todo: Sequence[Episode],
     roots: Mapping[str, Path],
-    make_policy: PolicyMaker,
+    policies: PolicyFactory,
     workers: int,
 ) -> Generator[EpisodeResult, None, None]:
     """Run ``todo`` on ``workers`` processes and yield each result as it arrives.
 
-    ``roots`` maps each set name to its data directory; ``make_policy`` must be picklable (a
+    ``roots`` maps each set name to its data directory; ``policies`` is pickled for each worker (a
     PolicyFactory that has loaded no model yet is cheap to send). The first failed episode stops the
     run: the workers are ended and its error is raised (a user error keeps its builtin kind). Closing
     the iterator early also ends the workers; episodes in flight are lost, nothing else.
@@ -76,7 +76,7 @@ def parallel_results(
     procs = [
         ctx.Process(
             target=_worker,
-            args=(make_policy, dict(roots), tasks, results, os.getpid()),
+            args=(policies, dict(roots), tasks, results, os.getpid()),
             name=f"ctgpp-eval-{k}",
             daemon=True,
         )
@@ -119,7 +119,7 @@ def _next_result(results: mp.Queue, procs: Sequence[BaseProcess]) -> EpisodeResu
 
 
 def _worker(
-    make_policy: PolicyMaker,
+    policies: PolicyFactory,
     roots: dict[str, Path],
     tasks: mp.Queue,
     results: mp.Queue,
@@ -142,7 +142,7 @@ def _worker(
                 if ep.set not in catalogs:
                     catalogs[ep.set] = Catalog.open(roots[ep.set])
                 loaded = ((ep.set, ep.scene), catalogs[ep.set].load(ep.scene))
-            results.put(run_episode(loaded[1], ep, make_policy))
+            results.put(run_episode(loaded[1], ep, policies))
         except Exception as err:  # reported to the parent, which stops the run
             kind = user_error_kind(err)
             results.put(

@@ -16,27 +16,27 @@ from __future__ import annotations
 import json
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import partial
 from importlib import resources
 from pathlib import Path
+from typing import Any
 
 from tqdm import tqdm
 
+from ctgpp.api.episode import simulate
+from ctgpp.api.result import Result
 from ctgpp.data.catalog import Catalog
 from ctgpp.eval.records import append_records, metric_cell, read_records, record_key
-from ctgpp.guidance.base import GuidanceLoss
-from ctgpp.guidance.scope import LossScope
-from ctgpp.interfaces import Policy, Rollout
 from ctgpp.language.client import LLMConfig
 from ctgpp.language.compiler import CompiledQuery
-from ctgpp.language.query import QueryLoss, fall_back, resolve_query
-from ctgpp.language.remote import GeneratedLossError
+from ctgpp.language.query import resolve_query
 from ctgpp.language.satisfaction import check_satisfied
-from ctgpp.metrics import compute_metrics
 from ctgpp.metrics.rules import fail_excluding
 from ctgpp.scene.types import Scene
-from ctgpp.sim.closed_loop import DURATION_S, SimConfig, episode_config, initial_observation, simulate
+from ctgpp.sim.closed_loop import DURATION_S, SimConfig, episode_config, initial_observation
+from ctgpp.sim.factory import PolicyFactory
 
 KEY = ("family", "query", "scene", "start_s", "seed")
 SIDES = ("guided", "unguided")
@@ -47,7 +47,6 @@ FIELDS = (*KEY, "vehicles", *(f"{m}_{s}" for m in MEASURED for s in SIDES), "pat
           "wall_s")
 # parameters naming the vehicles that a collision part asks to crash (left out of fail_excl)
 COLLIDING = {"collision": ("vehicle_a", "vehicle_b"), "collide_from_behind": ("vehicle", "target")}
-PolicyMaker = Callable[[str, GuidanceLoss | None, LossScope | None], Policy]
 
 
 @dataclass(frozen=True)
@@ -95,9 +94,9 @@ def colliding_vehicles(compiled: CompiledQuery) -> list[int]:
 
 
 def _compile(scene: Scene, case: QueryCase, config: SimConfig) -> CompiledQuery:
-    """The offline compilation of a case's query on its episode (a fresh loss: committed lane rules
-    keep per-episode state). Raises a ValueError naming the case when the query does not compile or
-    the scene cannot host the episode."""
+    """The offline compilation of a case's query on its episode, whose parts the independent check
+    measures. Raises a ValueError naming the case when the query does not compile or the scene cannot
+    host the episode."""
     try:
         compiled = resolve_query(case.query, initial_observation(scene, case.start_s, config), None).compiled
     except ValueError as err:
@@ -110,15 +109,16 @@ def _fmt(value: float) -> str:
     return metric_cell(value)
 
 
-def _measure(rollout: Rollout, compiled: CompiledQuery, side: str) -> dict[str, str]:
-    parts = check_satisfied(rollout, compiled)
-    metrics = compute_metrics(rollout, ("fail", "real"))
+def _measure(result: Result, compiled: CompiledQuery, side: str) -> dict[str, str]:
+    """The columns of one side: the compiled query's independent check of the episode, its fail rate
+    (without the pair asked to collide too) and ``real``."""
+    parts = check_satisfied(result.rollout, compiled)
     exempt = colliding_vehicles(compiled)
     return {
         f"satisfied_{side}": str(int(all(p.satisfied for p in parts))),
-        f"fail_{side}": _fmt(metrics["fail"]),
-        f"fail_excl_{side}": _fmt(fail_excluding(rollout, exempt)) if exempt else "",
-        f"real_{side}": _fmt(metrics["real"]),
+        f"fail_{side}": _fmt(result.metrics["fail"]),
+        f"fail_excl_{side}": _fmt(fail_excluding(result.rollout, exempt)) if exempt else "",
+        f"real_{side}": _fmt(result.metrics["real"]),
         f"measured_{side}": "; ".join(f"[{'ok' if p.satisfied else 'no'}] {p.measured}" for p in parts),
     }
 
@@ -126,7 +126,7 @@ def _measure(rollout: Rollout, compiled: CompiledQuery, side: str) -> dict[str, 
 def run_query_cases(
     catalog: Catalog,
     cases: Sequence[QueryCase],
-    make_policy: PolicyMaker,
+    policies: PolicyFactory,
     results: Path,
     seeds: Sequence[int] = (0,),
     methods: tuple[str, str] = ("ctgpp", "ctgpp-unguided"),
@@ -137,80 +137,56 @@ def run_query_cases(
 ) -> list[dict[str, str]]:
     """Simulate every case × seed not yet in ``results`` guided and unguided; append one row each.
 
-    ``make_policy(method, guidance, scope)`` builds a policy; ``methods`` are the guided and the
-    unguided method names (the unguided one gets no guidance: with guards in the factory, "ctgpp"
-    there is the guards alone). Episodes run ``duration_s`` simulated seconds after ``history_s`` of
-    log (None: 3 s, less down to 1 s where a scene is short; the duration is not part of a row's key:
-    one duration per ``results`` file). Every query is compiled, and every episode fitted to its
-    scene, before any simulation, so a bad case fails at once. With ``llm`` the guided loss is the
-    language model's program (the compiler's when the model's fails, as ``ctgpp simulate`` does);
-    the verdict is always the compiled query's independent check. Returns every finished row of
-    ``results`` (:data:`FIELDS`).
+    Each episode is :func:`ctgpp.simulate`'s with the policies of ``policies``: the guided one is
+    ``simulate(scene, case.query, policy=methods[0], ...)``, the unguided one ``simulate(scene,
+    policy=methods[1], ...)`` (no query: with guards in the factory, "ctgpp" there is the guards
+    alone). Episodes run ``duration_s`` simulated seconds after ``history_s`` of log (None: 3 s, less
+    down to 1 s where a scene is short; the duration is not part of a row's key: one duration per
+    ``results`` file). Every query is compiled, and every episode fitted to its scene, before any
+    simulation, so a bad case fails at once. With ``llm`` the guided loss is the language model's
+    program (the compiler's when the model's fails, as ``ctgpp simulate`` does); the verdict is always
+    the compiled query's independent check. Returns every finished row of ``results`` (:data:`FIELDS`).
     """
     scenes = {sid: catalog.load(sid) for sid in dict.fromkeys(c.scene for c in cases)}
     configs = {sid: episode_config(scene, duration_s, history_s) for sid, scene in scenes.items()}
-    for case in cases:
-        _compile(scenes[case.scene], case, configs[case.scene])
+    compiled = {case: _compile(scenes[case.scene], case, configs[case.scene]) for case in cases}
     done = {record_key(r, KEY) for r in read_records(results, KEY)}
     todo = [(c, s) for c in cases for s in seeds if c.key(s) not in done]
-    unguided: dict[tuple[str, float, int], Rollout] = {}
+    unguided: dict[tuple[str, float, int], Result] = {}
     with append_records(results, FIELDS) as write:
         for case, seed in tqdm(todo, desc="query cases", unit="case", disable=not progress):
             began = time.perf_counter()
-            scene, config = scenes[case.scene], configs[case.scene]
-            compiled = _compile(scene, case, config)
-            query = _query_loss(scene, case, config, compiled, llm)
-            try:
-                guided, query = _guided(scene, case, seed, config, query, make_policy, methods[0])
-            finally:
-                query.close()
+            scene = scenes[case.scene]
+            episode = partial(simulate, scene, seed=seed, start_s=case.start_s, duration_s=duration_s,
+                              history_s=history_s, policies=policies)
+            guided = episode(case.query, policy=methods[0], llm=llm)
             base_key = (case.scene, case.start_s, seed)
             if base_key not in unguided:
-                base = make_policy(methods[1], None, None)
-                unguided[base_key] = simulate(scene, base, case.start_s, seed, config)
+                unguided[base_key] = episode(policy=methods[1])
             row = dict(zip(KEY, case.key(seed), strict=True))
-            row["vehicles"] = str(int(guided.controlled.sum()))
-            row.update(_measure(guided, compiled, "guided"))
-            row.update(_measure(unguided[base_key], compiled, "unguided"))
-            row.update(_provenance(query))
+            row["vehicles"] = str(guided.num_vehicles)
+            row.update(_measure(guided, compiled[case], "guided"))
+            row.update(_measure(unguided[base_key], compiled[case], "unguided"))
+            assert guided.query is not None  # a query was given
+            row.update(_provenance(guided.query))
             row["wall_s"] = f"{time.perf_counter() - began:.1f}"
             write(row)
     return read_records(results, KEY)
 
 
-def _query_loss(scene: Scene, case: QueryCase, config: SimConfig, compiled: CompiledQuery,
-                llm: LLMConfig | None) -> QueryLoss:
-    """The guided loss of a case: the compiled query's, or the language model's program."""
-    if llm is None:
-        return QueryLoss(compiled.loss, compiled.code, "offline query compiler", compiled)
-    return resolve_query(case.query, initial_observation(scene, case.start_s, config), llm)
-
-
-def _guided(scene: Scene, case: QueryCase, seed: int, config: SimConfig, query: QueryLoss,
-            make_policy: PolicyMaker, method: str) -> tuple[Rollout, QueryLoss]:
-    """The guided episode; a language model's program stopped during sampling is replaced by the
-    compiler's loss and the episode simulated again (:func:`fall_back`)."""
-    def run(q: QueryLoss) -> Rollout:
-        return simulate(scene, make_policy(method, q.loss, q.scope), case.start_s, seed, config)
-
-    try:
-        return run(query), query
-    except GeneratedLossError as err:
-        query = fall_back(query, err)
-        return run(query), query
-
-
-def _provenance(query: QueryLoss) -> dict[str, str]:
-    """Where the guided loss came from: path (compiler, llm, cache, fallback), the model's replies and
-    their seconds."""
-    if query.fallback is not None:
-        path = "fallback"
-    elif query.path.startswith("language model"):
-        path = "cache" if query.path.endswith("(cache)") else "llm"
+def _provenance(report: dict[str, Any]) -> dict[str, str]:
+    """Where the guided loss came from (the query's report of :class:`~ctgpp.api.result.Result`):
+    path (compiler, llm, cache, fallback), the model's replies and their seconds."""
+    path: str = report["path"]
+    if report["fallback"] is not None:
+        kind = "fallback"
+    elif path.startswith("language model"):
+        kind = "cache" if path.endswith("(cache)") else "llm"
     else:
-        path = "compiler"
-    seconds = sum(float(r["seconds"]) for r in query.rounds)
-    return {"path": path, "rounds": str(len(query.rounds)), "llm_s": f"{seconds:.1f}" if query.rounds else ""}
+        kind = "compiler"
+    rounds = report["rounds"]
+    seconds = sum(float(r["seconds"]) for r in rounds)
+    return {"path": kind, "rounds": str(len(rounds)), "llm_s": f"{seconds:.1f}" if rounds else ""}
 
 
 def _mean(rows: list[dict[str, str]], column: str) -> float:

@@ -23,7 +23,6 @@ from ctgpp.eval.episode import (
     Episode,
     EpisodeResult,
     EvalSet,
-    PolicyMaker,
     episode_failure,
     episode_rule,
     message_of,
@@ -35,6 +34,7 @@ from ctgpp.eval.records import append_json_lines, append_records, record_key
 from ctgpp.eval.records import read_records as read_csv_records
 from ctgpp.scene.types import Scene
 from ctgpp.sim.closed_loop import DURATION_S, EpisodeError, SimConfig, episode_config, episode_starts
+from ctgpp.sim.factory import PolicyFactory
 
 __all__ = [
     "KEY",
@@ -134,7 +134,7 @@ def read_records(path: Path) -> list[dict[str, str]]:
 def run_episodes(
     catalogs: Catalog | Mapping[str, Catalog],
     episodes: Sequence[Episode],
-    make_policy: PolicyMaker,
+    policies: PolicyFactory,
     results: Path,
     progress: bool = True,
     workers: int = 1,
@@ -142,9 +142,9 @@ def run_episodes(
 ) -> list[dict[str, str]]:
     """Simulate every episode not yet in ``results`` and append its metrics; return all records.
 
-    ``catalogs`` maps each set name to its catalog (one Catalog: every episode's). ``make_policy
-    (method, guidance)`` builds the episode's policy; with ``workers`` > 1 it must be picklable and
-    each worker process gets its own copy. ``realism``, when given, is the JSON-lines file of the
+    ``catalogs`` maps each set name to its catalog (one Catalog: every episode's). ``policies``
+    makes each episode's policy (:func:`~ctgpp.eval.episode.run_episode`); with ``workers`` > 1 each
+    worker process gets its own pickled copy. ``realism``, when given, is the JSON-lines file of the
     episodes' realism histograms (:func:`ctgpp.eval.episode.realism_histograms`), keyed like the rows.
     Episodes run seed by seed (seed 0 of every method, rule and scene first).
     """
@@ -160,9 +160,9 @@ def run_episodes(
         raise ValueError(f"no catalog for the evaluation sets {unknown}")
     workers = min(workers, len(todo))
     stream = (
-        parallel_results(todo, {name: c.root for name, c in catalogs.items()}, make_policy, workers)
+        parallel_results(todo, {name: c.root for name, c in catalogs.items()}, policies, workers)
         if workers > 1
-        else _sequential_results(todo, catalogs, make_policy)
+        else _sequential_results(todo, catalogs, policies)
     )
     with (
         closing(stream),
@@ -179,7 +179,7 @@ def run_episodes(
 
 
 def _sequential_results(
-    todo: Sequence[Episode], catalogs: Mapping[str, Catalog], make_policy: PolicyMaker
+    todo: Sequence[Episode], catalogs: Mapping[str, Catalog], policies: PolicyFactory
 ) -> Generator[EpisodeResult, None, None]:
     """The episodes run one after the other in this process, each scene loaded once in a row."""
     loaded: tuple[tuple[str, str], Scene] | None = None
@@ -187,7 +187,7 @@ def _sequential_results(
         try:
             if loaded is None or loaded[0] != (ep.set, ep.scene):
                 loaded = ((ep.set, ep.scene), catalogs[ep.set].load(ep.scene))
-            result = run_episode(loaded[1], ep, make_policy)
+            result = run_episode(loaded[1], ep, policies)
         except Exception as err:
             raise episode_failure(ep, user_error_kind(err), message_of(err)) from err
         yield result

@@ -47,6 +47,7 @@ BITS_OPT = BITSPlanConfig(opt_steps=30)
 # sampler; never ctgpp-unguided, and not the others (bits ranks with the loss but does not sample by it;
 # replay and constvel take no guidance at all)
 GUARDED_POLICIES = ("ctgpp", "ctgpp-no_edge", "ctgpp-scene_centric", "ctg")
+UNGUIDED_POLICIES = ("ctgpp-unguided", "replay", "constvel")  # the policies that ignore any guidance
 
 
 def default_checkpoint(kind: str = "ctgpp") -> Path:
@@ -89,6 +90,20 @@ class PolicyFactory:
         self.bits, self.bits_opt = bits, bits_opt
         self.guards = guards
         self._models: dict[str, nn.Module] = {}
+
+    @classmethod
+    def of(
+        cls,
+        name: str,
+        checkpoint: Path | None = None,
+        sampling: SamplingConfig = SamplingConfig(),
+        guidance_config: GuidanceConfig = GuidanceConfig(),
+        guards: GuardConfig = GuardConfig(),
+    ) -> PolicyFactory:
+        """The factory of policy ``name`` alone, its model from ``checkpoint`` (default: the shipped
+        one); the realism guards on by default, as in ``ctgpp simulate``."""
+        checkpoints = {} if checkpoint is None or name not in MODEL_OF else {MODEL_OF[name]: Path(checkpoint)}
+        return cls(None, sampling, guidance_config, checkpoints, guards=guards)
 
     @property
     def checkpoint(self) -> Path:
@@ -183,5 +198,4 @@ def make_policy(
     for the rule alone): a diffusion policy (``GUARDED_POLICIES``) keeps every vehicle on the road, out
     of collisions and in its lane except where ``guidance`` (whose vehicles ``scope`` names, default
     its own) asks otherwise; with no guidance at all, the guards are the whole guidance."""
-    checkpoints = {MODEL_OF[name]: Path(checkpoint)} if name in MODEL_OF and checkpoint is not None else {}
-    return PolicyFactory(None, sampling, guidance_config, checkpoints, guards=guards)(name, guidance, scope)
+    return PolicyFactory.of(name, checkpoint, sampling, guidance_config, guards)(name, guidance, scope)
