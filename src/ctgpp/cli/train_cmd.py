@@ -73,6 +73,15 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--val-every", type=int, default=TrainConfig.val_every, help="steps between validations")
     p.add_argument("--val-windows", type=int, default=TrainConfig.val_windows, help="validation windows")
     p.add_argument(
+        "--smooth",
+        type=float,
+        default=TrainConfig.smooth_s,
+        metavar="SEC",
+        help="Gaussian bandwidth of the smoothing of the logged vehicle tracks the model learns from "
+        "(ctgpp.data.smoothing: nuScenes' keyframe kinks, NGSIM's tracking noise); 0: the raw logs "
+        f"(default {TrainConfig.smooth_s})",
+    )
+    p.add_argument(
         "--init-from",
         type=Path,
         default=None,
@@ -118,6 +127,8 @@ def run_train(args: argparse.Namespace) -> int:
         raise ValueError("--steps, --batch, --stride and --max-agents must be positive")
     if not (math.isfinite(args.lr) and args.lr > 0):
         raise ValueError(f"--lr {args.lr}: expected a positive number")
+    if not (math.isfinite(args.smooth) and args.smooth >= 0):
+        raise ValueError(f"--smooth {args.smooth}: expected a number of seconds >= 0")
     check_output_dir(args.out)
     model_config = model_config_of(args)
     if args.init_from is not None:  # checked before the data loads: names and shapes must match
@@ -135,9 +146,11 @@ def run_train(args: argparse.Namespace) -> int:
         val_windows=args.val_windows,
         max_agents=args.max_agents,
         init_from=None if args.init_from is None else str(args.init_from),
+        smooth_s=args.smooth,
     )
     note = f"train {' + '.join(specs)} ({len(train_scenes)} scenes), val {args.val}, "
     note += f"variant {args.variant}" if args.model == "ctgpp" else f"model {args.model}"
+    note += f", tracks smoothed over {args.smooth:g} s" if args.smooth > 0 else ", raw tracks"
     record = train(train_scenes, val_scenes, model_config, config, args.out, data_note=note)
     if record["rank"] != 0:
         return 0

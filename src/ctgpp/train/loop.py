@@ -24,6 +24,7 @@ from tqdm import tqdm
 from ctgpp.baselines.config import BaselineConfig
 from ctgpp.baselines.kinds import LossFn, kind_of
 from ctgpp.data.batch import SceneBatch
+from ctgpp.data.smoothing import SMOOTH_SIGMA_S, smooth_scene
 from ctgpp.data.windows import WindowConfig
 from ctgpp.diffusion import CosineSchedule
 from ctgpp.model.checkpoint import load_weights, save_checkpoint
@@ -31,7 +32,7 @@ from ctgpp.model.config import ModelConfig
 from ctgpp.model.loss import training_loss
 from ctgpp.scene.types import Scene
 from ctgpp.train.plot import plot_curve
-from ctgpp.train.state import has_train_state, load_train_state, save_train_state
+from ctgpp.train.state import has_train_state, load_train_state, read_train_scalars, save_train_state
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +51,8 @@ class TrainConfig:
     val_windows: int = 32
     max_agents: int = 32
     init_from: str | None = None  # a checkpoint directory whose weights a new run starts from
+    # Gaussian bandwidth (s) of the vehicle tracks' smoothing (ctgpp.data.smoothing); 0: the raw logs
+    smooth_s: float = SMOOTH_SIGMA_S
 
 
 def _world() -> tuple[int, int]:
@@ -109,6 +112,11 @@ def train(
     torch.manual_seed(config.seed)
     windows = WindowConfig(max_agents=config.max_agents)
     kind = kind_of(model_config)
+    out = Path(out)
+    if has_train_state(out):  # before any work: the run must go on with the data it started with
+        _check_resumable(out, config)
+    train_scenes = [smooth_scene(s, config.smooth_s) for s in train_scenes]
+    val_scenes = [smooth_scene(s, config.smooth_s) for s in val_scenes]
     train_set = kind.dataset(train_scenes, windows, config.stride, model_config)
     val_set = kind.dataset(val_scenes, windows, config.stride, model_config)
     if len(train_set) == 0:
@@ -118,14 +126,13 @@ def train(
     val_batches = [kind.collate([val_set[i] for i in val_idx[j : j + 4]]) for j in range(0, n_val, 4)]
 
     model = kind.build(model_config).to(device)
-    out = Path(out)
     if config.init_from is not None and not has_train_state(out):
         load_weights(Path(config.init_from), model)  # the same names and shapes, or a clear error
         log.info("starting from the weights of %s", config.init_from)
     ema = copy.deepcopy(model).eval()
     optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
     schedule = kind.schedule(model_config)
-    state: dict[str, Any] = {"step": 0, "history": [], "wall_s": 0.0}
+    state: dict[str, Any] = {"step": 0, "history": [], "wall_s": 0.0, "smooth_s": config.smooth_s}
     for stale in out.glob(".*.tmp*"):  # a temporary file of a write that a kill interrupted
         stale.unlink()
     if has_train_state(out):
@@ -177,6 +184,17 @@ def train(
     if dist.is_initialized():
         dist.destroy_process_group()
     return record
+
+
+def _check_resumable(out: Path, config: TrainConfig) -> None:
+    """A resumed run keeps its data: the tracks' smoothing must be the one the state was trained with
+    (states from before the smoothing existed were trained on the raw logs: 0)."""
+    saved = float(read_train_scalars(out).get("smooth_s", 0.0))
+    if not math.isclose(saved, config.smooth_s):
+        raise ValueError(
+            f"{out} holds a training state made with --smooth {saved:g}; resume it with --smooth {saved:g} "
+            f"or start a new run in another directory"
+        )
 
 
 def _generator_states(gen: torch.Generator, world: int) -> list[torch.Tensor]:

@@ -67,17 +67,11 @@ def load_train_state(
     the scalars (step, history, ...) and, when saved, ``generator``: the batch generators' states by
     process."""
     path = Path(out) / STATE_WEIGHTS
+    scalars = read_train_scalars(out)
     try:
         tensors = load_file(str(path))
-        with safe_open(str(path), framework="pt") as f:
-            text = (f.metadata() or {}).get("scalars")
-        if text is None:  # a state written before the scalars moved into the weights file
-            text = (Path(out) / STATE_JSON).read_text(encoding="utf-8")
-        scalars = json.loads(text)
     except (SafetensorError, OSError, ValueError) as err:
-        raise ValueError(
-            f"{path}: damaged training state ({str(err).splitlines()[0]}); remove it to start over"
-        ) from None
+        raise _damaged(path, err) from None
     model.load_state_dict({k[len("model.") :]: v for k, v in tensors.items() if k.startswith("model.")})
     ema.load_state_dict({k[len("ema.") :]: v for k, v in tensors.items() if k.startswith("ema.")})
     adam_steps = scalars.pop("adam_steps")
@@ -96,6 +90,24 @@ def load_train_state(
                 "exp_avg_sq": tensors[f"adam.exp_avg_sq.{name}"].to(p.device),
             }
     return scalars
+
+
+def read_train_scalars(out: Path) -> dict[str, Any]:
+    """The scalars of the training state in ``out`` (step, history, smooth_s, ...), without its tensors."""
+    path = Path(out) / STATE_WEIGHTS
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            text = (f.metadata() or {}).get("scalars")
+        if text is None:  # a state written before the scalars moved into the weights file
+            text = (Path(out) / STATE_JSON).read_text(encoding="utf-8")
+        scalars: dict[str, Any] = json.loads(text)
+        return scalars
+    except (SafetensorError, OSError, ValueError) as err:
+        raise _damaged(path, err) from None
+
+
+def _damaged(path: Path, err: Exception) -> ValueError:
+    return ValueError(f"{path}: damaged training state ({str(err).splitlines()[0]}); remove it to start over")
 
 
 def has_train_state(out: Path) -> bool:
