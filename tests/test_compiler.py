@@ -163,8 +163,10 @@ def test_code_is_python_that_names_every_part() -> None:
     tree = ast.parse(compiled.code)
     calls = [n.func.id for n in ast.walk(tree) if isinstance(n, ast.Call) and isinstance(n.func, ast.Name)]
     assert calls.count("make_loss") == 2 and "ForVehicles" in calls and "CompositeLoss" in calls
-    assert 'make_loss("keep_distance", follower=3, leader=1, min_m=0.0, max_m=10.0)' in compiled.code
-    assert "SteerOnly" in calls and "vehicles=[3])" in compiled.code  # the subject steers alone
+    code = 'make_loss("keep_distance", follower=3, leader=1, min_m=0.0, max_m=10.0, margin_m=2.0)'
+    assert code in compiled.code
+    # the subject steers alone; vehicle 1 only when the subject is held still
+    assert "SteerOnly" in calls and "vehicles=[3], when_held=[1])" in compiled.code
 
 
 @pytest.mark.parametrize(
@@ -276,11 +278,34 @@ def test_a_relation_steers_only_its_subject(batch: GuidanceBatch, x: torch.Tenso
     assert compiled.parts[0].steers == (2,)
     xg = x.clone().requires_grad_(True)
     cost = compiled.loss(xg, batch)
-    plain = make_loss("keep_distance", follower=2, leader=0, min_m=0.0, max_m=1.0)(x, batch)
+    plain = make_loss("keep_distance", follower=2, leader=0, min_m=0.0, max_m=1.0, margin_m=2.0)(x, batch)
     assert torch.allclose(cost.detach(), plain)  # the same cost ...
     cost.sum().backward()
     assert float(xg.grad[2].abs().sum()) > 0 and float(xg.grad[0].abs().sum()) == 0  # ... moving only 2
     assert compile_query("vehicle 2 collides with vehicle 0", N_VEHICLES).parts[0].steers is None
+
+
+def test_a_distance_is_kept_by_the_other_when_the_subject_is_held(
+    batch: GuidanceBatch, x: torch.Tensor
+) -> None:
+    compiled = compile_query("keep vehicle 2 at least 100 m away from vehicle 0", N_VEHICLES)
+    part = compiled.parts[0]
+    assert (part.steers, part.steers_when_held) == ((2,), (0,))
+    assert "SteerOnly(" in compiled.code and "when_held=[0]" in compiled.code
+    moving = x.clone().requires_grad_(True)
+    compiled.loss(moving, batch).sum().backward()
+    assert float(moving.grad[2].abs().sum()) > 0 and float(moving.grad[0].abs().sum()) == 0
+    parked = x.clone()
+    parked[2] = 0.0  # vehicle 2 held still by the simulator: its row zero in every sample
+    parked.requires_grad_(True)
+    cost = compiled.loss(parked, batch)
+    assert float(cost.detach().sum()) > 0  # it is far from 100 m away: the sentence is not met ...
+    cost.sum().backward()
+    # ... and vehicle 0 keeps the distance
+    assert float(parked.grad[0].abs().sum()) > 0 and float(parked.grad[2].abs().sum()) == 0
+    assert float(parked.grad[torch.arange(N_VEHICLES) > 2].abs().sum()) == 0  # nobody else moves
+    same = compile_query("vehicle 2 drives in the same direction as vehicle 0", N_VEHICLES).parts[0]
+    assert same.steers == (2,) and same.steers_when_held == ()  # a heading is the subject's own to take
 
 
 def test_relative_rules_by_hand(batch: GuidanceBatch) -> None:

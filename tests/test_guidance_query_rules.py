@@ -61,6 +61,25 @@ def test_stay_away_by_hand(batch: GuidanceBatch) -> None:
     assert x.grad[..., [0, 1, 3]].abs().sum() == 0  # along its path: no swerve
 
 
+def test_keep_distance_aims_inside_its_band_by_hand(batch: GuidanceBatch) -> None:
+    # vehicle 1 still at the origin; vehicle 0 19, 21, 23 m ahead of it, leaving a 0-20 m band
+    two = _off_lanes(batch, 2)
+    x = torch.zeros(2, 1, 3, 6)
+    x[0, 0, :, 0] = torch.tensor([19.0, 21.0, 23.0])
+    x.requires_grad_(True)
+    exact = make_loss("keep_distance", follower=0, leader=1, min_m=0.0, max_m=20.0)(x, two)
+    assert float(exact.detach()) == pytest.approx((0 + 1 + 3) / 3, abs=1e-4)
+    aimed = make_loss("keep_distance", follower=0, leader=1, min_m=0.0, max_m=20.0, margin_m=2.0)(x, two)
+    assert aimed.shape == (1,) and float(aimed.detach()) == pytest.approx((1 + 3 + 5) / 3, abs=1e-4)
+    aimed.sum().backward()
+    assert bool((x.grad[0, 0, :, 0] > 0).all())  # descent brings vehicle 0 back at every step, 19 m too
+    # a narrow band keeps its middle: at most a quarter of its width off each end (10-12 m -> 10.5-11.5)
+    narrow = make_loss("keep_distance", follower=0, leader=1, min_m=10.0, max_m=12.0, margin_m=2.0)
+    assert narrow.aimed_band == (10.5, 11.5)
+    with pytest.raises(ValueError, match="margin_m"):
+        make_loss("keep_distance", follower=0, leader=1, margin_m=-1.0)
+
+
 def test_cut_in_by_hand(batch: GuidanceBatch) -> None:
     # off the lane graph the lane is vehicle 0's heading line; vehicle 1 cuts in 10 then 6 m ahead
     two = _off_lanes(batch, 2)

@@ -192,7 +192,10 @@ def _pair_distance(x: Tensor, data_batch: GuidanceBatch, a: int, b: int) -> Tens
 @register_loss("keep_distance")
 class KeepDistance(Rule):
     """The follower keeps its distance to the leader within [min_m, max_m] (centre to centre):
-    the mean over the horizon of how far (m) the distance lies outside that range."""
+    the mean over the horizon of how far (m) the distance lies outside that range, narrowed by
+    ``margin_m`` at each end (at most a quarter of the band's width, so a narrow band keeps its
+    middle): the guidance aims inside the band, since a plan is not executed exactly (the other
+    vehicle re-plans, the next plan starts from where this one's first steps led)."""
 
     couples_agents: ClassVar[bool] = True
     param_doc = {
@@ -200,16 +203,27 @@ class KeepDistance(Rule):
         "leader": ("", "displayed number of the leading vehicle"),
         "min_m": ("m", "smallest allowed distance"),
         "max_m": ("m", "largest allowed distance"),
+        "margin_m": ("m", "the guidance aims this far inside [min_m, max_m] (at most a quarter of it)"),
     }
 
-    def __init__(self, follower: int, leader: int, min_m: float = 10.0, max_m: float = 30.0) -> None:
+    def __init__(
+        self, follower: int, leader: int, min_m: float = 10.0, max_m: float = 30.0, margin_m: float = 0.0
+    ) -> None:
         super().__init__()
         if follower == leader:
             raise ValueError("follower and leader must be different vehicles")
         if min_m > max_m:
             raise ValueError(f"min_m ({min_m}) must not exceed max_m ({max_m})")
+        if margin_m < 0:
+            raise ValueError(f"margin_m must not be negative, got {margin_m}")
         self.follower, self.leader = int(follower), int(leader)
-        self.min_m, self.max_m = float(min_m), float(max_m)
+        self.min_m, self.max_m, self.margin_m = float(min_m), float(max_m), float(margin_m)
+
+    @property
+    def aimed_band(self) -> tuple[float, float]:
+        """The band (m) the loss aims at: [min_m, max_m] narrowed by the margin at each end."""
+        inset = min(self.margin_m, (self.max_m - self.min_m) / 4)
+        return self.min_m + inset, self.max_m - inset
 
     def scope(self) -> LossScope:
         return LossScope.of((self.follower, self.leader))
@@ -218,7 +232,8 @@ class KeepDistance(Rule):
         a = check_vehicle(self.follower, data_batch, x.shape[0])
         b = check_vehicle(self.leader, data_batch, x.shape[0])
         d = _pair_distance(x, data_batch, a, b)  # (N, T)
-        return (torch.relu(self.min_m - d) + torch.relu(d - self.max_m)).mean(-1)
+        lo, hi = self.aimed_band
+        return (torch.relu(lo - d) + torch.relu(d - hi)).mean(-1)
 
 
 @register_loss("collision")

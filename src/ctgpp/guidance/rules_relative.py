@@ -69,10 +69,39 @@ class SteerOnly(_ForSomeVehicles):
     other vehicle's row of x is held as sampled. The cost is unchanged. "Vehicle 2 stays within 25 m
     of vehicle 0" steers vehicle 2 and lets vehicle 0 drive as the model samples it, rather than
     slowing it down to wait (and meet the traffic it would have passed):
-    ``SteerOnly(make_loss("keep_distance", follower=2, leader=0, min_m=0, max_m=25), vehicles=[2])``."""
+    ``SteerOnly(make_loss("keep_distance", follower=2, leader=0, min_m=0, max_m=25), vehicles=[2])``.
+
+    ``when_held``: the vehicles steered instead when none of ``vehicles`` can move — each is held
+    still by the simulator (parked at the start: its row of x is zero in every sample). A distance
+    between two vehicles is kept by either of them; when the subject stands still, only the other
+    can keep it ("keep vehicle 4, parked, at least 12 m away from vehicle 0": vehicle 0 holds back).
+    """
+
+    def __init__(self, loss: GuidanceLoss, vehicles: int | Sequence[int],
+                 when_held: int | Sequence[int] = ()) -> None:
+        super().__init__(loss, vehicles)
+        self.when_held = [int(v) for v in as_list(when_held)]
+
+    def scope(self) -> LossScope:
+        """The wrapped loss's scope among ``vehicles`` and ``when_held``."""
+        return self.loss.scope().restricted([*self.vehicles, *self.when_held])
+
+    def steered(self, x: Tensor, data_batch: Any) -> Tensor:
+        """(B,) bool, the rows the gradient reaches: ``vehicles``, or ``when_held`` when every one of
+        ``vehicles`` is held still (its row of x zero in every sample)."""
+        steered = self.rows(x, data_batch)
+        if not self.when_held:
+            return steered
+        moves = x.detach().flatten(1).abs().amax(1) > 0  # (B,): False for a vehicle held in every sample
+        if bool((steered & moves).any()):
+            return steered
+        instead = torch.zeros_like(steered)
+        for v in self.when_held:
+            instead[check_vehicle(v, data_batch, x.shape[0])] = True
+        return instead
 
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
-        steered = self.rows(x, data_batch)
+        steered = self.steered(x, data_batch)
         held = torch.where(steered[:, None, None, None], x, x.detach())  # (B, N, T, 6)
         return self.loss(held, data_batch, agt_mask)
 

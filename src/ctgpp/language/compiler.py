@@ -88,7 +88,8 @@ class QueryPart:
     subject of a relation to another vehicle, which then keeps driving as sampled; window: the
     episode time the clause names ("within 5 s", "after 3 s", :mod:`ctgpp.behaviours.timing`; None:
     the behaviour's own window); stage: the part's place in a sequence ("then", "one by one": 0, 1,
-    ...; parts of one stage have no order among them).
+    ...; parts of one stage have no order among them); steers_when_held: the vehicles steered
+    instead of ``steers`` when those are held still by the simulator (:class:`SteerOnly`).
     """
 
     rule: str
@@ -100,6 +101,7 @@ class QueryPart:
     steers: tuple[int, ...] | None = None
     window: TimeWindow | None = None
     stage: int = 0
+    steers_when_held: tuple[int, ...] = ()
 
     def build(self) -> GuidanceLoss:
         """The loss of this part: the registered rule, on the steps of ``window``, restricted to
@@ -109,7 +111,9 @@ class QueryPart:
             loss = During(loss, self.window.start_s, self.window.end_s)
         if self.vehicles is not None:
             loss = ForVehicles(loss, list(self.vehicles))
-        return loss if self.steers is None else SteerOnly(loss, list(self.steers))
+        if self.steers is None:
+            return loss
+        return SteerOnly(loss, list(self.steers), list(self.steers_when_held))
 
     def code(self) -> str:
         """Python source of :meth:`build`."""
@@ -119,7 +123,10 @@ class QueryPart:
             call = f"During({call}, start_s={self.window.start_s!r}, end_s={self.window.end_s!r})"
         if self.vehicles is not None:
             call = f"ForVehicles({call}, vehicles={list(self.vehicles)})"
-        return call if self.steers is None else f"SteerOnly({call}, vehicles={list(self.steers)})"
+        if self.steers is None:
+            return call
+        held = f", when_held={list(self.steers_when_held)}" if self.steers_when_held else ""
+        return f"SteerOnly({call}, vehicles={list(self.steers)}{held})"
 
 
 @dataclass(frozen=True, eq=False)
@@ -341,7 +348,7 @@ def compile_query(query: str, num_vehicles: int) -> CompiledQuery:
             window = _window(clause, spec.rule, text) if spec.rule else None
             span = (clause.start, clause.end)
             part = QueryPart(spec.rule, dict(spec.params), text.strip(), span, spec.family, spec.only,
-                             spec.steers, window, step)
+                             spec.steers, window, step, spec.steers_when_held)
             if spec.family == "pace":
                 paces.append(part)
                 continue

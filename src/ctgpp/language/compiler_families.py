@@ -8,7 +8,9 @@ clause is about (subjects, objects, "the others") is read by :mod:`ctgpp.languag
 
 Relations of a subject to another vehicle (keep a distance, stay within or away, stay on a side, same
 direction) steer only the subject: moving the other vehicle as well (slowing the leader down to wait
-for its follower, say) puts it where the traffic it would have passed meets it. Collisions and cut-ins
+for its follower, say) puts it where the traffic it would have passed meets it. A distance (keep a
+distance, stay within or away) is kept by the other vehicle instead when the subject is held still by
+the simulator (parked at the start): nothing else could keep it. Collisions and cut-ins
 steer both: the pair meets halfway, and the vehicle cut in front of keeps its lane.
 """
 
@@ -27,6 +29,7 @@ DEFAULT_CUT_IN_GAP_M = 10.0
 DEFAULT_STOP_RADIUS_M = 3.0
 FOLLOW_RANGE_M = (10.0, 30.0)  # "follow vehicle N": the paper's keep-distance range
 SPEED_MARGIN_MPS = 0.5  # a compiled speed limit aims this far under the limit the verdict holds
+DISTANCE_MARGIN_M = 2.0  # a compiled distance band aims this far inside the band the verdict holds
 
 
 Handler = Callable[[Clause, Context], list[PartSpec]]
@@ -173,28 +176,36 @@ def _target_speed(c: Clause, ctx: Context) -> list[PartSpec]:
     return [PartSpec("target_speed", "target_speed", {"speed_mps": _speed(c)}, scope(c, ctx))]
 
 
+def _band(follower: int, leader: int, lo: float, hi: float) -> dict[str, Any]:
+    """A distance band's parameters; the loss aims :data:`DISTANCE_MARGIN_M` inside it."""
+    return {"follower": follower, "leader": leader, "min_m": lo, "max_m": hi, "margin_m": DISTANCE_MARGIN_M}
+
+
 def _keep_range(c: Clause, ctx: Context) -> list[PartSpec]:
     lo, hi = c.ranges[0]
-    return [PartSpec("keep_distance", "keep_distance", {"follower": a, "leader": b, "min_m": lo, "max_m": hi},
-                     steers=(a,)) for a, b in pairs(c, ctx, "keeping a distance")]
+    return [PartSpec("keep_distance", "keep_distance", _band(a, b, lo, hi), steers=(a,),
+                     steers_when_held=(b,)) for a, b in pairs(c, ctx, "keeping a distance")]
 
 
 def _stay_away(c: Clause, ctx: Context) -> list[PartSpec]:
     d = _distance(c, DEFAULT_AWAY_M)
-    return [PartSpec("stay_away", "stay_away", {"vehicle": a, "other": b, "min_m": d}, steers=(a,))
+    params = {"min_m": d, "margin_m": DISTANCE_MARGIN_M}
+    return [PartSpec("stay_away", "stay_away", {"vehicle": a, "other": b, **params}, steers=(a,),
+                     steers_when_held=(b,))
             for a, b in pairs(c, ctx, "staying away")]
 
 
 def _keep_within(c: Clause, ctx: Context) -> list[PartSpec]:
     d = _distance(c, DEFAULT_NEAR_M)
-    return [PartSpec("keep_within", "keep_distance", {"follower": a, "leader": b, "min_m": 0.0, "max_m": d},
-                     steers=(a,)) for a, b in pairs(c, ctx, "staying close")]
+    return [PartSpec("keep_within", "keep_distance", _band(a, b, 0.0, d), steers=(a,), steers_when_held=(b,))
+            for a, b in pairs(c, ctx, "staying close")]
 
 
 def _follow_vehicle(c: Clause, ctx: Context) -> list[PartSpec]:
     lo, hi = FOLLOW_RANGE_M
-    return [PartSpec("keep_distance", "keep_distance", {"follower": a, "leader": b, "min_m": lo, "max_m": hi},
-                     steers=(a,), refinable=True) for a, b in pairs(c, ctx, "following a vehicle")]
+    return [PartSpec("keep_distance", "keep_distance", _band(a, b, lo, hi), steers=(a,), refinable=True,
+                     steers_when_held=(b,))
+            for a, b in pairs(c, ctx, "following a vehicle")]
 
 
 def _offroad(c: Clause, ctx: Context) -> list[PartSpec]:

@@ -19,8 +19,9 @@ class QueryError(ValueError):
 class PartSpec:
     """A rule to build: ``rule`` name, its ``params``, ``only`` (vehicles it is restricted to, None
     for the rule's own scope), ``steers`` (the only vehicles its gradient moves, None for all: the
-    subject of a relation to another vehicle, which keeps driving as sampled) and the query
-    ``family`` it came from; ``refinable``: a default a later clause on the same pair may refine
+    subject of a relation to another vehicle, which keeps driving as sampled), ``steers_when_held``
+    (the vehicles steered instead when the subject is held still: the other of a distance) and the
+    query ``family`` it came from; ``refinable``: a default a later clause on the same pair may refine
     ("follows vehicle 1, staying at most 12 m behind it")."""
 
     family: str
@@ -29,6 +30,7 @@ class PartSpec:
     only: tuple[int, ...] | None = None
     steers: tuple[int, ...] | None = None
     refinable: bool = False
+    steers_when_held: tuple[int, ...] = ()
 
 
 @dataclass(frozen=True)
