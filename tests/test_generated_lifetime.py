@@ -10,6 +10,7 @@ reason — the main process alive and small, the batch and the other losses unto
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 import textwrap
@@ -347,3 +348,24 @@ def test_simulate_falls_back_to_the_compiler(llm_env: CannedServer, tmp_path: Pa
     assert record["path"] == "offline query compiler (fallback)"
     assert any("simulated again with the offline compiler" in note for note in record["notes"])
     assert LossCache(tmp_path / "cache").get(query, MODEL) is None
+
+
+def test_evaluate_queries_falls_back_to_the_compiler(llm_env: CannedServer, tmp_path: Path) -> None:
+    """The query benchmark's guided episode is ``ctgpp simulate``'s: a program stopped during sampling
+    is replaced by the compiler's loss, the episode simulated again, and the row says so."""
+    from ctgpp.cli.main import main
+
+    query = "vehicle 1 should collide with vehicle 2"
+    llm_env.replies = [reply(NAN_FOR_MORE_SAMPLES)]
+    cases = tmp_path / "cases.json"
+    case = {"family": "collision", "query": query, "scene": "scene-0103", "start_s": 3.0}
+    cases.write_text(json.dumps([case]))
+    out = tmp_path / "q"
+    flags = ["--steps", "1", "--samples", str(max(SAMPLE_COUNTS) + 1), "--guards", "off", "--duration", "1"]
+    argv = ["evaluate-queries", "--cases", str(cases), "--llm-model", MODEL, "--llm-base-url", llm_env.url]
+    assert main([*argv, *flags, "--out", str(out)]) == 0
+    with (out / "queries.csv").open(newline="") as f:
+        (row,) = list(csv.DictReader(f))
+    assert (row["path"], row["rounds"]) == ("fallback", "1") and float(row["llm_s"]) >= 0.0
+    assert row["satisfied_guided"] in ("0", "1") and row["measured_guided"]
+    assert LossCache(tmp_path / "cache").get(query, MODEL) is None  # evicted
