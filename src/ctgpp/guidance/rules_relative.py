@@ -75,16 +75,14 @@ class SteerOnly(_ForSomeVehicles):
     still by the simulator (parked at the start: its row of x is zero in every sample). A distance
     between two vehicles is kept by either of them; when the subject stands still, only the other
     can keep it ("keep vehicle 4, parked, at least 12 m away from vehicle 0": vehicle 0 holds back).
+    The scope stays the wrapped loss's among ``vehicles`` (what the sentence addresses): a fallback
+    moves its vehicles along their lanes only, under every guard.
     """
 
     def __init__(self, loss: GuidanceLoss, vehicles: int | Sequence[int],
                  when_held: int | Sequence[int] = ()) -> None:
         super().__init__(loss, vehicles)
         self.when_held = [int(v) for v in as_list(when_held)]
-
-    def scope(self) -> LossScope:
-        """The wrapped loss's scope among ``vehicles`` and ``when_held``."""
-        return self.loss.scope().restricted([*self.vehicles, *self.when_held])
 
     def steered(self, x: Tensor, data_batch: Any) -> Tensor:
         """(B,) bool, the rows the gradient reaches: ``vehicles``, or ``when_held`` when every one of
