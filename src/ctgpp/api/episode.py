@@ -201,6 +201,18 @@ def _factory(
         if given:
             raise ValueError(f"simulate: give {', '.join(given)} to the PolicyFactory passed as policies")
         return policies
+    return policy_factory(policy, checkpoint, sampling, guidance, guards)
+
+
+def policy_factory(
+    policy: str = "ctgpp",
+    checkpoint: str | Path | None = None,
+    sampling: SamplingConfig | None = None,
+    guidance: GuidanceConfig | None = None,
+    guards: str | GuardConfig | None = None,
+) -> PolicyFactory:
+    """The factory :func:`simulate` makes for ``policy`` with these settings (same defaults), to pass
+    as its ``policies`` to several episodes that should load the model once."""
     if not isinstance(guards, GuardConfig):
         guards = _parse_guards("on" if guards is None else guards)
     return PolicyFactory.of(

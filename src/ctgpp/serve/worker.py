@@ -114,6 +114,7 @@ def run(spec: RunSpec, llm: LLMConfig | None, tell: Tell, cancelled: Callable[[]
     """Simulate ``spec`` guided (then unguided to compare) and write the run's folder: request.json,
     metrics.json, rollout.parquet, playback.json, unguided.json, the exports."""
     import ctgpp
+    from ctgpp.api.episode import policy_factory
     from ctgpp.serve.playback import playback
 
     out = Path(spec.out_dir)
@@ -131,8 +132,10 @@ def run(spec: RunSpec, llm: LLMConfig | None, tell: Tell, cancelled: Callable[[]
         return on_replan
 
     tell("progress", {"phase": "guided", "done": 0, "total": 0})
+    # one factory for both episodes: the model loads once
+    policies = policy_factory(spec.policy, guards=spec.guards)
     common: dict[str, Any] = {"policy": spec.policy, "seed": spec.seed, "duration_s": spec.duration_s,
-                              "guards": spec.guards}
+                              "policies": policies}
     result = ctgpp.simulate(scene, spec.sentence or None, **common, llm=llm if spec.llm else None,
                             echo=lines.append, on_replan=progress("guided"))
     record = result.record()
