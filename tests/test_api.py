@@ -127,6 +127,31 @@ def test_evaluate_and_evaluate_queries_run_the_episodes_of_simulate(tmp_path: Pa
     assert evaluated.row["rule_violation"] == metric_cell(api.rules[limit]["violation"])
 
 
+def test_a_parked_vehicle_the_query_steers_is_driven_by_the_model() -> None:
+    """The held-out "same direction" case names vehicle 5 of scene-0916, parked at the start: with
+    the query the model plans it and it moves; without, the simulator holds it where it stands."""
+    from importlib import resources
+
+    cases = json.loads((resources.files("ctgpp") / "assets/queries/mini_val_heldout.json").read_text())
+    (case,) = [c for c in cases if c["family"] == "same direction"]
+    assert case["scene"] == "scene-0916" and "vehicle 5" in case["query"]
+
+    def vehicle_5(result: ctgpp.Result) -> tuple[np.ndarray, np.ndarray]:
+        r = result.rollout
+        (agent,) = np.flatnonzero(r.number == 5)
+        return r.sim.xy[agent, r.current :], r.sim.speed[agent, r.current :]
+
+    guided = ctgpp.simulate(case["scene"], case["query"], seed=0, start_s=case["start_s"], duration_s=1.5)
+    xy, speed = vehicle_5(guided)
+    assert speed[0] < 0.5 and 5 not in guided.guards["held"]
+    assert np.linalg.norm(xy[-1] - xy[0]) > 0.05 and speed[1:].max() > 0.1
+    unguided = ctgpp.simulate(case["scene"], seed=0, start_s=case["start_s"], duration_s=1.5)
+    xy, speed = vehicle_5(unguided)
+    assert 5 in unguided.guards["held"]
+    np.testing.assert_array_equal(xy, np.broadcast_to(xy[0], xy.shape))
+    assert not speed[1:].any()
+
+
 def test_simulate_takes_a_policy_factory_and_no_settings_beside_it() -> None:
     from ctgpp.sim.factory import PolicyFactory
 

@@ -75,6 +75,28 @@ def test_compiled_queries_expose_their_vehicles(
     assert (scope.vehicles, scope.leave_lane, scope.collide) == (vehicles, leave_lane, collide)
 
 
+@pytest.mark.parametrize(
+    "query,moves",
+    [
+        ("vehicle 5 should drive in the same direction as vehicle 0", {5}),
+        ("vehicle 3 should change to the left lane", {3}),
+        ("vehicle 2 should not exceed 5 m/s", {2}),
+        ("vehicle 1 should collide with vehicle 2", {1, 2}),
+        ("keep vehicle 4 at least 12 m away from vehicle 0", set()),  # vehicle 0 keeps it when 4 is held
+        ("vehicle 2 stays within 25 m of vehicle 0", set()),
+        ("keep vehicle 4 at least 12 m away from vehicle 0 and vehicle 4 should drive at 5 m/s", {4}),
+        ("all vehicles stay below 10 m/s and no collisions", set()),
+    ],
+)
+def test_the_vehicles_a_query_steers_are_driven_even_when_parked(query: str, moves: set[int]) -> None:
+    assert compile_query(query, 12).loss.scope().moves == moves
+
+
+def test_an_opaque_loss_drives_no_parked_vehicle() -> None:
+    assert Opaque().scope().moves == set() and LossScope.everyone().moves == set()
+    assert LossScope.everyone().restricted([3]).moves == {3}  # "vehicle 3 obeys the limit" steers it
+
+
 def test_global_rules_address_everyone_and_keep_them_in_lane() -> None:
     scope = compile_query("all vehicles stay below 10 m/s and no collisions", 12).loss.scope()
     assert scope.vehicles is None and scope.keeps_lane(3) and not scope.may_collide(1, 2)

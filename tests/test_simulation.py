@@ -83,6 +83,26 @@ def test_the_policy_is_told_which_vehicles_are_held(scene_0103: Scene, hold: boo
         np.testing.assert_array_equal(np.sort(held), np.sort(want))
 
 
+def test_vehicles_to_drive_are_planned_although_stationary(scene_0103: Scene) -> None:
+    """``drive`` (the vehicles a rule or query steers) takes stationary vehicles out of the held ones;
+    naming none, or only moving vehicles, gives the episode of before, bit for bit."""
+    base_policy = Recording(True)
+    base = simulate(scene_0103, base_policy, 4.0)
+    order = np.argsort(np.where(base.number >= 0, base.number, np.iinfo(np.int64).max))
+    agents = order[: base.controlled.sum()]  # (V,) agent indices in displayed order
+    speed0 = base.sim.speed[agents, base.current]
+    parked, moving = np.flatnonzero(speed0 < 0.5), np.flatnonzero(speed0 >= 0.5)
+    assert len(parked) > 1 and len(moving) > 0
+    for drive in ((), [int(moving[0])], [int(moving[0]), 999]):
+        same = simulate(scene_0103, Recording(True), 4.0, drive=drive)
+        for field in ("xy", "yaw", "speed", "valid"):
+            np.testing.assert_array_equal(getattr(same.sim, field), getattr(base.sim, field))
+    policy = Recording(True)
+    simulate(scene_0103, policy, 4.0, drive=[int(parked[0])])
+    for held, before in zip(policy.held, base_policy.held, strict=True):
+        np.testing.assert_array_equal(np.sort(held), np.sort(np.setdiff1d(before, agents[parked[:1]])))
+
+
 def test_episode_bounds(scene_0103: Scene) -> None:
     starts = episode_starts(scene_0103)
     assert starts[0] == 3.0 and starts[-1] <= scene_0103.duration_s - 10.0

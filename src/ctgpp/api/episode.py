@@ -38,10 +38,10 @@ from ctgpp.scene.vehicles import controlled_vehicles
 from ctgpp.sim.closed_loop import (
     DURATION_S,
     MIN_HISTORY_S,
-    STATIONARY_SPEED_MPS,
     SimConfig,
     episode_bounds,
     episode_config,
+    held_numbers,
     initial_observation,
     start_step,
 )
@@ -154,10 +154,11 @@ def simulate(
     scope = LossScope.nothing()  # the vehicles the rules and the query address, for the guards
     for item in [*(s.loss.scope() for s in specs), *([query_loss.scope] if query_loss is not None else [])]:
         scope = scope.union(item)
+    drive = sorted(scope.moves)  # the vehicles the rules and the query steer: planned, never held
 
     def episode(loss: GuidanceLoss | None) -> tuple[Policy, Rollout]:
         made = factory(policy, loss, scope)
-        return made, _run(scene, made, start, seed, config, progress, on_replan)
+        return made, _run(scene, made, start, seed, config, progress, on_replan, drive)
 
     if losses and policy in UNGUIDED_POLICIES:
         say(f"policy {policy} is not guided: the rules and the query are only measured")
@@ -240,12 +241,12 @@ def _combined(losses: list[GuidanceLoss]) -> GuidanceLoss | None:
 
 def _run(
     scene: Scene, policy: Policy, start: float, seed: int, config: SimConfig, progress: bool,
-    report: Callable[[int, int], None] | None = None,
+    report: Callable[[int, int], None] | None = None, drive: Sequence[int] = (),
 ) -> Rollout:
     """The closed-loop episode, with a progress bar over its re-plans when ``progress``; ``report``
-    is called after each re-plan."""
+    is called after each re-plan; ``drive``: the vehicles planned even if stationary at the start."""
     if not progress:
-        return run_closed_loop(scene, policy, start, seed=seed, config=config, on_replan=report)
+        return run_closed_loop(scene, policy, start, seed=seed, config=config, on_replan=report, drive=drive)
     from tqdm import tqdm
 
     total = -(-config.duration_steps // config.replan_every)
@@ -257,7 +258,8 @@ def _run(
             if report is not None:
                 report(done, total)
 
-        return run_closed_loop(scene, policy, start, seed=seed, config=config, on_replan=on_replan)
+        return run_closed_loop(scene, policy, start, seed=seed, config=config, on_replan=on_replan,
+                               drive=drive)
 
 
 def _rule(text: str, scene: Scene, step: int, controlled: np.ndarray) -> RuleSpec:
@@ -310,6 +312,5 @@ def _guards_record(
         guarded = ", ".join(GUARDED_POLICIES)
         return {"ran": [], "note": f"policy {name} takes no guards (only the diffusion policies {guarded})"}
     controlled = controlled_vehicles(scene, step)
-    slow = scene.agents.speed[controlled, step] < STATIONARY_SPEED_MPS
-    held = [int(v) for v in np.flatnonzero(slow)] if policy.hold_stationary else []
-    return guard_report(guards, scope, len(controlled), held)
+    held = held_numbers(scene.agents, step, controlled, policy.hold_stationary, scope.moves)
+    return guard_report(guards, scope, len(controlled), [int(v) for v in held])

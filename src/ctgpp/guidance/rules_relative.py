@@ -84,6 +84,12 @@ class SteerOnly(_ForSomeVehicles):
         super().__init__(loss, vehicles)
         self.when_held = [int(v) for v in as_list(when_held)]
 
+    def scope(self) -> LossScope:
+        """The wrapped loss's scope among ``vehicles``; with ``when_held``, none of them must move
+        (a parked subject stays held and the fallback keeps the relation)."""
+        scope = super().scope()
+        return scope.held_still() if self.when_held else scope
+
     def steered(self, x: Tensor, data_batch: Any) -> Tensor:
         """(B,) bool, the rows the gradient reaches: ``vehicles``, or ``when_held`` when every one of
         ``vehicles`` is held still (its row of x zero in every sample)."""

@@ -3,7 +3,9 @@
 The realism guards (:mod:`ctgpp.guidance.guards`) keep every vehicle on the road, out of collisions and
 in its lane, except where the rule or query asks otherwise: a vehicle a rule moves across lanes (a
 lane change, a turn, a goal) is not held to its lane, and a pair a rule asks to collide is not kept
-apart. Each loss says so through :meth:`ctgpp.guidance.base.GuidanceLoss.scope`; a loss that does not
+apart. The vehicles a rule steers are also driven by the model even when they stand still at the start
+(:attr:`LossScope.moves`): the simulator holds parked vehicles still, and a query naming one could
+never be met. Each loss says so through :meth:`ctgpp.guidance.base.GuidanceLoss.scope`; a loss that does not
 (code a language model wrote, say) is *opaque*: the guards then assume it may do anything to any
 vehicle (no lane guard, no collision guard between vehicles, only against the replayed agents).
 Vehicles are displayed numbers (rows of x).
@@ -12,7 +14,7 @@ Vehicles are displayed numbers (rows of x).
 from __future__ import annotations
 
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 Pair = tuple[int, int]  # two displayed vehicle numbers, smaller first
 
@@ -30,12 +32,17 @@ class LossScope:
     leave_lane: the vehicles it may move out of their lane (lane changes, turns, goals, cut-ins; None:
     every vehicle). collide: the pairs it asks to collide (None: any pair — an opaque loss).
     ``opaque`` is True when the loss did not say (the fields are then the cautious ones).
+    moves: the vehicles it steers, which the simulator must let the model drive even when they stand
+    still at the start (a parked vehicle asked to drive); a global or opaque rule names none, and a
+    relation the other vehicle keeps when this one is held (:class:`ctgpp.guidance.SteerOnly`'s
+    ``when_held``) leaves its subject held.
     """
 
     vehicles: frozenset[int] | None = frozenset()
     leave_lane: frozenset[int] | None = frozenset()
     collide: frozenset[Pair] | None = frozenset()
     opaque: bool = False
+    moves: frozenset[int] = frozenset()
 
     @classmethod
     def nothing(cls) -> LossScope:
@@ -56,11 +63,14 @@ class LossScope:
     def of(
         cls, vehicles: Iterable[int], leave_lane: Iterable[int] = (), collide: Iterable[Pair] = ()
     ) -> LossScope:
-        """A rule on ``vehicles`` that moves ``leave_lane`` out of their lanes and crashes ``collide``."""
+        """A rule steering ``vehicles`` that moves ``leave_lane`` out of their lanes and crashes
+        ``collide``."""
+        steered = frozenset(int(v) for v in vehicles)
         return cls(
-            frozenset(int(v) for v in vehicles),
+            steered,
             frozenset(int(v) for v in leave_lane),
             frozenset(pair(*p) for p in collide),
+            moves=steered,
         )
 
     def union(self, other: LossScope) -> LossScope:
@@ -70,11 +80,13 @@ class LossScope:
             _union(self.leave_lane, other.leave_lane),
             _union(self.collide, other.collide),
             self.opaque or other.opaque,
+            self.moves | other.moves,
         )
 
     def restricted(self, vehicles: Iterable[int]) -> LossScope:
         """The scope of the loss applied to (or steering) ``vehicles`` only: the vehicles, lanes and
-        pairs it addresses among them (an opaque loss: all of them, and every pair among them)."""
+        pairs it addresses among them (an opaque loss: all of them, and every pair among them); it
+        moves those of them it moves, or all of them when it addresses every vehicle."""
         keep = frozenset(int(v) for v in vehicles)
         within = frozenset(pair(a, b) for a in keep for b in keep if a < b)
         return LossScope(
@@ -82,7 +94,13 @@ class LossScope:
             keep if self.leave_lane is None else self.leave_lane & keep,
             within if self.collide is None else frozenset(p for p in self.collide if set(p) & keep),
             self.opaque,
+            keep if self.vehicles is None else self.moves & keep,
         )
+
+    def held_still(self) -> LossScope:
+        """This scope with no vehicle that must move: a relation kept by another vehicle when its
+        subjects are held."""
+        return replace(self, moves=frozenset())
 
     def keeps_lane(self, vehicle: int) -> bool:
         """Whether the loss leaves ``vehicle`` in its lane (the lane guard may hold it there)."""

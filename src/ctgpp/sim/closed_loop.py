@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -105,20 +105,21 @@ def simulate(
     seed: int = 0,
     config: SimConfig = SimConfig(),
     on_replan: Callable[[int, int], None] | None = None,
+    drive: Iterable[int] = (),
 ) -> Rollout:
     """Run one closed-loop episode of ``scene`` from ``start_s`` with ``policy``.
 
     Every ``replan_every`` steps the policy plans ``horizon_steps`` from the simulated history; the
     first ``replan_every`` planned states are executed. Vehicles present at the start are controlled;
-    with ``policy.hold_stationary`` those slower than 0.5 m/s at the start stay where they are.
+    with ``policy.hold_stationary`` those slower than 0.5 m/s at the start stay where they are, except
+    ``drive`` (displayed numbers: the vehicles a rule or query steers, which the policy plans).
     ``on_replan(done, total)`` reports progress.
     """
     obs = initial_observation(scene, start_s, config)
     step0, tracks, controlled = obs.step, obs.tracks, obs.controlled
     first = step0 - (config.history_steps - 1)
     window = config.history_steps + config.duration_steps
-    slow = tracks.speed[controlled, step0] < STATIONARY_SPEED_MPS
-    still = controlled[slow] if policy.hold_stationary else controlled[:0]
+    still = controlled[held_numbers(tracks, step0, controlled, policy.hold_stationary, drive)]
     rng = np.random.default_rng(seed)
     n_replans = -(-config.duration_steps // config.replan_every)
     for k in range(n_replans):
@@ -143,6 +144,18 @@ def simulate(
     number[controlled] = np.arange(len(controlled))
     is_controlled = number >= 0
     return Rollout(scene, first, config.history_steps - 1, sim, is_controlled, number, policy.name)
+
+
+def held_numbers(
+    tracks: AgentTracks, step: int, controlled: np.ndarray, hold_stationary: bool, drive: Iterable[int] = ()
+) -> np.ndarray:
+    """The displayed numbers (H,) of the ``controlled`` vehicles (V,) the simulator holds still: with
+    ``hold_stationary``, those slower than ``STATIONARY_SPEED_MPS`` at ``step`` and not in ``drive``."""
+    if not hold_stationary:
+        return np.zeros(0, dtype=np.int64)
+    slow = tracks.speed[controlled, step] < STATIONARY_SPEED_MPS  # (V,)
+    slow[np.asarray(sorted({int(v) for v in drive} & set(range(len(controlled)))), dtype=np.int64)] = False
+    return np.flatnonzero(slow)
 
 
 def initial_observation(scene: Scene, start_s: float, config: SimConfig = SimConfig()) -> Observation:
