@@ -29,7 +29,6 @@ from ctgpp.eval.runner import episode_rule
 from ctgpp.metrics import MOVING_METRICS, compute_metrics, moving_counts
 from ctgpp.scene.types import Scene
 from ctgpp.sim.closed_loop import STATIONARY_SPEED_MPS, simulate
-from ctgpp.sim.diffusion_policy import DiffusionPolicy
 from ctgpp.sim.factory import PolicyFactory
 from ctgpp.sim.presets import preset
 
@@ -111,7 +110,7 @@ class _Worker:
         scene = self.scenes[scene_id]
         spec = episode_rule(scene, start_s, self.job.rule)
         loss = None if spec is None else spec.loss
-        policy = DiffusionPolicy(self.factory.model, self.chosen.sampling, loss, self.chosen.guidance)
+        policy = self.factory.diffusion_policy("ctgpp", loss)
         began = time.perf_counter()
         rollout = simulate(scene, policy, start_s, seed=seed)
         seconds = time.perf_counter() - began
