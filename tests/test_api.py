@@ -128,11 +128,13 @@ def test_evaluate_and_evaluate_queries_run_the_episodes_of_simulate(tmp_path: Pa
 
 
 def test_a_parked_vehicle_the_query_steers_is_driven_by_the_model() -> None:
-    """The held-out "same direction" case names vehicle 5 of scene-0916, parked at the start: with
-    the query the model plans it and it moves; without, the simulator holds it where it stands."""
+    """The infeasible held-out "same direction" case names vehicle 5 of scene-0916, parked at the
+    start: with the query the model plans it and it moves; without, the simulator holds it where it
+    stands."""
     from importlib import resources
 
-    cases = json.loads((resources.files("ctgpp") / "assets/queries/mini_val_heldout.json").read_text())
+    infeasible = resources.files("ctgpp") / "assets/queries/mini_val_heldout_infeasible.json"
+    cases = json.loads(infeasible.read_text())
     (case,) = [c for c in cases if c["family"] == "same direction"]
     assert case["scene"] == "scene-0916" and "vehicle 5" in case["query"]
 

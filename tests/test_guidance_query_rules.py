@@ -13,8 +13,9 @@ import torch
 from ctgpp.diffusion.guided import action_trajectories
 from ctgpp.guidance import GuidanceBatch, build_guidance_batch, make_loss
 from ctgpp.guidance.lane_helpers import get_route_to_point, signed_offset
-from ctgpp.guidance.lane_paths import vehicle_lane
-from ctgpp.guidance.rules_map import free_speed
+from ctgpp.guidance.lane_paths import arc_length, point_at, vehicle_lane
+from ctgpp.guidance.rules_common import world_states
+from ctgpp.guidance.rules_map import TurnAtNextIntersection, free_speed
 from ctgpp.guidance.rules_relative import along_path
 from ctgpp.scene.types import Scene
 from ctgpp.sim.diffusion_policy import DiffusionPolicy, SamplingConfig
@@ -145,6 +146,64 @@ def test_turn_sets_a_stopped_vehicle_going(batch: GuidanceBatch) -> None:
     rule = make_loss("turn_at_next_intersection", vehicle=0, direction="right", min_speed_mps=2.0)
     rule(x, stopped)[0].sum().backward()
     assert float(actions.grad[0, 0, :, 0].max()) < 0  # descent accelerates every step
+
+
+def test_arc_length_and_point_at_by_hand() -> None:
+    line = torch.tensor([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0]])  # east 10 m, then north 10 m
+    points = torch.tensor([[5.0, 1.0], [12.0, 5.0], [-3.0, 0.5], [10.0, 14.0]], requires_grad=True)
+    s = arc_length(points, line)
+    # on the first leg; on the second (foot (10, 5)); before the start and beyond the end, straight on
+    assert torch.allclose(s.detach(), torch.tensor([5.0, 15.0, -3.0, 24.0]))
+    s.sum().backward()  # the foot moves along its segment: d s / d point is the segment's direction
+    assert torch.allclose(points.grad, torch.tensor([[1.0, 0.0], [0.0, 1.0], [1.0, 0.0], [0.0, 1.0]]))
+    point, heading = point_at(line, torch.tensor(15.0))
+    assert torch.allclose(point, torch.tensor([10.0, 5.0])) and float(heading) == pytest.approx(np.pi / 2)
+    point, heading = point_at(line, torch.tensor(3.0))
+    assert torch.allclose(point, torch.tensor([3.0, 0.0])) and float(heading) == pytest.approx(0.0)
+    assert torch.allclose(point_at(line, torch.tensor(99.0))[0], torch.tensor([10.0, 10.0]))  # clamped
+
+
+def world_positions(x: torch.Tensor, batch: GuidanceBatch) -> torch.Tensor:
+    return world_states(x, batch)[0]
+
+
+def _plan_along(batch: GuidanceBatch, row: int, line: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+    """x (B, 1, T, 6) with vehicle ``row`` at arc lengths s (T,) m along ``line`` (local world frame),
+    headed along it, in its own frame; every other vehicle standing still."""
+    points = torch.stack([point_at(line, v)[0] for v in s])  # (T, 2)
+    headings = torch.stack([point_at(line, v)[1] for v in s])  # (T,)
+    x0, y0, yaw0 = (float(v) for v in batch.pose[row])
+    c, si = np.cos(yaw0), np.sin(yaw0)
+    rel = points - torch.tensor([x0, y0])
+    x = torch.zeros(batch.num_vehicles, 1, len(s), 6)
+    x[row, 0, :, 0] = c * rel[:, 0] + si * rel[:, 1]
+    x[row, 0, :, 1] = -si * rel[:, 0] + c * rel[:, 1]
+    x[row, 0, :, 3] = headings - yaw0
+    return x
+
+
+def test_a_turn_pays_for_going_through_not_for_stopping(batch: GuidanceBatch) -> None:
+    """scene-0103's vehicle 3 with a left turn ahead: a plan that stops where it is has no lateral
+    offset from the turn's path, so an offset alone is lowest there; the progress term (the plan's
+    end against a point along the path, headed as the path) makes it cost more than a plan that
+    drives along the path, and more than one that goes straight on at the same speed."""
+    rule = TurnAtNextIntersection(3, "left")
+    line = rule.target_line(batch, 3)
+    assert line is not None
+    steps = 52
+    s_now = float(arc_length(batch.pose[3, :2], line))
+    along = _plan_along(batch, 3, line, s_now + torch.linspace(0.25, 13.0, steps))  # ~2.5 m/s on the path
+    stop = torch.zeros(batch.num_vehicles, 1, steps, 6)
+    straight = stop.clone()
+    straight[3, 0, :, 0] = torch.linspace(0.25, 13.0, steps)  # the same distance straight ahead
+    pos = lambda x: world_positions(x, batch)[3]  # noqa: E731
+    yaw = lambda x: x[3, ..., 3] + batch.pose[3, 2]  # noqa: E731
+    shortfall = {name: float(rule.progress_shortfall(pos(x), yaw(x), line, batch, 3)[0])
+                 for name, x in (("along", along), ("stop", stop), ("straight", straight))}
+    assert shortfall["along"] < shortfall["stop"] - 5.0
+    assert shortfall["along"] < shortfall["straight"] - 5.0
+    cost = {name: float(rule(x, batch)[3]) for name, x in (("along", along), ("stop", stop))}
+    assert cost["along"] < cost["stop"]
 
 
 @pytest.mark.parametrize(

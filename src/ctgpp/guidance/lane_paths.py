@@ -239,6 +239,18 @@ def turn_path(lanes: LaneGraph, proj: LaneProjection, direction: Direction) -> T
     return best
 
 
+def turn_exit(data_batch: GuidanceBatch, i: int, direction: Direction) -> np.ndarray | None:
+    """World point (2,) m where vehicle i's lane path through the next intersection that turns
+    ``direction`` (:func:`turn_path`) leaves the intersection (the end of its last intersection
+    lane); None where :func:`get_turn_lane` has no path."""
+    proj = vehicle_lane(data_batch, i)
+    if proj is None:
+        return None
+    lanes = data_batch.scene.lanes
+    best = turn_path(lanes, proj, direction)
+    return None if best is None else np.asarray(lanes.lane(best.lanes[best.last])[-1], dtype=np.float64)
+
+
 def get_turn_lane(data_batch: GuidanceBatch, i: int, direction: Direction) -> Tensor | None:
     """Target polyline (M, 2), local world frame m, of a lane path from vehicle i through the next
     intersection that turns ``direction`` (:func:`turn_path`: the sharpest left or right turn, the
@@ -296,6 +308,40 @@ def project_onto_polyline(points: Tensor, line: Tensor) -> tuple[Tensor, Tensor]
     k = _closest_segment(flat, start, vec, valid)
     foot, heading = _foot(flat, start, vec, k)
     return foot.reshape(points.shape), heading.reshape(points.shape[:-1])
+
+
+def arc_length(points: Tensor, line: Tensor) -> Tensor:
+    """Arc length (...) m along a polyline (M, 2) (M >= 2) of the foot points of points (..., 2);
+    beyond the polyline's ends the end segments continue straight (negative before its start).
+    Differentiable w.r.t. ``points`` (the foot moves along its segment; the choice of segment is not
+    differentiated)."""
+    flat = points.reshape(1, -1, 2)  # (..., 2) -> (1, Q, 2)
+    start, vec = line[None, :-1], (line[1:] - line[:-1])[None]  # (1, S, 2)
+    valid = torch.ones(start.shape[:2], dtype=torch.bool, device=line.device)
+    k = _closest_segment(flat, start, vec, valid)  # (1, Q)
+    seg = vec.norm(dim=-1).clamp_min(1e-9)  # (1, S) m
+    before = torch.cumsum(seg, dim=-1) - seg  # (1, S) arc length at each segment's start
+    a = torch.gather(start, 1, k[..., None].expand(*k.shape, 2))  # (1, Q, 2)
+    v = torch.gather(vec, 1, k[..., None].expand(*k.shape, 2))
+    length = torch.gather(seg, 1, k)  # (1, Q)
+    along = ((flat - a) * v).sum(-1) / length  # (1, Q) m from the segment's start
+    last = seg.shape[1] - 1
+    lo = torch.where(k == 0, torch.full_like(along, -math.inf), torch.zeros_like(along))
+    hi = torch.where(k == last, torch.full_like(along, math.inf), length)
+    s = torch.gather(before, 1, k) + torch.maximum(torch.minimum(along, hi), lo)
+    return s.reshape(points.shape[:-1])
+
+
+def point_at(line: Tensor, s_m: Tensor) -> tuple[Tensor, Tensor]:
+    """The point (2,) at arc length ``s_m`` (a scalar tensor, m) along a polyline (M, 2), clamped to
+    its ends, and the polyline's heading (rad, a scalar tensor) there."""
+    seg = (line[1:] - line[:-1]).norm(dim=-1)  # (S,) m
+    cum = torch.cat([seg.new_zeros(1), torch.cumsum(seg, dim=0)])  # (M,) arc length of each vertex
+    s = s_m.clamp(0.0, float(cum[-1]))
+    k = int(torch.searchsorted(cum.detach(), s.detach().reshape(1), right=True).clamp(1, len(seg))[0]) - 1
+    t = (s - cum[k]) / seg[k].clamp_min(1e-9)
+    d = line[k + 1] - line[k]
+    return line[k] + t * d, torch.atan2(d[1], d[0])
 
 
 def project_onto_polylines(
