@@ -5,14 +5,17 @@ from __future__ import annotations
 
 import json
 import math
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 
 from ctgpp.cli.common import split_spec
 from ctgpp.data.catalog import Catalog
+from ctgpp.eval.episode import FIELDS
 from ctgpp.eval.realism_plot import read_histograms
-from ctgpp.eval.records import append_json_lines, metric_cell, read_json_lines
+from ctgpp.eval.records import append_json_lines, append_records, metric_cell, read_json_lines
 from ctgpp.eval.runner import KEY, METRICS, EvalSet, plan_episodes, read_records, run_episodes
 from ctgpp.eval.table import markdown_table, summarize
 from ctgpp.guidance.base import GuidanceLoss
@@ -155,6 +158,28 @@ def test_results_of_an_older_layout_are_refused(catalog: Catalog, tmp_path: Path
     episodes = plan_episodes(catalog, "mini_val", ["replay"], [0], 6.0)
     with pytest.raises(ValueError, match="older ctgpp"):
         run_episodes(catalog, episodes, PolicyFactory(), results, progress=False)
+
+
+def test_a_second_run_into_the_same_results_is_refused_before_it_starts(
+    catalog: Catalog, tmp_path: Path
+) -> None:
+    """Two `ctgpp evaluate` with one --out would both run the episodes missing from its CSV and append
+    them twice: while one run has the file open, another process is refused with one line, and the
+    file is left as it was."""
+    results = tmp_path / "run" / "episodes.csv"
+    episodes = plan_episodes(catalog, "mini_val", ["replay"], [0], 6.0)
+    run_episodes(catalog, episodes[:1], PolicyFactory(), results, progress=False)
+    before = results.read_bytes()
+    argv = [sys.executable, "-m", "ctgpp.cli.main", "evaluate", "--methods", "replay", "--rules", "none"]
+    argv += ["--spacing", "6", "--out", str(results.parent)]
+    with append_records(results, FIELDS):  # a run in flight holds the file
+        done = subprocess.run(argv, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 2, done.stderr
+    assert "being written by another run" in done.stderr and "Traceback" not in done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1
+    assert results.read_bytes() == before
+    run_episodes(catalog, episodes, PolicyFactory(), results, progress=False)  # closed: free again
+    assert len(read_records(results)) == len(episodes)
 
 
 def _row(method: str, scene: str, start_s: str, seed: int, **metrics: str) -> dict[str, str]:

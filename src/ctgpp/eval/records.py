@@ -10,6 +10,7 @@ file.
 from __future__ import annotations
 
 import csv
+import fcntl
 import json
 import math
 from collections.abc import Callable, Iterator, Sequence
@@ -44,19 +45,24 @@ def record_key(record: dict[str, str], key: Sequence[str]) -> tuple[str, ...]:
 def append_records(path: Path, fields: Sequence[str]) -> Iterator[Callable[[dict[str, str]], None]]:
     """Open ``path`` for appending rows of columns ``fields`` (header written when the file is new
     or empty; a torn last line left by a killed run is cut off first, so that the next row starts a
-    line of its own); yields ``write(row)``, which writes one line and flushes it."""
+    line of its own); yields ``write(row)``, which writes one line and flushes it.
+
+    The file is locked for as long as it is open: a second run writing to the same file (two
+    ``ctgpp evaluate`` with one ``--out``) is refused before it starts, rather than running the same
+    work again and appending it twice."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    _drop_torn_line(path)
-    new_file = not path.exists() or path.stat().st_size == 0
-    if not new_file:
-        with path.open(newline="", encoding="utf-8") as f:
-            header = next(csv.reader(f), [])
-        if header != list(fields):
-            raise ValueError(
-                f"{path} has the columns {', '.join(header)}, not {', '.join(fields)}: it was written by "
-                "another kind of run or an older ctgpp; write the results to another directory"
-            )
     with path.open("a", newline="", encoding="utf-8") as f:
+        _lock_exclusively(f.fileno(), path)
+        _drop_torn_line(path)
+        new_file = path.stat().st_size == 0
+        if not new_file:
+            with path.open(newline="", encoding="utf-8") as g:
+                header = next(csv.reader(g), [])
+            if header != list(fields):
+                raise ValueError(
+                    f"{path} has the columns {', '.join(header)}, not {', '.join(fields)}: it was written "
+                    "by another kind of run or an older ctgpp; write the results to another directory"
+                )
         writer = csv.DictWriter(f, fieldnames=list(fields), lineterminator="\n")
         if new_file:
             writer.writeheader()
@@ -67,6 +73,18 @@ def append_records(path: Path, fields: Sequence[str]) -> Iterator[Callable[[dict
             f.flush()
 
         yield write
+
+
+def _lock_exclusively(fd: int, path: Path) -> None:
+    """Hold an exclusive lock on the open file ``fd`` (released when it is closed), or raise a clear
+    error when another process holds it."""
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        raise ValueError(
+            f"{path} is being written by another run (another ctgpp command with the same --out?): wait for "
+            "it to finish or write the results to another directory"
+        ) from None
 
 
 def read_json_lines(path: Path) -> list[dict[str, Any]]:
