@@ -18,7 +18,7 @@ from ctgpp.guidance import registered_losses
 from ctgpp.guidance.lane_paths import same_direction_neighbour, turn_path
 from ctgpp.language.compiler import compile_query
 from ctgpp.language.prompt import build_messages
-from ctgpp.language.satisfaction import check_satisfied
+from ctgpp.language.satisfaction import check_satisfied, in_order
 from ctgpp.scene.lanes import lane_points_ahead, nearest_lane
 from ctgpp.scene.types import AgentTracks
 from ctgpp.sim.closed_loop import simulate
@@ -256,3 +256,35 @@ def test_a_cut_in_enters_the_others_lane_ahead_while_it_keeps_moving(replay_0553
     already = _drive(_drive(r, other, b_xy, 8.0), subject, a_lane, 8.0)  # ahead in its lane all along
     ok, said = _verdict(already, query)
     assert not ok and "starts 0.0 m from the other's lane" in said
+
+
+def test_a_sequence_is_judged_in_its_order(replay_0103: Rollout) -> None:
+    """Vehicle 2 of scene-0103, already in the rightmost lane, driven through its right turn at
+    6 m/s: the turn is achieved when its heading change comes within 15° of the way's (about 5.9 s:
+    20 m to the intersection, then the turn's arc), the lane at t = 0; "the lane, then the turn" is
+    in order, and a stage achieved before an earlier one is not."""
+    r = replay_0103
+    lanes, a = r.scene.lanes, int(np.flatnonzero(r.number == 2)[0])
+    proj = nearest_lane(lanes, r.sim.xy[a, r.current], float(r.sim.yaw[a, r.current]))
+    right = turn_path(lanes, proj, "right")
+    steps = r.sim.num_steps - r.current
+    full = _drive(r, 2, _along(lanes, right.lanes, proj.s_m, 6.0 * 0.1 * np.arange(steps)), 6.0)
+    query = "vehicle 2 moves to the rightmost lane and then turns right at the next intersection"
+    compiled = compile_query(query, int(full.controlled.sum()))
+    assert [(p.rule, p.stage) for p in compiled.parts] == [("move_to_rightmost_lane", 0),
+                                                           ("turn_at_next_intersection", 1)]
+    lane, turn = check_satisfied(full, compiled)
+    assert lane.satisfied and "(from t = 0.0 s)" in lane.measured
+    assert turn.satisfied and "after the earlier stage (t = 0.0 s)" in turn.measured, turn.measured
+    done = float(turn.measured.split("achieved at t = ")[1].split(" s")[0])
+    assert 5.0 <= done <= 7.0  # 20 m at 6 m/s, then most of the turn's ~16 m arc
+    # the same two verdicts, the turn now of an earlier stage than a part achieved at 3 s
+    early = in_order(replace(lane, measured="x"), 3.0, [(compiled.parts[1], done)])
+    assert not early.satisfied and f"before '{compiled.parts[1].text}'" in early.measured
+    assert in_order(lane, 0.0, [(compiled.parts[1], done)]).satisfied  # held from the start: no move asked
+    assert in_order(lane, 3.0, [(compiled.parts[1], None)]).measured.endswith("order not judged (no time for "
+                                                                              f"'{compiled.parts[1].text}')")
+    # stopping half-way through the turn: the turn is no turn, and has no time
+    half = np.minimum(6.0 * 0.1 * np.arange(steps), 20.0 + 0.5 * math.pi / 2 * 10.0)
+    stopped = check_satisfied(_drive(r, 2, _along(lanes, right.lanes, proj.s_m, half), 6.0), compiled)
+    assert not stopped[1].satisfied and "achieved" not in stopped[1].measured

@@ -48,11 +48,15 @@ class Violation:
 @dataclass(frozen=True)
 class Verdict:
     """Whether a rollout satisfies a behaviour, what was ``measured`` (numbers with units, in words)
-    and the ``window`` of the episode it was judged on."""
+    and the ``window`` of the episode it was judged on; ``done_s``, for a behaviour that is achieved
+    at a time (a lane reached, a turn made), the episode time (s) it was achieved at (0: at the
+    start), which orders the stages of a sequence (:mod:`ctgpp.language.satisfaction`); None where
+    the behaviour does not say or was not achieved."""
 
     satisfied: bool
     measured: str
     window: str
+    done_s: float | None = None
 
 
 HOLDS = "holds"  # "within N s": from N s to the end (limits, bands, reach and stay)
@@ -142,7 +146,7 @@ class Behaviour:
             found = self.check(windowed(rollout, window), self.resolve(params), vehicles)
         except MissingVehicle as err:
             return Verdict(False, str(err), where)
-        return found if window is None else Verdict(found.satisfied, found.measured, where)
+        return found if window is None else Verdict(found.satisfied, found.measured, where, found.done_s)
 
 
 _REGISTRY: dict[str, Behaviour] = {}

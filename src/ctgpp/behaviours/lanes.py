@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from ctgpp.behaviours.base import Vehicles, Verdict
-from ctgpp.behaviours.tracks import Track, both_valid, track, tracks, wrapped_deg
+from ctgpp.behaviours.tracks import Track, both_valid, held_from, track, tracks, wrapped_deg
 from ctgpp.scene.lanes import (
     LaneProjection,
     follow_lane,
@@ -261,27 +261,37 @@ def rightmost_violation(rollout: Rollout, p: Params, vehicles: Vehicles) -> floa
 
 
 def rightmost_check(rollout: Rollout, p: Params, vehicles: Vehicles) -> Verdict:
-    """The lane the vehicle ends on has no same-direction lane to its right."""
+    """The lane the vehicle ends on has no same-direction lane to its right; achieved (``done_s``)
+    at the first step from which every lane it is on has none, to the end."""
     t = _valid(rollout, p["vehicle"])
-    end = end_lane(rollout.scene.lanes, *_with_start(t))
-    if end is None:
+    lanes, proj = rollout.scene.lanes, None
+    rightmost = []  # (T+1,) from t = 0: on a lane with no same-direction lane to its right
+    for xy, yaw in zip(*_with_start(t), strict=True):
+        proj = follow_lane(lanes, proj, xy, float(yaw))
+        rightmost.append(proj is not None and _lanes_to_the_right(lanes, proj) == 0)
+    if proj is None:
         return Verdict(False, "ends on no lane", END)
-    n = _lanes_to_the_right(rollout.scene.lanes, end)
-    return Verdict(n == 0, f"ends on lane {end.lane}, with {n} same-direction lane(s) to its right", END)
+    n = _lanes_to_the_right(lanes, proj)
+    since = held_from(np.array(rightmost))
+    done = None if since is None else (0.0 if since == 0 else t.time(since - 1))
+    when = "" if done is None else f" (from t = {done:.1f} s)"
+    said = f"ends on lane {proj.lane}, with {n} same-direction lane(s) to its right{when}"
+    return Verdict(n == 0, said, END, done)
 
 
 # --- turn at the next intersection -------------------------------------------------------------------
 
 
-def _turn(lanes: LaneGraph, t: Track, direction: str) -> tuple[bool, float, str]:
+def _turn(lanes: LaneGraph, t: Track, direction: str) -> tuple[bool, float, str, float | None]:
     """Whether the vehicle's heading change while moving matches the turn of the lane path through
-    the next intersection that turns ``direction`` (within 15°), the mismatch (°) and the words."""
+    the next intersection that turns ``direction`` (within 15°), the mismatch (°), the words and the
+    time (s) from which it matches to the end (None: not at the end)."""
     from ctgpp.guidance.lane_paths import turn_path
 
     start = nearest_lane(lanes, t.xy0, t.yaw0)
     path = None if start is None else turn_path(lanes, start, direction)  # type: ignore[arg-type]
     if path is None:
-        return False, math.nan, f"no intersection within 150 m ahead has a way {direction}"
+        return False, math.nan, f"no intersection within 150 m ahead has a way {direction}", None
     exit_lane = lanes.lane(path.lanes[path.last])
     exit_heading = math.atan2(*(exit_lane[-1] - exit_lane[-2])[::-1])
     wanted = wrapped_deg(exit_heading - t.yaw0)
@@ -289,12 +299,19 @@ def _turn(lanes: LaneGraph, t: Track, direction: str) -> tuple[bool, float, str]
     speed = np.concatenate([[t.speed0], t.speed])
     dyaw = np.diff(np.unwrap(yaw))  # (T,) rad, step k -> k+1
     moving = (speed[1:] >= MOVING_MPS) | (speed[:-1] >= MOVING_MPS)
-    change = math.degrees(float((dyaw * moving).sum()))
+    turned = np.degrees(np.cumsum(dyaw * moving))  # (T,) heading change up to each future step
+    change = float(turned[-1]) if turned.size else 0.0
     miss = abs(change - wanted)
     said = (f"heading change while moving {change:+.0f}° (left +); the {direction} way through the "
             f"intersection {path.ahead_m:.0f} m ahead turns {wanted:+.0f}° "
             f"(needs within {TURN_MATCH_DEG:g}°)")
-    return miss <= TURN_MATCH_DEG, miss, said
+    return miss <= TURN_MATCH_DEG, miss, said, _turned_by(t, turned, wanted)
+
+
+def _turned_by(t: Track, turned: np.ndarray, wanted: float) -> float | None:
+    """Episode time (s) from which the heading change stays within 15° of ``wanted`` to the end."""
+    since = held_from(np.abs(turned - wanted) <= TURN_MATCH_DEG)
+    return None if since is None else t.time(since)
 
 
 def turn_violation(rollout: Rollout, p: Params, vehicles: Vehicles) -> float:
@@ -306,8 +323,8 @@ def turn_check(rollout: Rollout, p: Params, vehicles: Vehicles) -> Verdict:
     """The heading change while moving (turning on the spot is no turn) is within 15° of the heading
     change of the way through the next intersection that turns ``direction`` (from the vehicle's
     heading at t = 0 to the heading where that way leaves the intersection)."""
-    ok, _, said = _turn(rollout.scene.lanes, _valid(rollout, p["vehicle"]), p["direction"])
-    return Verdict(ok, said, "t = 0 to the end, steps at which the vehicle moves")
+    ok, _, said, done = _turn(rollout.scene.lanes, _valid(rollout, p["vehicle"]), p["direction"])
+    return Verdict(ok, said, "t = 0 to the end, steps at which the vehicle moves", done if ok else None)
 
 
 # --- cut in ------------------------------------------------------------------------------------------

@@ -4,12 +4,17 @@ Each part of a compiled query is a behaviour of the vocabulary (:mod:`ctgpp.beha
 is that behaviour's check, which reads only the simulated tracks, the boxes, the drivable raster and
 the lane graph — never the guidance loss that steered the sampler — on the window the behaviour
 states (a speed limit from when the vehicle could be under it, "slow down to" as reach and stay, ...).
+
+A sequence ("one by one", "then": the parts' ``stage``) is judged in its order too: a part achieved
+at a time (its verdict's ``done_s``: a lane reached, a turn made) before a part of an earlier stage
+was achieved is not satisfied (one that held from t = 0 asked for no move and is in order). Where
+either part does not say when it was achieved, the order is not judged, and the report says so.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from ctgpp.behaviours import get_behaviour
 from ctgpp.language.compiler import CompiledQuery, QueryPart
@@ -31,17 +36,51 @@ class PartReport:
 
 
 def check_part(rollout: Rollout, part: QueryPart) -> PartReport:
-    """The verdict and violation of one compiled part, by its behaviour."""
-    behaviour = get_behaviour(part.rule)
-    verdict = behaviour.verdict(rollout, part.params, part.vehicles, part.window)
-    violation = behaviour.violation(rollout, part.params, part.vehicles, part.window)
-    return PartReport(part.text, verdict.satisfied, verdict.measured, verdict.window, violation.value,
-                      violation.unit)
+    """The verdict and violation of one compiled part, by its behaviour (on its own, without the
+    order of a sequence: :func:`check_satisfied`)."""
+    return _checked(rollout, part)[0]
 
 
 def check_satisfied(
     rollout: Rollout, compiled_or_parts: CompiledQuery | Sequence[QueryPart]
 ) -> list[PartReport]:
-    """One :class:`PartReport` per part of a compiled query, measured on the rollout."""
+    """One :class:`PartReport` per part of a compiled query, measured on the rollout, a sequence's
+    stages in their order (module docstring)."""
     parts = compiled_or_parts.parts if isinstance(compiled_or_parts, CompiledQuery) else compiled_or_parts
-    return [check_part(rollout, part) for part in parts]
+    found = [_checked(rollout, part) for part in parts]
+    reports = []
+    for part, (report, done) in zip(parts, found, strict=True):
+        earlier = [(p, d) for p, (_, d) in zip(parts, found, strict=True) if p.stage < part.stage]
+        reports.append(in_order(report, done, earlier))
+    return reports
+
+
+def in_order(report: PartReport, done_s: float | None, earlier: Sequence[tuple[QueryPart, float | None]]
+             ) -> PartReport:
+    """``report`` of a part achieved at ``done_s`` (s; None: not said), judged against the parts of
+    earlier stages and the times they were achieved: not satisfied when achieved before one of them
+    (a part that already held at t = 0, a vehicle already in the rightmost lane, asked nothing to
+    happen and is in order), "order not judged" where a time is missing."""
+    if not earlier or not report.satisfied:
+        return report
+    unknown = [p.text for p, d in earlier if d is None]
+    before = [(p.text, d) for p, d in earlier if d is not None and done_s is not None and 0.0 < done_s < d]
+    if before:
+        text, d = before[0]
+        said = f"{report.measured}; achieved at t = {done_s:.1f} s, before '{text}' (t = {d:.1f} s)"
+        return replace(report, satisfied=False, measured=said)
+    if done_s is None or unknown:
+        return replace(report, measured=f"{report.measured}; order not judged (no time for "
+                                        f"{'this part' if done_s is None else repr(unknown[0])})")
+    last = max(d for _, d in earlier if d is not None)
+    return replace(report, measured=f"{report.measured}; achieved at t = {done_s:.1f} s, after the earlier "
+                                    f"stage (t = {last:.1f} s)")
+
+
+def _checked(rollout: Rollout, part: QueryPart) -> tuple[PartReport, float | None]:
+    behaviour = get_behaviour(part.rule)
+    verdict = behaviour.verdict(rollout, part.params, part.vehicles, part.window)
+    violation = behaviour.violation(rollout, part.params, part.vehicles, part.window)
+    report = PartReport(part.text, verdict.satisfied, verdict.measured, verdict.window, violation.value,
+                        violation.unit)
+    return report, verdict.done_s if verdict.satisfied else None
