@@ -24,6 +24,7 @@ def main() -> None:
         "--presets", default="fast", help="comma-separated sampler presets (ctgpp bench's spelling)"
     )
     parser.add_argument("--seeds", type=int, default=10, help="seeds 0 .. N-1")
+    parser.add_argument("--checkpoint", default=None, help="CTG++ checkpoint (default: the shipped one)")
     args = parser.parse_args()
     scene = ctgpp.load_scene(args.scene)
     for name in args.presets.split(","):
@@ -32,7 +33,8 @@ def main() -> None:
         start = time.monotonic()
         for seed in range(args.seeds):
             result = ctgpp.simulate(
-                scene, args.query, seed=seed, sampling=chosen.sampling, guidance=chosen.guidance
+                scene, args.query, seed=seed, sampling=chosen.sampling, guidance=chosen.guidance,
+                checkpoint=args.checkpoint,
             )
             named = set(result.query.get("vehicles") or [])
             others = sorted(

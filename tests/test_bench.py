@@ -119,7 +119,12 @@ def test_quality_differences_are_paired_episode_by_episode() -> None:
         ("ddim@99.75.40.0-n2-lr0.9", SamplingConfig("ddim", 4, 2, (99, 75, 40, 0)), GuidanceConfig(1, 0.9)),
         ("ddim6-n2-lr0.9", SamplingConfig.evenly("ddim", 6, 2), GuidanceConfig(1, 0.9)),
         ("ddim5-n2-lr0.9", SamplingConfig.evenly("ddim", 5, 2), GuidanceConfig(1, 0.9)),
-        ("ddpm-n5-scene", SamplingConfig.evenly("ddpm", 100, 5), GuidanceConfig(1, 0.3, compose=False)),
+        ("ddim5-n2-lr0.9-r0", SamplingConfig.evenly("ddim", 5, 2), GuidanceConfig(1, 0.9, min_radius=0)),
+        (
+            "ddpm-n5-scene-r0",
+            SamplingConfig.evenly("ddpm", 100, 5),
+            GuidanceConfig(1, 0.3, compose=False, min_radius=0),
+        ),
         ("ddpm-n5", SamplingConfig.evenly("ddpm", 100, 5), GuidanceConfig(1, 0.3, compose=True)),
         ("ddim10", SamplingConfig.evenly("ddim", 10, 4), GuidanceConfig(1, 0.3)),
         ("ddim4-w2-lr0.5-from80", SamplingConfig.evenly("ddim", 4, 4), GuidanceConfig(2, 0.5, 80)),
@@ -128,7 +133,7 @@ def test_quality_differences_are_paired_episode_by_episode() -> None:
 def test_spelled_out_presets(name: str, sampling: SamplingConfig, guidance: GuidanceConfig) -> None:
     chosen = preset(name)
     assert (chosen.sampling, chosen.guidance) == (sampling, guidance)
-    if name in ("ddim6-n2-lr0.9", "ddpm-n5-scene"):  # the fast and the paper preset
+    if name in ("ddim6-n2-lr0.9", "ddpm-n5-scene-r0"):  # the fast and the paper preset
         named = preset("fast" if name.startswith("ddim") else "paper")
         assert (named.sampling, named.guidance) == (sampling, guidance)
 

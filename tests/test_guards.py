@@ -5,8 +5,10 @@ and the command line's --guards."""
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -17,6 +19,7 @@ from ctgpp.guidance.helpers import transform_coord_agents_to_world, transform_co
 from ctgpp.guidance.scope import LossScope
 from ctgpp.language.compiler import compile_query
 from ctgpp.model.checkpoint import load_checkpoint
+from ctgpp.sim.closed_loop import held_numbers
 from ctgpp.sim.diffusion_policy import DiffusionPolicy, SamplingConfig
 from ctgpp.sim.factory import default_checkpoint
 from tests.test_guidance_helpers import logged_x, real_observation
@@ -175,18 +178,28 @@ def test_with_guards_composes_the_rule_and_the_guards(batch: GuidanceBatch, logg
     assert both is not None and both.couples_agents and both(logged, batch).shape == (2,)
 
 
-def test_guarded_sampling_lowers_the_guard_loss() -> None:
-    """The shipped model on scene-0103 at 3 s, one re-plan of the fast sampler (4 DDIM steps, 2
-    samples), from the same seed: the guarded samples cost the guards less than the unguided ones."""
+def test_the_guarded_plan_costs_the_guards_less() -> None:
+    """The shipped model on scene-0103 at 3 s, one re-plan of the default sampler from the same seed,
+    three seeds: the plan the guarded policy executes (a sample per vehicle, chosen by the guards)
+    costs the guards less than the unguided one. (Single samples may cost more: at the last steps'
+    clip radius a guidance step moves every action it touches by up to 0.3; the choice among the N
+    samples keeps the ones it helped.) The vehicles parked at the start are held, as the simulator
+    holds them."""
     obs = real_observation()
+    obs = replace(obs, held=obs.controlled[held_numbers(obs.tracks, obs.step, obs.controlled, True)])
     guards = RealismGuards(GuardConfig())
     model = load_checkpoint(default_checkpoint())[0]
     data_batch = build_guidance_batch(obs, 52)
-    costs = []
-    for loss in (None, guards):
-        samples = DiffusionPolicy(model, SamplingConfig(), loss).sample_plans(obs)
-        costs.append(float(guards(samples.trajectories, data_batch).sum()))
-    assert costs[1] < costs[0]
+    for seed in range(3):
+        costs = []
+        for loss in (None, guards):
+            samples = DiffusionPolicy(model, SamplingConfig(), loss).sample_plans(
+                replace(obs, rng=np.random.default_rng(seed))
+            )
+            v = samples.chosen.shape[0]
+            plan = samples.trajectories[torch.arange(v), samples.chosen][:, None]  # (V, 1, F, 6)
+            costs.append(float(guards(plan, data_batch).sum()))
+        assert costs[1] < costs[0], (seed, costs)
 
 
 # --- command line --------------------------------------------------------------------------------

@@ -170,7 +170,7 @@ def test_each_step_moves_the_mean_by_at_most_its_radius() -> None:
     sampler.prev_mean_std = spy  # type: ignore[method-assign]
     x0 = guided_sample(
         lambda x, k: 0.9 * x, (2, 3, 8, 2), sampler, lambda x: (x + 50.0).abs(),
-        GuidanceConfig(lr=1e3), torch.Generator().manual_seed(1),
+        GuidanceConfig(lr=1e3, min_radius=0.0), torch.Generator().manual_seed(1),
     )
     # DDIM η = 0: x_{k−1} is the guided mean; the next step's x_k minus the unguided mean is the change.
     inputs = [x_k for _, _, x_k in seen[1:]] + [x0]
@@ -178,6 +178,27 @@ def test_each_step_moves_the_mean_by_at_most_its_radius() -> None:
         change = (guided - mean).abs()
         assert change.max() <= radii[k] + 1e-6
         assert change.max() >= radii[k] - 1e-6  # the huge lr saturates the clip
+
+
+def test_min_radius_is_the_floor_of_every_steps_clip() -> None:
+    """Hand-computed on deterministic DDIM with a denoiser that predicts x̂0 = 0: the last step's mean
+    is exactly 0 and one Adam step moves each entry by lr, clipped to that step's radius — 0.025 at
+    k = 0 of the 6-step grid, or ``min_radius`` when larger; the earlier, larger radii are kept."""
+    sampler = DDIMSampler(SCHEDULE, 6)
+    radii = clip_radii(sampler)
+    assert radii[0] < 0.05 and radii[99] > 0.5
+
+    def push_up(x: Tensor) -> Tensor:
+        return -x.sum()
+
+    for floor, last in ((0.0, radii[0]), (0.3, 0.3)):
+        x0 = guided_sample(
+            lambda x, k: torch.zeros_like(x), (1, 2, 4, 2), sampler, push_up,
+            GuidanceConfig(lr=0.9, min_radius=floor), torch.Generator().manual_seed(0),
+        )
+        torch.testing.assert_close(x0, torch.full_like(x0, last))
+    with pytest.raises(ValueError, match="min_radius"):
+        GuidanceConfig(min_radius=-0.1)
 
 
 def test_action_trajectories_follow_the_contract() -> None:
@@ -255,12 +276,14 @@ def test_coupled_loss_keeps_one_sample_for_the_scene_or_composes_a_better_one(sc
     follower, leader = select_pair(scene_0103, STEP, ctrl, 36.0)
     loss = make_loss("keep_distance", follower=follower, leader=leader, min_m=40.0, max_m=50.0)
     sampling, model = SamplingConfig.evenly("ddim", 4, 3), make_model(PriorDenoiser)
-    paper = DiffusionPolicy(model, sampling, loss, GuidanceConfig(compose=False))
+    algorithm2 = GuidanceConfig(min_radius=0.0)  # the samples this case was built on: Algorithm 2's radii
+    paper = DiffusionPolicy(model, sampling, loss, replace(algorithm2, compose=False))
     samples = paper.sample_plans(observation(scene_0103, seed=1))
     assert samples.loss is not None and samples.loss.shape == (3,)
     scene_level = int(samples.loss.argmin())
     assert samples.chosen.tolist() == [scene_level] * len(ctrl)
-    composed = DiffusionPolicy(model, sampling, loss).sample_plans(observation(scene_0103, seed=1))
+    composer = DiffusionPolicy(model, sampling, loss, algorithm2)
+    composed = composer.sample_plans(observation(scene_0103, seed=1))
     torch.testing.assert_close(composed.trajectories, samples.trajectories, rtol=0, atol=0)
     batch = build_guidance_batch(observation(scene_0103), 52)
     plan = composed.trajectories[torch.arange(len(ctrl)), composed.chosen][:, None]  # (V, 1, F, 6)

@@ -88,6 +88,14 @@ def add_guidance_args(parser: argparse.ArgumentParser) -> None:
         "--guide-lr", type=float, default=GuidanceConfig.lr, help="guidance Adam learning rate"
     )
     parser.add_argument(
+        "--guide-radius",
+        type=float,
+        default=GuidanceConfig.min_radius,
+        metavar="R",
+        help="the smallest clip radius of a guidance step (GuidanceConfig.min_radius; "
+        f"default {GuidanceConfig.min_radius:g})",
+    )
+    parser.add_argument(
         "--guide-steps",
         type=int,
         default=GuidanceConfig.inner_steps,
@@ -173,7 +181,10 @@ def guidance_config(args: argparse.Namespace) -> GuidanceConfig:
             "--guide-steps must be ≥ 0 and --guide-lr positive "
             f"(got --guide-steps {args.guide_steps} --guide-lr {args.guide_lr:g})"
         )
-    return GuidanceConfig(args.guide_steps, args.guide_lr, compose=args.filtration == "compose")
+    if not (math.isfinite(args.guide_radius) and args.guide_radius >= 0):
+        raise ValueError(f"--guide-radius must be a number ≥ 0 (got {args.guide_radius:g})")
+    compose = args.filtration == "compose"
+    return GuidanceConfig(args.guide_steps, args.guide_lr, compose=compose, min_radius=args.guide_radius)
 
 
 def sampling_config(args: argparse.Namespace) -> SamplingConfig:
