@@ -288,3 +288,16 @@ def test_a_sequence_is_judged_in_its_order(replay_0103: Rollout) -> None:
     half = np.minimum(6.0 * 0.1 * np.arange(steps), 20.0 + 0.5 * math.pi / 2 * 10.0)
     stopped = check_satisfied(_drive(r, 2, _along(lanes, right.lanes, proj.s_m, half), 6.0), compiled)
     assert not stopped[1].satisfied and "achieved" not in stopped[1].measured
+
+
+def test_a_miss_says_when_the_pair_starts_facing_opposite_ways(replay_0103: Rollout) -> None:
+    """scene-0103 from 3 s, the log: vehicles 1 and 0 pass each other at t = 0 in opposite directions
+    (177° apart, 9.6 and 8.9 m/s), so "within 20 m" and "the same direction" ask one to turn round,
+    and their misses say so; vehicle 2, behind the ego in its lane, misses "within 20 m" in the log
+    without the note."""
+    ok, said = _verdict(replay_0103, "vehicle 1 must remain within 20 m of vehicle 0")
+    assert not ok and "at t = 0 vehicles 1 and 0 head 177° apart (9.6 and 8.9 m/s)" in said, said
+    ok, said = _verdict(replay_0103, "vehicle 1 should drive in the same direction as vehicle 0")
+    assert not ok and said.endswith("one of them would have to turn round"), said
+    ok, said = _verdict(replay_0103, "vehicle 2 must remain within 20 m of vehicle 0")
+    assert not ok and "turn round" not in said, said

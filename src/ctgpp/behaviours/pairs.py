@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -21,6 +22,7 @@ from ctgpp.metrics.collision import collision_steps
 from ctgpp.sim.rollout import Rollout
 
 SAME_DIRECTION_DEG = 30.0
+TURN_ROUND_DEG = 150.0  # two vehicles this far apart in heading at t = 0 face opposite ways
 REAR_END_MAX_DEG = 60.0
 EVERY_STEP = "every simulated step, t = 0.1 s to the end"
 
@@ -133,11 +135,26 @@ def keep_distance_violation(rollout: Rollout, p: Params, vehicles: Vehicles) -> 
 
 
 def keep_distance_check(rollout: Rollout, p: Params, vehicles: Vehicles) -> Verdict:
-    """The centre distance lies in [min_m, max_m] (:func:`_band_verdict`)."""
+    """The centre distance lies in [min_m, max_m] (:func:`_band_verdict`); a miss says when the two
+    start facing opposite ways (:func:`turn_round_note`)."""
     a, b = _pair(rollout, p, ("follower", "leader"))
     d = np.linalg.norm(a.xy - b.xy, axis=-1)
     lo, hi = float(p["min_m"]), float(p["max_m"])
-    return _band_verdict(a, b, (d >= lo) & (d <= hi), d, f"{lo:g}-{hi:g} m")
+    verdict = _band_verdict(a, b, (d >= lo) & (d <= hi), d, f"{lo:g}-{hi:g} m")
+    if verdict.satisfied:
+        return verdict
+    return replace(verdict, measured=verdict.measured + turn_round_note(a, b))
+
+
+def turn_round_note(a: Track, b: Track) -> str:
+    """Words for a verdict's miss when vehicles a and b head at least ``TURN_ROUND_DEG`` apart at
+    t = 0: keeping close to, or heading the way of, the other then asks one of them to turn round
+    (a U-turn, or from rest); "" otherwise."""
+    gap = abs(wrapped_deg(a.yaw0 - b.yaw0))
+    if gap < TURN_ROUND_DEG:
+        return ""
+    return (f"; at t = 0 vehicles {a.number} and {b.number} head {gap:.0f}° apart ({a.speed0:.1f} and "
+            f"{b.speed0:.1f} m/s): one of them would have to turn round")
 
 
 def stay_away_violation(rollout: Rollout, p: Params, vehicles: Vehicles) -> float:
@@ -168,9 +185,13 @@ def same_direction_violation(rollout: Rollout, p: Params, vehicles: Vehicles) ->
 
 
 def same_direction_check(rollout: Rollout, p: Params, vehicles: Vehicles) -> Verdict:
-    """The headings differ by less than 30° at the end."""
-    diff = _heading_gap(*_pair(rollout, p, ("vehicle", "other")))
-    return Verdict(diff < SAME_DIRECTION_DEG, f"heading difference at the end {diff:.0f}° (needs < 30)",
+    """The headings differ by less than 30° at the end; a miss says when the two start facing
+    opposite ways (:func:`turn_round_note`)."""
+    a, b = _pair(rollout, p, ("vehicle", "other"))
+    diff = _heading_gap(a, b)
+    ok = diff < SAME_DIRECTION_DEG
+    note = "" if ok else turn_round_note(a, b)
+    return Verdict(ok, f"heading difference at the end {diff:.0f}° (needs < 30){note}",
                    "the last step both vehicles are present")
 
 
