@@ -1,8 +1,7 @@
 """The training tracks' smoothing (ctgpp.data.smoothing): exact on constant-velocity motion to the ends
 of a run, hand-computed on constant acceleration, runs never mixed, standing vehicles keep their
 heading; on the real logs it removes nuScenes' keyframe kinks and NGSIM's noise while staying within
-centimetres of the log; a resumed training run keeps the smoothing it started with; a policy whose
-model was trained on smoothed tracks sees the logged history smoothed the same way."""
+centimetres of the log; a resumed training run keeps the smoothing it started with."""
 
 from __future__ import annotations
 
@@ -16,17 +15,11 @@ import numpy as np
 import pytest
 import torch
 
-from ctgpp.data.smoothing import local_linear_fit, smooth_logged_steps, smooth_scene, smooth_tracks
+from ctgpp.data.smoothing import local_linear_fit, smooth_scene, smooth_tracks
 from ctgpp.dynamics import inverse
-from ctgpp.model import Denoiser, ModelConfig
-from ctgpp.model.checkpoint import save_checkpoint
 from ctgpp.scene.types import AgentTracks, AgentType, Scene
-from ctgpp.sim.closed_loop import initial_observation
-from ctgpp.sim.diffusion_policy import DiffusionPolicy, SamplingConfig, trained_smoothing_s
-from ctgpp.sim.factory import PolicyFactory
 
 DT = 0.1
-TINY = ModelConfig(d_model=32, heads=2, blocks=1, edge_dim=8, lane_hidden=16)
 
 
 def _tracks(
@@ -192,55 +185,3 @@ def _short_scene() -> Scene:
     from ctgpp.data.catalog import Catalog
 
     return Catalog.open(None).load("scene-0103")
-
-
-def test_only_the_logged_steps_of_a_simulation_are_seen_smoothed(scene_0103: Scene) -> None:
-    """At an episode's start the controlled vehicles' history is the raw log; a model trained on
-    smoothed tracks sees it smoothed, while steps the simulator has written keep their values, and so
-    do steps past the log's end."""
-    obs = initial_observation(scene_0103, 9.0)  # the last start: its horizon runs past the log
-    log, tracks = scene_0103.agents, obs.tracks
-    smooth = smooth_tracks(log, DT, 0.3)
-    logged = tracks.valid[:, : log.num_steps] & log.valid  # the controlled vehicles' up to the start
-    car = int(obs.controlled[0])
-    tracks.xy[car, obs.step + 1] = tracks.xy[car, obs.step] + 0.5  # a simulated step
-    tracks.yaw[car, obs.step + 1] = tracks.yaw[car, obs.step]
-    tracks.valid[car, obs.step + 1] = True
-    seen = smooth_logged_steps(tracks, log, smooth)
-    np.testing.assert_array_equal(seen.xy[:, : log.num_steps][logged], smooth.xy[logged])
-    np.testing.assert_array_equal(seen.speed[:, : log.num_steps][logged], smooth.speed[logged])
-    np.testing.assert_array_equal(seen.xy[car, obs.step + 1], tracks.xy[car, obs.step + 1])
-    assert tracks.num_steps > log.num_steps  # padded: the steps past the log are the simulator's
-    np.testing.assert_array_equal(seen.xy[:, log.num_steps :], tracks.xy[:, log.num_steps :])
-    assert not np.array_equal(seen.speed, tracks.speed)  # the raw log was not smooth
-    np.testing.assert_array_equal(tracks.xy[:, : log.num_steps][logged], log.xy[logged])  # input kept
-
-
-def test_a_policy_trained_on_smoothed_tracks_plans_from_the_smoothed_history(
-    scene_0103: Scene, tmp_path: Path
-) -> None:
-    """The policy of a checkpoint trained with --smooth 0.3 conditions on, and plans from, the smoothed
-    log's state at the start (nuScenes' keyframe kinks gone); a checkpoint trained on the raw logs (the
-    shipped one) sees the log as it is."""
-    model = Denoiser(TINY)
-    save_checkpoint(tmp_path / "smooth", model, TINY, {"train": {"smooth_s": 0.3}})
-    save_checkpoint(tmp_path / "raw", model, TINY, {"train": {}})
-    assert trained_smoothing_s({}) == 0.0 and trained_smoothing_s({"train": {"smooth_s": 0}}) == 0.0
-    sampling = SamplingConfig.evenly("ddim", 2, 2)
-    smooth_policy = PolicyFactory(tmp_path / "smooth", sampling)("ctgpp-unguided")
-    raw_policy = PolicyFactory(tmp_path / "raw", sampling)("ctgpp-unguided")
-    assert isinstance(smooth_policy, DiffusionPolicy) and isinstance(raw_policy, DiffusionPolicy)
-    assert smooth_policy.history_smoothing_s == 0.3 and raw_policy.history_smoothing_s == 0.0
-    obs = initial_observation(scene_0103, 4.0)
-    assert raw_policy.as_trained(obs) is obs
-    moving = obs.tracks.speed[obs.controlled, obs.step] >= 0.5
-    smooth_speed = smooth_tracks(scene_0103.agents, DT, 0.3).speed[obs.controlled, obs.step]
-    raw_speed = scene_0103.agents.speed[obs.controlled, obs.step]
-    for policy, expected in ((smooth_policy, smooth_speed), (raw_policy, raw_speed)):
-        current = policy.sample_plans(obs).current.numpy()  # (V, 4), in each vehicle's frame
-        np.testing.assert_allclose(current[moving, 2], expected[moving], atol=1e-4)
-    assert np.abs(smooth_speed - raw_speed)[moving].max() > 0.1
-    plan = smooth_policy.plan(obs)
-    seen = smooth_policy.as_trained(obs).tracks
-    first = np.linalg.norm(plan.states[:, 0, :2] - seen.xy[obs.controlled, obs.step], axis=-1)
-    assert (first[moving] <= seen.speed[obs.controlled, obs.step][moving] * DT + 0.2).all()

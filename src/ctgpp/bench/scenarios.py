@@ -29,6 +29,7 @@ from ctgpp.eval.runner import episode_rule
 from ctgpp.metrics import MOVING_METRICS, compute_metrics, moving_counts
 from ctgpp.scene.types import Scene
 from ctgpp.sim.closed_loop import STATIONARY_SPEED_MPS, simulate
+from ctgpp.sim.diffusion_policy import DiffusionPolicy
 from ctgpp.sim.factory import PolicyFactory
 from ctgpp.sim.presets import preset
 
@@ -110,7 +111,7 @@ class _Worker:
         scene = self.scenes[scene_id]
         spec = episode_rule(scene, start_s, self.job.rule)
         loss = None if spec is None else spec.loss
-        policy = self.factory.diffusion_policy("ctgpp", loss)
+        policy = DiffusionPolicy(self.factory.model, self.chosen.sampling, loss, self.chosen.guidance)
         began = time.perf_counter()
         rollout = simulate(scene, policy, start_s, seed=seed)
         seconds = time.perf_counter() - began

@@ -94,21 +94,3 @@ def local_linear_fit(
     fitted = np.where(ok[..., None], (s2[..., None] * t0 - s1[..., None] * t1) / safe, values)
     slope = np.where(ok[..., None], (s0[..., None] * t1 - s1[..., None] * t0) / safe, 0.0)
     return np.where(valid[..., None], fitted, 0.0), np.where(valid[..., None], slope, 0.0)
-
-
-def smooth_logged_steps(tracks: AgentTracks, log: AgentTracks, smoothed_log: AgentTracks) -> AgentTracks:
-    """``tracks`` (a simulation's state, rows and steps aligned with ``log``, possibly padded past its
-    end) with every step that still holds the log's own state replaced by ``smoothed_log``'s
-    (:func:`smooth_tracks` of ``log``): what a model trained on smoothed tracks should see of the logged
-    history at inference. Simulated steps (any that differ from the log) are kept as they are."""
-    t = min(tracks.num_steps, log.num_steps)
-    same = tracks.valid[:, :t] & log.valid[:, :t]
-    same &= (tracks.xy[:, :t] == log.xy[:, :t]).all(axis=-1) & (tracks.yaw[:, :t] == log.yaw[:, :t])
-    same &= tracks.speed[:, :t] == log.speed[:, :t]
-    if not same.any():
-        return tracks
-    xy, yaw, speed = tracks.xy.copy(), tracks.yaw.copy(), tracks.speed.copy()
-    xy[:, :t] = np.where(same[..., None], smoothed_log.xy[:, :t], xy[:, :t])
-    yaw[:, :t] = np.where(same, smoothed_log.yaw[:, :t], yaw[:, :t])
-    speed[:, :t] = np.where(same, smoothed_log.speed[:, :t], speed[:, :t])
-    return dataclasses.replace(tracks, xy=xy, yaw=yaw, speed=speed)

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
@@ -13,7 +12,6 @@ from torch import Tensor
 
 from ctgpp.data.batch import collate
 from ctgpp.data.context import standing_vehicles
-from ctgpp.data.smoothing import smooth_logged_steps, smooth_tracks
 from ctgpp.data.windows import build_window
 from ctgpp.diffusion import CosineSchedule, DDIMSampler, DDPMSampler, Sampler
 from ctgpp.diffusion.filtration import compose, filtration
@@ -25,7 +23,6 @@ from ctgpp.guidance.context import build_guidance_batch
 from ctgpp.interfaces import Observation, Plan
 from ctgpp.model.checkpoint import load_checkpoint
 from ctgpp.model.denoiser import Denoiser
-from ctgpp.scene.types import AgentTracks
 
 DEFAULT_STEPS = 6  # the fast preset's DDIM steps, spread evenly (BENCHMARKS.md, The default sampler)
 
@@ -103,16 +100,11 @@ class DiffusionPolicy:
         sampling: SamplingConfig = SamplingConfig(),
         guidance: GuidanceLoss | None = None,
         guidance_config: GuidanceConfig = GuidanceConfig(),
-        history_smoothing_s: float = 0.0,
     ) -> None:
         self.model = model.eval()
         self.sampling = sampling
         self.guidance = guidance
         self.guidance_config = guidance_config
-        # the model learned from tracks smoothed over this bandwidth (its checkpoint's training record):
-        # the logged history it sees is smoothed the same way (:meth:`as_trained`); 0: as logged
-        self.history_smoothing_s = history_smoothing_s
-        self._smoothed_log: tuple[AgentTracks, AgentTracks] | None = None  # (the log, smoothed)
         cfg = model.config
         self.schedule = CosineSchedule(cfg.diffusion_steps, cfg.cosine_s)
         self.sampler = sampling.make(self.schedule)
@@ -126,37 +118,16 @@ class DiffusionPolicy:
         guidance: GuidanceLoss | None = None,
         guidance_config: GuidanceConfig = GuidanceConfig(),
     ) -> DiffusionPolicy:
-        model, _, extra = load_checkpoint(path)
-        return cls(model, sampling, guidance, guidance_config, trained_smoothing_s(extra))
+        model, _, _ = load_checkpoint(path)
+        return cls(model, sampling, guidance, guidance_config)
 
     def denoiser_for(self, obs: Observation) -> Denoiser:
         """The denoiser that samples the plans of ``obs`` (the policy's model; a subclass may bind
         per-observation inputs to it)."""
         return self.model
 
-    def as_trained(self, obs: Observation) -> Observation:
-        """``obs`` with its logged steps smoothed as the model's training tracks were.
-
-        A model trained on smoothed tracks (``history_smoothing_s``) never saw nuScenes' keyframe kinks
-        or NGSIM's tracking noise in a history; at an episode's start the history is the raw log. Every
-        step that still holds the log's state becomes the smoothed log's (two-sided, as in training:
-        the starting state is estimated from the log around it, up to 3 σ ahead); simulated steps are
-        kept. The plan starts from that smoothed state (centimetres from the logged one).
-        """
-        if self.history_smoothing_s <= 0:
-            return obs
-        log = obs.scene.agents
-        if self._smoothed_log is None or self._smoothed_log[0] is not log:
-            self._smoothed_log = (log, smooth_tracks(log, obs.scene.dt_s, self.history_smoothing_s))
-        return replace(obs, tracks=smooth_logged_steps(obs.tracks, log, self._smoothed_log[1]))
-
-    def sample_plans(self, obs: Observation) -> PlanSamples:
-        """Sample N joint futures of ``obs`` (see :meth:`_sample_plans`), its logged history seen as
-        the model was trained (:meth:`as_trained`)."""
-        return self._sample_plans(self.as_trained(obs))
-
     @torch.no_grad()
-    def _sample_plans(self, obs: Observation) -> PlanSamples:
+    def sample_plans(self, obs: Observation) -> PlanSamples:
         """Sample N joint futures (guided when the policy has a loss) and choose one per vehicle.
 
         Only the vehicles that move are sampled: those the simulator holds (``obs.held``) stand still
@@ -228,8 +199,7 @@ class DiffusionPolicy:
         return samples.actions.numpy(), samples.current.numpy()
 
     def plan(self, obs: Observation) -> Plan:
-        obs = self.as_trained(obs)  # the plan starts from the state the model was conditioned on
-        samples = self._sample_plans(obs)
+        samples = self.sample_plans(obs)
         v = samples.chosen.shape[0]
         chosen = samples.actions[samples.chosen, torch.arange(v)].double()  # (V, F, 2)
         local = rollout(samples.current.double(), chosen, obs.scene.dt_s).numpy()  # (V, F, 4)
@@ -238,11 +208,3 @@ class DiffusionPolicy:
         yaw = local[..., 3] + tr.yaw[idx, step][:, None]
         states = np.concatenate([xy, local[..., 2:3], yaw[..., None]], axis=-1)
         return Plan(states=states[:, : obs.horizon_steps], valid=np.ones(states.shape[:2], dtype=bool))
-
-
-def trained_smoothing_s(extra: dict[str, Any]) -> float:
-    """The bandwidth (s) of the track smoothing a checkpoint's model was trained with, from its training
-    record (``extra["train"]["smooth_s"]``); 0 for a model trained on the raw logs or without a record."""
-    train = extra.get("train")
-    value = train.get("smooth_s", 0.0) if isinstance(train, dict) else 0.0
-    return float(value) if isinstance(value, int | float) and value > 0 else 0.0

@@ -17,7 +17,7 @@ from ctgpp.guidance.guards import GuardConfig, with_guards
 from ctgpp.guidance.scope import LossScope
 from ctgpp.model.checkpoint import load_checkpoint, load_config
 from ctgpp.model.denoiser import Denoiser
-from ctgpp.sim.diffusion_policy import DiffusionPolicy, SamplingConfig, trained_smoothing_s
+from ctgpp.sim.diffusion_policy import DiffusionPolicy, SamplingConfig
 from ctgpp.sim.policy import ConstantVelocityPolicy, Policy, ReplayPolicy
 
 # ctgpp: the diffusion model, guided by the episode's rule when there is one;
@@ -90,7 +90,6 @@ class PolicyFactory:
         self.bits, self.bits_opt = bits, bits_opt
         self.guards = guards
         self._models: dict[str, nn.Module] = {}
-        self._smoothing: dict[str, float] = {}  # denoiser -> the track smoothing it was trained with (s)
 
     @classmethod
     def of(
@@ -148,21 +147,8 @@ class PolicyFactory:
     def denoiser(self, model: str) -> Denoiser:
         """The scene-level denoiser ``model`` (``ctgpp`` or one of its ablations), loaded on first use."""
         if model not in self._models:
-            self._models[model], _, extra = load_checkpoint(self._verified(model))
-            self._smoothing[model] = trained_smoothing_s(extra)
+            self._models[model] = load_checkpoint(self._verified(model))[0]
         return self._models[model]  # type: ignore[return-value]
-
-    def smoothing(self, model: str) -> float:
-        """The track smoothing (s) the scene-level denoiser ``model`` was trained with (0: the raw logs),
-        which its policy applies to the logged history it sees (loaded on first use)."""
-        self.denoiser(model)
-        return self._smoothing[model]
-
-    def diffusion_policy(self, model: str, guidance: GuidanceLoss | None) -> DiffusionPolicy:
-        """The CTG++ policy of denoiser ``model`` (``ctgpp`` or an ablation) with ``guidance`` and the
-        factory's sampling and guidance settings, seeing the history as the model was trained."""
-        net, smoothing = self.denoiser(model), self.smoothing(model)
-        return DiffusionPolicy(net, self.sampling, guidance, self.guidance_config, smoothing)
 
     def baseline(self, kind: str) -> nn.Module:
         """The model of baseline ``kind`` (``ctg`` or ``bits``), loaded on first use."""
@@ -184,9 +170,9 @@ class PolicyFactory:
             config = self.bits if name == "bits" else self.bits_opt
             return BITSPolicy(self.baseline("bits"), config, guidance)  # type: ignore[arg-type]
         if name in ("ctgpp", "ctgpp-no_edge", "ctgpp-scene_centric"):
-            return self.diffusion_policy(name, guidance)
+            return DiffusionPolicy(self.denoiser(name), self.sampling, guidance, self.guidance_config)
         if name == "ctgpp-unguided":
-            return self.diffusion_policy("ctgpp", None)
+            return DiffusionPolicy(self.model, self.sampling, None, self.guidance_config)
         if name == "replay":
             return ReplayPolicy()
         if name == "constvel":
