@@ -239,16 +239,28 @@ def turn_path(lanes: LaneGraph, proj: LaneProjection, direction: Direction) -> T
     return best
 
 
+def _vehicle_turn_path(
+    data_batch: GuidanceBatch, i: int, direction: Direction
+) -> tuple[LaneProjection, TurnPath] | None:
+    """Vehicle i's lane projection and its :func:`turn_path` turning ``direction`` (looked up once per
+    guidance batch), or None where it is not on a lane or no path turns that way."""
+    key = ("turn_path", direction, i)
+    if key not in data_batch.memo:
+        proj = vehicle_lane(data_batch, i)
+        best = None if proj is None else turn_path(data_batch.scene.lanes, proj, direction)
+        data_batch.memo[key] = None if proj is None or best is None else (proj, best)
+    return data_batch.memo[key]
+
+
 def turn_exit(data_batch: GuidanceBatch, i: int, direction: Direction) -> np.ndarray | None:
     """World point (2,) m where vehicle i's lane path through the next intersection that turns
     ``direction`` (:func:`turn_path`) leaves the intersection (the end of its last intersection
     lane); None where :func:`get_turn_lane` has no path."""
-    proj = vehicle_lane(data_batch, i)
-    if proj is None:
+    found = _vehicle_turn_path(data_batch, i, direction)
+    if found is None:
         return None
-    lanes = data_batch.scene.lanes
-    best = turn_path(lanes, proj, direction)
-    return None if best is None else np.asarray(lanes.lane(best.lanes[best.last])[-1], dtype=np.float64)
+    best = found[1]
+    return np.asarray(data_batch.scene.lanes.lane(best.lanes[best.last])[-1], dtype=np.float64)
 
 
 def get_turn_lane(data_batch: GuidanceBatch, i: int, direction: Direction) -> Tensor | None:
@@ -260,15 +272,12 @@ def get_turn_lane(data_batch: GuidanceBatch, i: int, direction: Direction) -> Te
         raise ValueError(f"direction must be 'left', 'right' or 'straight', not {direction!r}")
 
     def build() -> Tensor | None:
-        proj = vehicle_lane(data_batch, i)
-        if proj is None:
+        found = _vehicle_turn_path(data_batch, i, direction)
+        if found is None:
             return None
-        lanes = data_batch.scene.lanes
-        best = turn_path(lanes, proj, direction)
-        if best is None:
-            return None
+        proj, best = found
         reach = max(_reach_m(data_batch, i), next_intersection_distance(data_batch, i) + 40.0)
-        return _to_tensor(data_batch, _path_polyline(lanes, best.lanes, proj.s_m, reach))
+        return _to_tensor(data_batch, _path_polyline(data_batch.scene.lanes, best.lanes, proj.s_m, reach))
 
     return _memo(data_batch, ("turn", direction, i), build)
 
