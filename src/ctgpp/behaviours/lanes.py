@@ -86,12 +86,20 @@ def chain_offsets(lanes: LaneGraph, xy: np.ndarray, yaw: np.ndarray) -> tuple[np
     return np.array(out), seq
 
 
-def end_lane(lanes: LaneGraph, xy: np.ndarray, yaw: np.ndarray) -> LaneProjection | None:
-    """The lane a track xy (T, 2), yaw (T,) is on at its last step, followed with hysteresis."""
+def lanes_along(lanes: LaneGraph, xy: np.ndarray, yaw: np.ndarray) -> list[LaneProjection | None]:
+    """The lane a track xy (T, 2), yaw (T,) is on at each step, followed with hysteresis."""
+    out: list[LaneProjection | None] = []
     proj = None
     for p, h in zip(xy, yaw, strict=True):
         proj = follow_lane(lanes, proj, p, float(h))
-    return proj
+        out.append(proj)
+    return out
+
+
+def end_lane(lanes: LaneGraph, xy: np.ndarray, yaw: np.ndarray) -> LaneProjection | None:
+    """The lane a track xy (T, 2), yaw (T,) is on at its last step, followed with hysteresis."""
+    along = lanes_along(lanes, xy, yaw)
+    return along[-1] if along else None
 
 
 def chain_distance(lanes: LaneGraph, chain: set[int], xy: np.ndarray) -> float:
@@ -252,11 +260,8 @@ def _lanes_to_the_right(lanes: LaneGraph, proj: LaneProjection) -> int:
 def rightmost_violation(rollout: Rollout, p: Params, vehicles: Vehicles) -> float:
     """Same-direction lanes to the right of the last lane the vehicle is on (NaN: it is on none)."""
     t = _valid(rollout, p["vehicle"])
-    lanes, last = rollout.scene.lanes, None
-    proj = None
-    for xy, yaw in zip(*_with_start(t), strict=True):
-        proj = follow_lane(lanes, proj, xy, float(yaw))
-        last = proj if proj is not None else last
+    lanes = rollout.scene.lanes
+    last = next((q for q in reversed(lanes_along(lanes, *_with_start(t))) if q is not None), None)
     return math.nan if last is None else float(_lanes_to_the_right(lanes, last))
 
 
@@ -264,11 +269,11 @@ def rightmost_check(rollout: Rollout, p: Params, vehicles: Vehicles) -> Verdict:
     """The lane the vehicle ends on has no same-direction lane to its right; achieved (``done_s``)
     at the first step from which every lane it is on has none, to the end."""
     t = _valid(rollout, p["vehicle"])
-    lanes, proj = rollout.scene.lanes, None
-    rightmost = []  # (T+1,) from t = 0: on a lane with no same-direction lane to its right
-    for xy, yaw in zip(*_with_start(t), strict=True):
-        proj = follow_lane(lanes, proj, xy, float(yaw))
-        rightmost.append(proj is not None and _lanes_to_the_right(lanes, proj) == 0)
+    lanes = rollout.scene.lanes
+    along = lanes_along(lanes, *_with_start(t))  # (T+1,) from t = 0
+    proj = along[-1]
+    # on a lane with no same-direction lane to its right, at each step
+    rightmost = [q is not None and _lanes_to_the_right(lanes, q) == 0 for q in along]
     if proj is None:
         return Verdict(False, "ends on no lane", END)
     n = _lanes_to_the_right(lanes, proj)
