@@ -25,6 +25,7 @@ from ctgpp.metrics import (
     vehicle_outcomes,
 )
 from ctgpp.metrics.motion import yaw_sign_changes
+from ctgpp.metrics.offroad import map_end_points
 from ctgpp.scene.lanes import centerline_distance
 from ctgpp.scene.types import AgentTracks, AgentType, DrivableArea, LaneGraph, Scene
 from ctgpp.sim.closed_loop import episode_starts, simulate
@@ -207,6 +208,31 @@ def test_a_simulated_car_whose_log_leaves_the_map_is_beyond_it():
     sim = tracks(sim_xy, [AgentType.VEHICLE] * 3, [CAR] * 3)
     r = rollout_of(r.scene.agents, sim=sim, drivable=r.scene.drivable)
     assert events_by_vehicle(r)[2]["beyond_map"]["time_s"] == 3.0
+
+
+def test_driving_on_past_where_the_mapped_road_stops_is_beyond_the_map():
+    # Road y < 5. A lane runs north along x = 60 up to y = 4.5 with no successor and no road past it (the
+    # map stops there, as at NGSIM Peachtree's cut-off arms); another runs east along y = 0 to x = 140.
+    # D drives north along that lane (0.5 m per step from y = −10, y ≥ 5 at step 40): past its end.
+    # E drives north 10 m beside it (x = 70): the same road edge, no lane end there: off-road.
+    # A (road_scene) drifts off the road at (30, 5), far from the lane end: off-road.
+    r = road_scene()
+    north = np.array([[60.0, -15.0], [60.0, 4.5]])
+    lanes = lanes_of([north, np.array([[0.0, 0.0], [140.0, 0.0]])])
+    more = np.stack([path(60, -10, 0, 0.5, start=CURRENT), path(70, -10, 0, 0.5, start=CURRENT)])
+    log_xy = np.concatenate([r.scene.agents.xy, more])
+    log_xy[3:, CURRENT + 25 :] = log_xy[3:, CURRENT + 25 : CURRENT + 26]  # logged: both stop before the edge
+    sim_xy = np.concatenate([r.sim.xy, more])
+    kinds = [AgentType.VEHICLE] * 5
+    r = rollout_of(tracks(log_xy, kinds, [CAR] * 5), sim=tracks(sim_xy, kinds, [CAR] * 5), lanes=lanes,
+                   drivable=r.scene.drivable)
+    ev = events_by_vehicle(r)
+    assert ev[3]["offroad"] is None
+    assert ev[3]["beyond_map"] == {"time_s": 3.0, "reason": "it drives on past the end of the mapped road"}
+    assert ev[4]["offroad"] == {"time_s": 3.0} and ev[4]["beyond_map"] is None
+    assert ev[0]["offroad"] == {"time_s": 2.0} and ev[0]["beyond_map"] is None
+    # the lane along y = 0 ends inside the road (drivable 3 m past it): not where the map stops
+    assert map_end_points(r.scene)[0].tolist() == [[60.0, 4.5]]
 
 
 # ---------------------------------------------------------------- lanes

@@ -41,7 +41,12 @@ def _beyond_map(rollout: Rollout, o: VehicleOutcomes, c: int) -> dict[str, Any] 
     a = o.agents[c]
     log = rollout.log
     log_off = log.valid[a, step] and not rollout.scene.drivable.is_drivable(log.xy[a, step])
-    reason = "its log leaves the mapped area" if log_off else "it drives off the edge of the map"
+    if log_off:
+        reason = "its log leaves the mapped area"
+    elif rollout.scene.drivable.covers(rollout.sim.xy[a, step]):
+        reason = "it drives on past the end of the mapped road"
+    else:
+        reason = "it drives off the edge of the map"
     return {"time_s": _time(rollout, step), "reason": reason}
 
 

@@ -8,8 +8,10 @@ rates still divide by all controlled vehicles, so that ``fail`` is the union of 
 the same vehicles.
 
 Beyond the mapped area (:func:`beyond_map_steps`): the drivable raster is a crop around the scene and
-the map has gaps, so a vehicle whose log leaves the drivable area, or that drives off the edge of the
-raster, tells about the map rather than about the policy. Such vehicles are reported apart by the
+the map has gaps, so a vehicle whose log leaves the drivable area, that drives off the edge of the
+raster, or that drives on past the end of a lane where the mapped road stops (a lane with no successor
+whose road ends there: NGSIM Peachtree's map is a crossroads with four cut-off arms) tells about the
+map rather than about the policy. Such vehicles are reported apart by the
 figures over the vehicles moving at the start (``metrics.moving``); ``offroad_rate`` and ``fail``
 keep the paper's definition.
 """
@@ -20,7 +22,14 @@ import numpy as np
 
 from ctgpp.metrics.collision import collided_vehicles, controlled_vehicle_indices
 from ctgpp.metrics.registry import MetricValue, register_metric
+from ctgpp.scene.types import Scene
 from ctgpp.sim.rollout import Rollout
+
+# a lane end is where the map stops when the road is not drivable this far past it
+MAP_END_PROBE_M = 3.0
+# a vehicle first off the road within these of such an end (past it, beside its centerline) drove off the map
+MAP_END_ALONG_M = (-1.0, 6.0)
+MAP_END_LATERAL_M = 2.5
 
 
 def offroad_steps(rollout: Rollout, agents: np.ndarray | None = None) -> np.ndarray:
@@ -52,8 +61,9 @@ def beyond_map_steps(rollout: Rollout, agents: np.ndarray | None = None) -> np.n
     A vehicle is beyond the map from the first step (t ≥ 0) at which its logged centre is off the
     drivable area or off the raster (the log never drives off the road: the map does not cover where
     it went), or from its first off-road step (:func:`offroad_steps`) when its simulated centre is
-    off the raster there (it drove off the edge of the crop, not off the road). Returns (C,) window
-    indices, -1 for a vehicle that stays on the map.
+    off the raster there (it drove off the edge of the crop, not off the road) or just past the end
+    of a lane where the mapped road stops (:func:`map_end_points`). Returns (C,) window indices, -1
+    for a vehicle that stays on the map.
     """
     if agents is None:
         agents = controlled_vehicle_indices(rollout)
@@ -63,9 +73,46 @@ def beyond_map_steps(rollout: Rollout, agents: np.ndarray | None = None) -> np.n
     log_step = first_step(log_off, from_start, n)  # (C,)
     off_step = first_step(offroad_steps(rollout, agents), rollout.future, n)  # (C,)
     xy_then = rollout.sim.xy[agents, np.maximum(off_step, 0)]  # (C, 2)
-    sim_step = np.where((off_step >= 0) & ~rollout.scene.drivable.covers(xy_then), off_step, -1)
+    off_map = ~rollout.scene.drivable.covers(xy_then) | past_map_end(rollout.scene, xy_then)
+    sim_step = np.where((off_step >= 0) & off_map, off_step, -1)
     both = np.stack([log_step, sim_step])  # (2, C)
     return np.where((both >= 0).any(axis=0), np.where(both >= 0, both, n).min(axis=0), -1)
+
+
+def map_end_points(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
+    """Where the mapped road stops: the last points (K, 2) and unit directions (K, 2) of the lanes
+    with no successor beyond whose end the road is not drivable (:data:`MAP_END_PROBE_M` on), on the
+    raster. A lane that ends inside the road (a merge, a gap in the lane graph) is not one."""
+    lanes, ends, dirs = scene.lanes, [], []
+    has_next = set(lanes.successors[:, 0].tolist())
+    for i in range(lanes.num_lanes):
+        line = lanes.lane(i)
+        step = line[-1] - line[-2]
+        norm = float(np.hypot(*step))
+        if i in has_next or norm == 0.0:
+            continue
+        ends.append(line[-1])
+        dirs.append(step / norm)
+    if not ends:
+        return np.zeros((0, 2)), np.zeros((0, 2))
+    end, unit = np.asarray(ends, dtype=np.float64), np.asarray(dirs, dtype=np.float64)
+    probe = end + MAP_END_PROBE_M * unit
+    stops = scene.drivable.covers(probe) & ~scene.drivable.is_drivable(probe)
+    return end[stops], unit[stops]
+
+
+def past_map_end(scene: Scene, xy: np.ndarray) -> np.ndarray:
+    """(C, 2) world points -> (C,) bool: just past a lane end where the mapped road stops
+    (:func:`map_end_points`; within :data:`MAP_END_ALONG_M` along its direction and
+    :data:`MAP_END_LATERAL_M` beside it)."""
+    end, unit = map_end_points(scene)
+    if len(end) == 0:
+        return np.zeros(len(xy), dtype=bool)
+    d = np.asarray(xy, dtype=np.float64)[:, None, :] - end[None]  # (C, K, 2)
+    along = (d * unit[None]).sum(-1)
+    lateral = np.abs(d[..., 0] * unit[None, :, 1] - d[..., 1] * unit[None, :, 0])
+    near = (along >= MAP_END_ALONG_M[0]) & (along <= MAP_END_ALONG_M[1]) & (lateral <= MAP_END_LATERAL_M)
+    return np.asarray(near.any(axis=1))
 
 
 def offroad_vehicles(rollout: Rollout) -> tuple[np.ndarray, np.ndarray]:
