@@ -128,6 +128,8 @@ def test_quality_differences_are_paired_episode_by_episode() -> None:
         ("ddpm-n5", SamplingConfig.evenly("ddpm", 100, 5), GuidanceConfig(1, 0.3, compose=True)),
         ("ddim10", SamplingConfig.evenly("ddim", 10, 4), GuidanceConfig(1, 0.3)),
         ("ddim4-w2-lr0.5-from80", SamplingConfig.evenly("ddim", 4, 4), GuidanceConfig(2, 0.5, 80)),
+        ("ddim20-e1-n2", SamplingConfig.evenly("ddim", 20, 2, eta=1.0), GuidanceConfig(1, 0.3)),
+        ("ddim6-e0.5", SamplingConfig.evenly("ddim", 6, 4, eta=0.5), GuidanceConfig(1, 0.3)),
     ],
 )
 def test_spelled_out_presets(name: str, sampling: SamplingConfig, guidance: GuidanceConfig) -> None:
@@ -142,7 +144,7 @@ def test_spelled_out_presets(name: str, sampling: SamplingConfig, guidance: Guid
     "name",
     [
         "warp", "ddim", "ddim0", "ddim5-n0", "ddim5-n2-n3", "ddim5-x2", "ddim5-w-1", "ddim@99",
-        "ddim4-scene-scene", "ddim4-scene2",
+        "ddim4-scene-scene", "ddim4-scene2", "ddim6-e1.5", "ddpm-e1",
     ],
 )
 def test_unknown_presets_are_clear_errors(name: str) -> None:

@@ -55,6 +55,7 @@ def test_show_draws_the_numbered_picture(tmp_path: Path) -> None:
         (["simulate", "--scene", "0103", "--start", "1.0", "--out", "{tmp}/x"], "outside 3.0-"),
         (["simulate", "--data", "{tmp}/missing"], "does not exist"),
         (["simulate", "--scene", "0103", "--steps", "0", "--out", "{tmp}/x"], "must be positive"),
+        (["simulate", "--scene", "0103", "--eta", "2", "--out", "{tmp}/x"], "--eta must lie in"),
         (["bench", "--presets", "ddim@90.40.0", "--out", "{tmp}/x"], "must fall strictly from 99"),
         (["scenes", "--split", "nope"], "no scenes in split 'nope'"),
         (["data", "convert", "{tmp}/missing", "{tmp}/out"], "does not exist"),

@@ -144,6 +144,16 @@ class TestDDIM(SamplerContract):
             m2, s2 = ddpm.prev_mean_std(x0, x_k, k)
             assert torch.allclose(m1, m2, atol=1e-6) and torch.allclose(s1, s2, atol=1e-6)
 
+    def test_the_policy_config_passes_eta_to_the_sampler(self) -> None:
+        from ctgpp.sim.diffusion_policy import SamplingConfig
+
+        made = SamplingConfig.evenly("ddim", 20, 2, eta=1.0).make(CosineSchedule())
+        assert isinstance(made, DDIMSampler) and made.eta == 1.0 and len(made.timesteps) == 20
+        _, std = made.prev_mean_std(torch.zeros(3), torch.ones(3), made.timesteps[1])
+        assert torch.all(std > 0)
+        with pytest.raises(ValueError, match="eta"):
+            SamplingConfig(eta=1.5)
+
     def test_rejects_unknown_steps(self) -> None:
         with pytest.raises(ValueError):
             self.make().prev_mean_std(torch.zeros(2), torch.zeros(2), 98)

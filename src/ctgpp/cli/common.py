@@ -78,6 +78,12 @@ def add_model_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--samples", type=int, default=SamplingConfig.num_samples, help="samples per plan (N)"
     )
+    parser.add_argument(
+        "--eta",
+        type=float,
+        default=SamplingConfig.eta,
+        help="DDIM's noise between steps: 0 deterministic, 1 as DDPM's over the visited steps",
+    )
 
 
 def add_guidance_args(parser: argparse.ArgumentParser) -> None:
@@ -192,9 +198,11 @@ def sampling_config(args: argparse.Namespace) -> SamplingConfig:
 
     if (args.steps is not None and args.steps < 1) or args.samples < 1:
         raise ValueError("--steps and --samples must be positive")
+    if not 0.0 <= args.eta <= 1.0:
+        raise ValueError(f"--eta must lie in [0, 1] (got {args.eta:g})")
     if args.steps is None:
-        return SamplingConfig(args.sampler, num_samples=args.samples)
-    return SamplingConfig.evenly(args.sampler, args.steps, args.samples)
+        return SamplingConfig(args.sampler, num_samples=args.samples, eta=args.eta)
+    return SamplingConfig.evenly(args.sampler, args.steps, args.samples, args.eta)
 
 
 def open_catalog(args: argparse.Namespace) -> Catalog:

@@ -45,21 +45,24 @@ class SamplingConfig:
     steps: int = DEFAULT_STEPS
     num_samples: int = 2
     timesteps: tuple[int, ...] | None = None
+    eta: float = 0.0  # DDIM's noise: 0 deterministic, 1 as DDPM's posterior over the visited steps
 
     def __post_init__(self) -> None:  # checked against the schedule by make()
         grid = None if self.timesteps is None or self.sampler != "ddim" else tuple(map(int, self.timesteps))
         object.__setattr__(self, "timesteps", grid)
+        if not 0.0 <= self.eta <= 1.0:
+            raise ValueError(f"DDIM's eta must lie in [0, 1] (got {self.eta:g})")
 
     @classmethod
-    def evenly(cls, sampler: str, steps: int, num_samples: int) -> SamplingConfig:
+    def evenly(cls, sampler: str, steps: int, num_samples: int, eta: float = 0.0) -> SamplingConfig:
         """``steps`` DDIM steps spread evenly over K − 1 … 0 (or DDPM over all K), N = ``num_samples``."""
-        return cls(sampler, steps, num_samples, None)
+        return cls(sampler, steps, num_samples, None, eta)
 
     def make(self, schedule: CosineSchedule) -> Sampler:
         if self.sampler == "ddpm":
             return DDPMSampler(schedule)
         if self.sampler == "ddim":
-            return DDIMSampler(schedule, self.steps, timesteps=self.timesteps)
+            return DDIMSampler(schedule, self.steps, eta=self.eta, timesteps=self.timesteps)
         raise ValueError(f"unknown sampler {self.sampler!r} (ddim or ddpm)")
 
 

@@ -6,13 +6,13 @@ whole scene when the loss couples vehicles: DESIGN.md, Guided sampling), and ``f
 of ``simulate`` and ``evaluate``, chosen from ``ctgpp bench`` measurements (BENCHMARKS.md, Speed).
 Any other configuration is spelled out in its name, so that a candidate can be timed beside them:
 ``ddim<steps>`` (evenly spread), ``ddim@<k>.<k>...`` (the DDIM steps visited, from K − 1 down) or
-``ddpm`` (every step), then optionally ``-n<samples>`` (default 4), ``-w<Adam steps per denoising
-step>`` (default 1), ``-lr<learning rate>`` (default 0.3), ``-r<radius>`` (the smallest clip radius
-of a guidance step, ``GuidanceConfig.min_radius``; default 0.3, ``-r0``: Algorithm 2's radii),
-``-from<k>`` (guide only at diffusion steps k ≤ this; default every step) and ``-scene``
-(filtration keeps one sample for the whole scene when the loss couples vehicles, as the paper;
-default: the plan is composed vehicle by vehicle). ``ddim6-n2-lr0.9`` is ``fast``;
-``ddpm-n5-scene-r0`` is ``paper``.
+``ddpm`` (every step), then optionally ``-e<eta>`` (DDIM's noise, default 0), ``-n<samples>``
+(default 4), ``-w<Adam steps per denoising step>`` (default 1), ``-lr<learning rate>`` (default
+0.3), ``-r<radius>`` (the smallest clip radius of a guidance step, ``GuidanceConfig.min_radius``;
+default 0.3, ``-r0``: Algorithm 2's radii), ``-from<k>`` (guide only at diffusion steps k ≤ this;
+default every step) and ``-scene`` (filtration keeps one sample for the whole scene when the loss
+couples vehicles, as the paper; default: the plan is composed vehicle by vehicle).
+``ddim6-n2-lr0.9`` is ``fast``; ``ddpm-n5-scene-r0`` is ``paper``.
 """
 
 from __future__ import annotations
@@ -24,13 +24,14 @@ from ctgpp.diffusion.guided import GuidanceConfig
 from ctgpp.sim.diffusion_policy import SamplingConfig
 
 SPELLING = (
-    "ddim<steps>|ddim@<k>.<k>...|ddpm[-n<samples>][-w<adam steps>][-lr<rate>][-r<radius>][-from<k>][-scene]"
+    "ddim<steps>|ddim@<k>.<k>...|ddpm[-e<eta>][-n<samples>][-w<adam steps>][-lr<rate>][-r<radius>]"
+    "[-from<k>][-scene]"
 )
 _NAME = re.compile(
     r"(?:ddim(?P<steps>\d+)|ddim@(?P<grid>\d+(?:\.\d+)+)|ddpm)"
-    r"(?P<options>(?:-(?:n\d+|w\d+|lr\d*\.?\d+|r\d*\.?\d+|from\d+|scene))*)"
+    r"(?P<options>(?:-(?:e\d*\.?\d+|n\d+|w\d+|lr\d*\.?\d+|r\d*\.?\d+|from\d+|scene))*)"
 )
-_OPTION = re.compile(r"-(n|w|lr|r|from|scene)(\d*\.?\d*)")
+_OPTION = re.compile(r"-(e|n|w|lr|r|from|scene)(\d*\.?\d*)")
 
 
 @dataclass(frozen=True)
@@ -83,12 +84,16 @@ def preset(name: str) -> SamplerPreset:
         steps = int(match["steps"])
     if samples < 1 or steps == 0:
         raise ValueError(f"sampler preset {name!r} needs at least one sample and one step")
-    sampling = SamplingConfig("ddpm" if steps is None else "ddim", steps or 100, samples, grid)
+    eta = float(options.get("e", 0.0))
+    if eta > 1.0 or (eta > 0.0 and steps is None):
+        raise ValueError(f"sampler preset {name!r}: -e (DDIM's eta) lies in [0, 1] and needs a DDIM sampler")
+    sampling = SamplingConfig("ddpm" if steps is None else "ddim", steps or 100, samples, grid, eta)
     compose = "scene" not in options
     min_radius = float(options.get("r", GuidanceConfig.min_radius))
     first = None if guide_from is None else int(guide_from)
     guidance = GuidanceConfig(adam_steps, lr, first, compose, min_radius)
     sampler = "DDPM, every step" if steps is None else f"DDIM {steps} steps"
+    sampler += f" (eta {eta:g})" if eta > 0 else ""
     if grid is not None:
         sampler += f" (k = {', '.join(map(str, grid))})"
     where = "at every step" if guide_from is None else f"at steps k ≤ {guide_from}"
