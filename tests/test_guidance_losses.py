@@ -227,9 +227,14 @@ def test_no_collision_over_near_contacts_equals_all_pairs(
 def test_no_collision_keeps_the_replayed_discs_of_one_batch_only(
     batch: GuidanceBatch, x: torch.Tensor
 ) -> None:
-    """The replayed agents' discs are kept across the calls on one batch, never reused for another."""
+    """The replayed agents' discs are kept across the calls on one batch, never reused for another
+    (the other batch moves the replayed agents so that the first sits on vehicle 0's start)."""
+    from ctgpp.guidance.rules_common import world_states
+
     loss = make_loss("no_collision")
-    moved = replace(batch, obstacles_xy=batch.obstacles_xy + torch.tensor([0.7, -0.4]))
+    pos, _ = world_states(x, batch)  # (B, N, T, 2)
+    shift = pos[0, 0, 0] - batch.obstacles_xy[0, 0]
+    moved = replace(batch, obstacles_xy=batch.obstacles_xy + shift)
     first = loss(x, batch)
     second = loss(x, moved)
     torch.testing.assert_close(second, make_loss("no_collision")(x, moved))

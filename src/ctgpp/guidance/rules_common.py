@@ -13,7 +13,7 @@ from ctgpp.guidance.base import GuidanceLoss
 from ctgpp.guidance.context import GuidanceBatch
 from ctgpp.guidance.helpers import transform_coord_agents_to_world
 
-NUM_DISCS = 3  # discs along a vehicle's length for collision and off-road checks
+NUM_DISCS = 5  # discs along a vehicle's length for collision and off-road checks (disc_layout)
 
 
 class Rule(GuidanceLoss):
@@ -49,13 +49,19 @@ def world_states(x: Tensor, data_batch: GuidanceBatch) -> tuple[Tensor, Tensor]:
 
 
 def disc_layout(extent: Tensor) -> tuple[Tensor, Tensor]:
-    """Discs covering boxes of extent (..., 2) length, width m: centre offsets along the length
-    (..., D) m and the common radius (...) m, D = NUM_DISCS equal sections each covered by a disc."""
+    """Discs tracing boxes of extent (..., 2) length, width m as capsules: NUM_DISCS discs of radius
+    half the width (...) m, centred evenly along the length (offsets (..., D) m) from half a width
+    inside one end to half a width inside the other (one disc at the centre of a box wider than
+    long). The capsule reaches the box's sides and ends exactly and rounds its corners (by 0.4 of
+    the half width; between discs it dips by 0.06 m for a 4.5 × 1.9 m car, 0.19 m for NGSIM's
+    7 × 2.1 m boxes). Discs covering the whole box overshoot its sides: three of them reached 0.5 m
+    past each side of NGSIM's boxes, so that neighbours in Peachtree's 2.8 m lanes overlapped at
+    the start, and the collision guard steered them into each other (BENCHMARKS.md)."""
     length, width = extent[..., 0].clamp_min(0.1), extent[..., 1].clamp_min(0.1)
-    frac = (torch.arange(NUM_DISCS, dtype=extent.dtype, device=extent.device) + 0.5) / NUM_DISCS - 0.5
-    offsets = length[..., None] * frac  # (..., D)
-    radius = torch.sqrt((length / (2 * NUM_DISCS)) ** 2 + (width / 2) ** 2)
-    return offsets, radius
+    radius = width / 2
+    reach = (length / 2 - radius).clamp_min(0.0)  # (...) the end discs' offset
+    frac = torch.linspace(-1.0, 1.0, NUM_DISCS, dtype=extent.dtype, device=extent.device)
+    return reach[..., None] * frac, radius
 
 
 def disc_centres(pos: Tensor, yaw: Tensor, offsets: Tensor) -> Tensor:

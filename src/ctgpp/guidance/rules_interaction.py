@@ -38,7 +38,8 @@ def _closest_overlap(a: Tensor, ra: Tensor, b: Tensor, rb: Tensor, buffer_m: flo
 @register_loss("no_collision")
 class NoCollision(Rule):
     """No vehicle collides with another vehicle or with a replayed agent (pedestrians, cyclists,
-    static objects, vehicles not controlled): each box is covered by 3 discs along its length; the
+    static objects, vehicles not controlled): each box is traced by discs along its length
+    (:func:`~ctgpp.guidance.rules_common.disc_layout`); the
     cost is the overlap (m) of the closest disc pair plus ``buffer_m``, hinged at zero, weighted by
     ``decay``**t over the horizon (normalized), summed over vehicles and obstacles.
 
