@@ -56,6 +56,7 @@ def test_show_draws_the_numbered_picture(tmp_path: Path) -> None:
         (["simulate", "--data", "{tmp}/missing"], "does not exist"),
         (["simulate", "--scene", "0103", "--steps", "0", "--out", "{tmp}/x"], "must be positive"),
         (["simulate", "--scene", "0103", "--eta", "2", "--out", "{tmp}/x"], "--eta must lie in"),
+        (["simulate", "--sampler", "ddpm", "--eta", "1", "--out", "{tmp}/x"], "needs --sampler ddim"),
         (["bench", "--presets", "ddim@90.40.0", "--out", "{tmp}/x"], "must fall strictly from 99"),
         (["scenes", "--split", "nope"], "no scenes in split 'nope'"),
         (["data", "convert", "{tmp}/missing", "{tmp}/out"], "does not exist"),

@@ -200,6 +200,8 @@ def sampling_config(args: argparse.Namespace) -> SamplingConfig:
         raise ValueError("--steps and --samples must be positive")
     if not 0.0 <= args.eta <= 1.0:
         raise ValueError(f"--eta must lie in [0, 1] (got {args.eta:g})")
+    if args.eta > 0.0 and args.sampler != "ddim":
+        raise ValueError("--eta is DDIM's noise: it needs --sampler ddim (DDPM's noise is fixed)")
     if args.steps is None:
         return SamplingConfig(args.sampler, num_samples=args.samples, eta=args.eta)
     return SamplingConfig.evenly(args.sampler, args.steps, args.samples, args.eta)
