@@ -153,6 +153,8 @@ class TestDDIM(SamplerContract):
         assert torch.all(std > 0)
         with pytest.raises(ValueError, match="eta"):
             SamplingConfig(eta=1.5)
+        with pytest.raises(ValueError, match="DDPM's is fixed"):
+            SamplingConfig("ddpm", eta=0.5)
 
     def test_rejects_unknown_steps(self) -> None:
         with pytest.raises(ValueError):

@@ -83,19 +83,12 @@ def map_end_points(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
     """Where the mapped road stops: the last points (K, 2) and unit directions (K, 2) of the lanes
     with no successor beyond whose end the road is not drivable (:data:`MAP_END_PROBE_M` on), on the
     raster. A lane that ends inside the road (a merge, a gap in the lane graph) is not one."""
-    lanes, ends, dirs = scene.lanes, [], []
-    has_next = set(lanes.successors[:, 0].tolist())
-    for i in range(lanes.num_lanes):
-        line = lanes.lane(i)
-        step = line[-1] - line[-2]
-        norm = float(np.hypot(*step))
-        if i in has_next or norm == 0.0:
-            continue
-        ends.append(line[-1])
-        dirs.append(step / norm)
-    if not ends:
-        return np.zeros((0, 2)), np.zeros((0, 2))
-    end, unit = np.asarray(ends, dtype=np.float64), np.asarray(dirs, dtype=np.float64)
+    lanes = scene.lanes
+    last = lanes.offsets[1:] - 1  # (L,) each lane's last point (a lane has at least two)
+    step = lanes.points[last] - lanes.points[last - 1]  # (L, 2) its last segment
+    norm = np.hypot(step[:, 0], step[:, 1])
+    open_end = ~np.isin(np.arange(lanes.num_lanes), lanes.successors[:, 0]) & (norm > 0)
+    end, unit = lanes.points[last][open_end], step[open_end] / norm[open_end, None]
     probe = end + MAP_END_PROBE_M * unit
     stops = scene.drivable.covers(probe) & ~scene.drivable.is_drivable(probe)
     return end[stops], unit[stops]

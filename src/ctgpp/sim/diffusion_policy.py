@@ -52,6 +52,8 @@ class SamplingConfig:
         object.__setattr__(self, "timesteps", grid)
         if not 0.0 <= self.eta <= 1.0:
             raise ValueError(f"DDIM's eta must lie in [0, 1] (got {self.eta:g})")
+        if self.eta > 0.0 and self.sampler != "ddim":
+            raise ValueError("eta is DDIM's noise: DDPM's is fixed")
 
     @classmethod
     def evenly(cls, sampler: str, steps: int, num_samples: int, eta: float = 0.0) -> SamplingConfig:

@@ -85,9 +85,10 @@ def preset(name: str) -> SamplerPreset:
     if samples < 1 or steps == 0:
         raise ValueError(f"sampler preset {name!r} needs at least one sample and one step")
     eta = float(options.get("e", 0.0))
-    if eta > 1.0 or (eta > 0.0 and steps is None):
-        raise ValueError(f"sampler preset {name!r}: -e (DDIM's eta) lies in [0, 1] and needs a DDIM sampler")
-    sampling = SamplingConfig("ddpm" if steps is None else "ddim", steps or 100, samples, grid, eta)
+    try:
+        sampling = SamplingConfig("ddpm" if steps is None else "ddim", steps or 100, samples, grid, eta)
+    except ValueError as err:
+        raise ValueError(f"sampler preset {name!r}: {err}") from None
     compose = "scene" not in options
     min_radius = float(options.get("r", GuidanceConfig.min_radius))
     first = None if guide_from is None else int(guide_from)
