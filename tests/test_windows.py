@@ -64,6 +64,21 @@ def test_collate_pads_and_masks(scene_0103: Scene) -> None:
     assert batch.hist.dtype == torch.float32 and batch.origin.dtype == torch.float64
 
 
+@pytest.mark.parametrize("rasters", [False, True])
+def test_prebuilt_windows_are_the_ones_built_on_first_use(scene_0103: Scene, rasters: bool) -> None:
+    """Training's prebuild (forked processes) yields exactly the items a lazy dataset builds."""
+    from ctgpp.baselines.raster import RasterWindowDataset, collate_rasters
+
+    kind, batch_of = (RasterWindowDataset, collate_rasters) if rasters else (WindowDataset, collate)
+    built, lazy = kind([scene_0103], stride=20), kind([scene_0103], stride=20)
+    built.prebuild(workers=2)
+    assert all(built.is_cached(i) for i in range(len(built))) and not lazy.is_cached(0)
+    for i in range(len(lazy)):
+        a, b = batch_of([built[i]]), batch_of([lazy[i]])
+        for f in dataclasses.fields(a):
+            assert torch.equal(getattr(a, f.name), getattr(b, f.name)), (i, f.name)
+
+
 def test_window_without_future_keeps_the_past_and_hides_the_log(scene_0103: Scene) -> None:
     full = build_window(scene_0103, 60)
     past = build_window(scene_0103, 60, WindowConfig(with_future=False))

@@ -197,12 +197,22 @@ class RasterWindowDataset(WindowDataset):
         self._rasters: dict[int, np.ndarray] = {}
 
     def __getitem__(self, i: int) -> RasterWindow:  # type: ignore[override]
+        window, raster = self.cached_parts(i)
+        return RasterWindow(window, raster.astype(np.float32))
+
+    def cached_parts(self, i: int) -> tuple[SceneWindow, np.ndarray]:
         window = super().__getitem__(i)
         if i not in self._rasters:
             scene = self.scenes[self.items[i][0]]
             raster = rasterize(scene, scene.agents, window.step, window.agent_index, self.raster)
             self._rasters[i] = raster.astype(np.float16)
-        return RasterWindow(window, self._rasters[i].astype(np.float32))
+        return window, self._rasters[i]
+
+    def store_parts(self, i: int, parts: Any) -> None:
+        self._cache[i], self._rasters[i] = parts
+
+    def is_cached(self, i: int) -> bool:
+        return i in self._cache and i in self._rasters
 
 
 def observation_raster(obs: Observation, config: RasterConfig) -> Tensor:

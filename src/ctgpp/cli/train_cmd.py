@@ -82,6 +82,14 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         f"(default {TrainConfig.smooth_s})",
     )
     p.add_argument(
+        "--workers",
+        type=int,
+        default=TrainConfig.workers,
+        metavar="N",
+        help="processes that build every training window before the first step, so that no step waits "
+        "for one (the same windows; 0: each window when first drawn)",
+    )
+    p.add_argument(
         "--init-from",
         type=Path,
         default=None,
@@ -125,6 +133,8 @@ def model_config_of(args: argparse.Namespace) -> ModelConfig | BaselineConfig:
 def run_train(args: argparse.Namespace) -> int:
     if min(args.steps, args.batch, args.stride, args.max_agents) < 1:
         raise ValueError("--steps, --batch, --stride and --max-agents must be positive")
+    if args.workers < 0:
+        raise ValueError("--workers must be 0 (build each window when first drawn) or more")
     if not (math.isfinite(args.lr) and args.lr > 0):
         raise ValueError(f"--lr {args.lr}: expected a positive number")
     if not (math.isfinite(args.smooth) and args.smooth >= 0):
@@ -147,6 +157,7 @@ def run_train(args: argparse.Namespace) -> int:
         max_agents=args.max_agents,
         init_from=None if args.init_from is None else str(args.init_from),
         smooth_s=args.smooth,
+        workers=args.workers,
     )
     note = f"train {' + '.join(specs)} ({len(train_scenes)} scenes), val {args.val}, "
     note += f"variant {args.variant}" if args.model == "ctgpp" else f"model {args.model}"

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import multiprocessing
 from dataclasses import dataclass, fields, replace
+from typing import Any
 
 import numpy as np
 import torch
@@ -133,3 +135,44 @@ class WindowDataset(Dataset[SceneWindow]):
             s, step = self.items[i]
             self._cache[i] = build_window(self.scenes[s], step, self.config)
         return self._cache[i]
+
+    def cached_parts(self, i: int) -> Any:
+        """What the cache keeps of item ``i`` (built now if it is not there yet)."""
+        return self[i]
+
+    def store_parts(self, i: int, parts: Any) -> None:
+        """Put :meth:`cached_parts`' result for item ``i`` into the cache."""
+        self._cache[i] = parts
+
+    def prebuild(self, workers: int) -> None:
+        """Build every item now in ``workers`` forked processes: the same items as built on first access
+        (they depend on the index alone), each contiguous run of windows of a scene in one process so
+        that the scene's map fields are computed there once. Training then never waits on a window."""
+        missing = [i for i in range(len(self)) if not self.is_cached(i)]
+        if workers <= 1 or len(missing) < 2:
+            for i in missing:
+                self.store_parts(i, self.cached_parts(i))
+            return
+        n_chunks = min(len(missing), workers * 4)
+        bounds = np.linspace(0, len(missing), n_chunks + 1).round().astype(int)
+        chunks = [missing[a:b] for a, b in zip(bounds[:-1], bounds[1:], strict=True) if b > a]
+        global _PREBUILDING
+        _PREBUILDING = self
+        try:
+            with multiprocessing.get_context("fork").Pool(workers) as pool:
+                for chunk, parts in zip(chunks, pool.map(_build_chunk, chunks, chunksize=1), strict=True):
+                    for i, part in zip(chunk, parts, strict=True):
+                        self.store_parts(i, part)
+        finally:
+            _PREBUILDING = None
+
+    def is_cached(self, i: int) -> bool:
+        return i in self._cache
+
+
+_PREBUILDING: WindowDataset | None = None  # the dataset a forked prebuild worker reads
+
+
+def _build_chunk(indices: list[int]) -> list[Any]:
+    assert _PREBUILDING is not None, "a prebuild worker runs in a process forked by WindowDataset.prebuild"
+    return [_PREBUILDING.cached_parts(i) for i in indices]

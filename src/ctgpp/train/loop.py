@@ -53,6 +53,9 @@ class TrainConfig:
     init_from: str | None = None  # a checkpoint directory whose weights a new run starts from
     # Gaussian bandwidth (s) of the vehicle tracks' smoothing (ctgpp.data.smoothing); 0: the raw logs
     smooth_s: float = SMOOTH_SIGMA_S
+    # processes that build every training window before the first step (0: each on first use); the
+    # same windows either way, so a run may resume with another number
+    workers: int = 0
 
 
 def _world() -> tuple[int, int]:
@@ -121,6 +124,11 @@ def train(
     val_set = kind.dataset(val_scenes, windows, config.stride, model_config)
     if len(train_set) == 0:
         raise ValueError("no training windows: the training scenes are too short or hold no vehicles")
+    if config.workers > 0:
+        t0 = time.monotonic()
+        train_set.prebuild(config.workers)
+        log.info("built %d training windows in %.0f s (%d processes)", len(train_set), time.monotonic() - t0,
+                 config.workers)
     n_val = min(config.val_windows, len(val_set))
     val_idx = [round(i * (len(val_set) - 1) / max(n_val - 1, 1)) for i in range(n_val)]
     val_batches = [kind.collate([val_set[i] for i in val_idx[j : j + 4]]) for j in range(0, n_val, 4)]
