@@ -14,7 +14,14 @@ import torch
 
 from ctgpp.guidance import GuidanceBatch, GuidanceLoss, build_guidance_batch, make_loss
 from ctgpp.guidance.base import registered_losses
-from ctgpp.guidance.guards import GuardConfig, RealismGuards, exempt_pairs, guard_report, with_guards
+from ctgpp.guidance.guards import (
+    GuardConfig,
+    GuardedLoss,
+    RealismGuards,
+    exempt_pairs,
+    guard_report,
+    with_guards,
+)
 from ctgpp.guidance.helpers import transform_coord_agents_to_world, transform_coord_world_to_agent_i
 from ctgpp.guidance.scope import LossScope
 from ctgpp.language.compiler import compile_query
@@ -174,8 +181,13 @@ def test_a_vehicle_asked_to_collide_is_not_pushed_away_from_its_partner(
 def test_with_guards_composes_the_rule_and_the_guards(batch: GuidanceBatch, logged: torch.Tensor) -> None:
     assert with_guards(COLLIDE, GuardConfig.off()) is COLLIDE
     assert isinstance(with_guards(None, GuardConfig()), RealismGuards)
-    both = with_guards(make_loss("speed_limit", limit_mps=3.0), GuardConfig())
+    both = with_guards(make_loss("speed_limit", limit_mps=3.0), GuardConfig(rule_weight=2.0))
     assert both is not None and both.couples_agents and both(logged, batch).shape == (2,)
+    # the two apart (the guidance step lets the guards win where they conflict) sum to the whole
+    assert isinstance(both, GuardedLoss)
+    rule, guards = both.parts(logged, batch)
+    torch.testing.assert_close(rule.sum(0) + guards, both(logged, batch))
+    torch.testing.assert_close(rule, 2.0 * make_loss("speed_limit", limit_mps=3.0)(logged, batch))
 
 
 def test_the_guarded_plan_costs_the_guards_less() -> None:

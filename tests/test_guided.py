@@ -19,6 +19,7 @@ from ctgpp.diffusion.guided import (
     clip_radii,
     guide_mean,
     guided_sample,
+    yield_to_guards,
 )
 from ctgpp.dynamics import KAPPA_MAX_PER_M
 from ctgpp.eval.rule_setup import select_pair
@@ -154,6 +155,37 @@ def test_a_loss_that_stops_depending_on_x_leaves_adams_momentum_on() -> None:
     assert not torch.allclose(flat, guide_mean(mean, after_one_step(True), 1.0, GuidanceConfig(1, 0.1)))
     torch.testing.assert_close(guide_mean(mean, after_one_step(False), 1.0, config), flat)
     assert torch.equal(guide_mean(mean, lambda x: torch.zeros(()), 1.0, config), mean)
+
+
+def test_the_rule_yields_to_the_guards_where_they_conflict() -> None:
+    """Hand-computed rows: a rule gradient opposing the guards' loses its opposing part (row 0:
+    (2, 1)·(−1, 0) < 0, so (2, 1) − (−2)·(−1, 0) = (0, 1)); one that agrees (row 1) or meets a
+    satisfied guard (row 2, zero) is unchanged."""
+    rule = torch.tensor([[[[2.0, 1.0]]], [[[2.0, 1.0]]], [[[2.0, 1.0]]]])  # (3 samples, 1 vehicle, F=1, 2)
+    guard = torch.tensor([[[[-1.0, 0.0]]], [[[1.0, 0.0]]], [[[0.0, 0.0]]]])
+    out = yield_to_guards(rule, guard)
+    torch.testing.assert_close(out[0], torch.tensor([[[0.0, 1.0]]]))
+    torch.testing.assert_close(out[1:], rule[1:])
+    assert (yield_to_guards(rule, guard) * guard).sum(dim=(-2, -1)).min() >= 0  # never against a guard
+
+
+def test_a_guard_wins_over_a_much_larger_rule_pulling_the_other_way() -> None:
+    """x is pulled up by a rule 1000 times steeper than the guard that pulls it down: summed, the rule
+    would win; given apart, (rule, guard), x follows the guard (Adam's step: its lr whatever the size)."""
+    mean = torch.zeros(1, 1, 3, 2)
+
+    def summed(x: Tensor) -> Tensor:
+        return -1000.0 * x.sum() + x.sum()
+
+    def apart(x: Tensor) -> tuple[Tensor, Tensor]:
+        return -1000.0 * x.sum(), x.sum()
+
+    config = GuidanceConfig(inner_steps=1, lr=0.1)
+    assert (guide_mean(mean, summed, 1.0, config) > 0).all()
+    torch.testing.assert_close(guide_mean(mean, apart, 1.0, config), torch.full_like(mean, -0.1))
+    # where the guard is satisfied (no gradient), the rule alone moves x
+    torch.testing.assert_close(guide_mean(mean, lambda x: (-x.sum(), x.sum() * 0.0), 1.0, config),
+                               torch.full_like(mean, 0.1))
 
 
 def test_each_step_moves_the_mean_by_at_most_its_radius() -> None:

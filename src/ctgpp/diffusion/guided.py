@@ -25,7 +25,9 @@ from torch import Tensor
 from ctgpp.diffusion.schedule import Sampler, randn_like
 from ctgpp.dynamics import bound_yaw_rate, clip_actions, rollout
 
-Objective = Callable[[Tensor], Tensor]
+# x -> the loss, or (the rule's or query's loss, the realism guards' loss): the guards then win where
+# the two pull a vehicle opposite ways (:func:`yield_to_guards`)
+Objective = Callable[[Tensor], "Tensor | tuple[Tensor, Tensor]"]
 ADAM_BETAS = (0.9, 0.999)
 ADAM_EPS = 1e-8
 
@@ -96,20 +98,41 @@ def guide_mean(mean: Tensor, objective: Objective, radius: float, config: Guidan
     for step in range(1, config.inner_steps + 1):
         point = (base + delta).requires_grad_()
         with torch.enable_grad():
-            loss = objective(point).sum()
-        if loss.requires_grad:
-            (grad,) = torch.autograd.grad(loss, point)
+            out = objective(point)
+            parts = [part.sum() for part in (out if isinstance(out, tuple) else (out,))]
+        if any(part.requires_grad for part in parts):
+            g = [_gradient(part, point, retain=k + 1 < len(parts)) for k, part in enumerate(parts)]
+            grad = g[0] if len(g) == 1 else yield_to_guards(g[0], g[1]) + g[1]
         elif step == 1:  # the loss does not depend on x here (nothing near to avoid, say): no move at all
             break
         else:  # no longer depends on x: a zero gradient, and Adam's momentum carries on
             grad = torch.zeros_like(base)
-        grad = torch.nan_to_num(grad, nan=0.0, posinf=0.0, neginf=0.0)
         m.mul_(ADAM_BETAS[0]).add_(grad, alpha=1 - ADAM_BETAS[0])
         v.mul_(ADAM_BETAS[1]).addcmul_(grad, grad, value=1 - ADAM_BETAS[1])
         denom = (v.sqrt() / math.sqrt(1 - ADAM_BETAS[1] ** step)).add_(ADAM_EPS)
         delta.addcdiv_(m, denom, value=-config.lr / (1 - ADAM_BETAS[0] ** step))
         delta.clamp_(-radius, radius)  # line 9: clip the change to ±σ_k
     return base + delta
+
+
+def _gradient(loss: Tensor, point: Tensor, retain: bool) -> Tensor:
+    """d loss / d point (zero where the loss does not depend on it), NaN and ±inf read as 0."""
+    if not loss.requires_grad:
+        return torch.zeros_like(point)
+    (grad,) = torch.autograd.grad(loss, point, retain_graph=retain, allow_unused=True, materialize_grads=True)
+    return torch.nan_to_num(grad, nan=0.0, posinf=0.0, neginf=0.0)
+
+
+def yield_to_guards(rule: Tensor, guards: Tensor) -> Tensor:
+    """The rule's gradient with, for each vehicle of each sample (a row of x: its (F, 2) actions),
+    the part that opposes the guards' removed: where ⟨g_rule, g_guard⟩ < 0, g_rule − ⟨g_rule, g_guard⟩
+    / |g_guard|² · g_guard. A rule then cannot push a vehicle into a collision, off the road or out
+    of its lane against the guard, however much larger its own gradient; where the guards are
+    satisfied (zero gradient) or agree, the rule's gradient is unchanged."""
+    dot = (rule * guards).sum(dim=(-2, -1), keepdim=True)
+    norm2 = (guards * guards).sum(dim=(-2, -1), keepdim=True)
+    coef = torch.where(dot < 0, dot / norm2.clamp(min=1e-30), torch.zeros_like(dot))
+    return rule - coef * guards
 
 
 def guided_sample(

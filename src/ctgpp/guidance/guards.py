@@ -21,6 +21,9 @@ any other) and added to the rule's or query's loss by :func:`with_guards`:
 An opaque loss (a language model's program) may do anything to any vehicle: only the off-road
 guard, and the collision guard against replayed agents, apply then.
 
+Priority. Where the rule and a guard pull a vehicle opposite ways, the guidance step removes the
+rule's opposing part (:class:`GuardedLoss`): the guards win.
+
 Weights. The sampler's Adam step moves every action element by about the learning rate whatever
 the size of its gradient (:mod:`ctgpp.guidance.rules_relative`), so weights do not set how hard a
 guard pushes a vehicle it alone concerns; they matter where a vehicle is pulled two ways (the
@@ -176,7 +179,22 @@ def with_guards(
     guards = RealismGuards(config, scope)
     if loss is None:
         return guards
-    return CompositeLoss([(loss, config.rule_weight), (guards, 1.0)])
+    return GuardedLoss(loss, guards, config.rule_weight)
+
+
+class GuardedLoss(CompositeLoss):
+    """A rule's or query's loss with the realism guards: their weighted sum, as any composite (what
+    filtration ranks), and the two apart (:meth:`parts`), so that the guidance step lets the guards
+    win where the two pull a vehicle opposite ways (:func:`ctgpp.diffusion.guided.yield_to_guards`):
+    a target speed does not drive a car through the queue ahead, whatever the two losses' sizes."""
+
+    def __init__(self, rule: GuidanceLoss, guards: RealismGuards, rule_weight: float = 1.0) -> None:
+        super().__init__([(rule, rule_weight), (guards, 1.0)])
+        self.rule, self.guards, self.rule_weight = rule, guards, float(rule_weight)
+
+    def parts(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """(the weighted rule's cost, the guards' cost), each as the part returns it."""
+        return self.rule_weight * self.rule(x, data_batch, agt_mask), self.guards(x, data_batch, agt_mask)
 
 
 def guard_report(
@@ -215,6 +233,7 @@ def guard_report(
 __all__ = [
     "GUARD_NAMES",
     "GuardConfig",
+    "GuardedLoss",
     "RealismGuards",
     "exempt_pairs",
     "guard_report",

@@ -20,6 +20,7 @@ from ctgpp.dynamics import clip_actions, rollout
 from ctgpp.geometry import local_to_world
 from ctgpp.guidance.base import GuidanceLoss
 from ctgpp.guidance.context import build_guidance_batch
+from ctgpp.guidance.guards import GuardedLoss
 from ctgpp.interfaces import Observation, Plan
 from ctgpp.model.checkpoint import load_checkpoint
 from ctgpp.model.denoiser import Denoiser
@@ -182,9 +183,11 @@ class DiffusionPolicy:
         if self.guidance is not None:
             loss_fn, data_batch = self.guidance, build_guidance_batch(obs, f)
 
-            def objective(x: Tensor) -> Tensor:  # normalized actions (N, M, F, 2) -> loss
-                traj = action_trajectories(normalizer.denormalize_actions(x), moving, cfg.dt_s)
-                return loss_fn(every_vehicle(traj), data_batch)
+            def objective(x: Tensor) -> Tensor | tuple[Tensor, Tensor]:  # normalized actions (N, M, F, 2)
+                traj = every_vehicle(action_trajectories(normalizer.denormalize_actions(x), moving, cfg.dt_s))
+                if isinstance(loss_fn, GuardedLoss):  # the rule's and the guards' apart: the guards win
+                    return loss_fn.parts(traj, data_batch)
+                return loss_fn(traj, data_batch)
 
         x0 = guided_sample(denoise, (n, len(rows), f, 2), self.sampler, objective, self.guidance_config, gen)
         actions[:, rows] = clip_actions(normalizer.denormalize_actions(x0))  # (N, V, F, 2)
