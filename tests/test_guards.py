@@ -15,6 +15,7 @@ import torch
 from ctgpp.guidance import GuidanceBatch, GuidanceLoss, build_guidance_batch, make_loss
 from ctgpp.guidance.base import registered_losses
 from ctgpp.guidance.guards import (
+    GUARDS_FIRST,
     GuardConfig,
     GuardedLoss,
     RealismGuards,
@@ -188,6 +189,8 @@ def test_with_guards_composes_the_rule_and_the_guards(batch: GuidanceBatch, logg
     rule, guards = both.parts(logged, batch)
     torch.testing.assert_close(rule.sum(0) + guards, both(logged, batch))
     torch.testing.assert_close(rule, 2.0 * make_loss("speed_limit", limit_mps=3.0)(logged, batch))
+    # filtration ranks the guards first: their cost GUARDS_FIRST times, then the rule's
+    torch.testing.assert_close(both.ranking(logged, batch), rule.sum(0) + GUARDS_FIRST * guards)
 
 
 def test_the_guarded_plan_costs_the_guards_less() -> None:

@@ -50,11 +50,16 @@ class CompositeLoss(GuidanceLoss):
 
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         pairs = zip(self.losses, self.weights, strict=True)
-        costs = [w * loss(x, data_batch, agt_mask) for loss, w in pairs]
-        if all(c.dim() == 2 for c in costs):
-            return sum(costs[1:], costs[0])
-        flat = [c.sum(0) if c.dim() == 2 else c for c in costs]  # (B, N) -> (N)
-        return sum(flat[1:], flat[0])
+        return join_costs([w * loss(x, data_batch, agt_mask) for loss, w in pairs])
+
+
+def join_costs(costs: Sequence[Tensor]) -> Tensor:
+    """The sum of several parts' costs: (B, N) when every part is per vehicle, else (N), each (B, N)
+    part summed over its vehicles first."""
+    if all(c.dim() == 2 for c in costs):
+        return sum(costs[1:], costs[0])
+    flat = [c.sum(0) if c.dim() == 2 else c for c in costs]  # (B, N) -> (N)
+    return sum(flat[1:], flat[0])
 
 
 @dataclass(frozen=True)

@@ -22,7 +22,8 @@ An opaque loss (a language model's program) may do anything to any vehicle: only
 guard, and the collision guard against replayed agents, apply then.
 
 Priority. Where the rule and a guard pull a vehicle opposite ways, the guidance step removes the
-rule's opposing part (:class:`GuardedLoss`): the guards win.
+rule's opposing part, and filtration prefers the samples that keep the guards (:class:`GuardedLoss`):
+the guards win.
 
 Weights. The sampler's Adam step moves every action element by about the learning rate whatever
 the size of its gradient (:mod:`ctgpp.guidance.rules_relative`), so weights do not set how hard a
@@ -45,7 +46,7 @@ import torch
 from torch import Tensor
 
 from ctgpp.guidance.base import GuidanceLoss
-from ctgpp.guidance.composite import CompositeLoss
+from ctgpp.guidance.composite import CompositeLoss, join_costs
 from ctgpp.guidance.context import GuidanceBatch
 from ctgpp.guidance.rules_common import sample_sdf
 from ctgpp.guidance.rules_interaction import NoCollision
@@ -56,6 +57,10 @@ from ctgpp.guidance.scope import LossScope, pair
 GUARD_NAMES = ("offroad", "collision", "lane")
 COLLISION_WEIGHT = 1.0  # 5 measured worse (BENCHMARKS.md, Realism guards)
 LANE_TOLERANCE_M = 1.5  # 1.0 and 2.0 measured worse
+# filtration ranks a plan by its guards' cost times this, plus the rule's: a sample that keeps the guards
+# is chosen over one that meets the rule better but collides (a centimetre of overlap outweighs a 1 m/s
+# miss of a target speed); among samples that keep them alike, the rule decides
+GUARDS_FIRST = 100.0
 
 
 @dataclass(frozen=True)
@@ -196,6 +201,11 @@ class GuardedLoss(CompositeLoss):
         """(the weighted rule's cost, the guards' cost), each as the part returns it."""
         return self.rule_weight * self.rule(x, data_batch, agt_mask), self.guards(x, data_batch, agt_mask)
 
+    def ranking(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
+        """What filtration minimizes: the guards first (``GUARDS_FIRST`` times their cost), then the rule."""
+        rule, guards = self.parts(x, data_batch, agt_mask)
+        return join_costs([rule, GUARDS_FIRST * guards])
+
 
 def guard_report(
     config: GuardConfig, scope: LossScope, num_vehicles: int, held: Iterable[int] = ()
@@ -231,6 +241,7 @@ def guard_report(
 
 
 __all__ = [
+    "GUARDS_FIRST",
     "GUARD_NAMES",
     "GuardConfig",
     "GuardedLoss",

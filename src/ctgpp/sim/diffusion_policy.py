@@ -195,10 +195,11 @@ class DiffusionPolicy:
         if objective is None:
             return PlanSamples(actions, current, traj, None, torch.zeros(v, dtype=torch.long))
         loss = loss_fn(traj, data_batch)  # objective(x0), on the trajectories just rolled out
+        rank = loss_fn.ranking if isinstance(loss_fn, GuardedLoss) else loss_fn  # the guards first
         coupled = bool(loss_fn.couples_agents) or loss.ndim == 1
-        chosen = filtration(loss, coupled, v)
+        chosen = filtration(rank(traj, data_batch), coupled, v)
         if coupled and self.guidance_config.compose:
-            chosen = compose(traj, lambda scenes: loss_fn(scenes, data_batch), chosen)
+            chosen = compose(traj, lambda scenes: rank(scenes, data_batch), chosen)
         return PlanSamples(actions, current, traj, loss, chosen)
 
     def sample_actions(self, obs: Observation) -> tuple[np.ndarray, np.ndarray]:
