@@ -188,10 +188,11 @@ def with_guards(
 
 
 class GuardedLoss(CompositeLoss):
-    """A rule's or query's loss with the realism guards: their weighted sum, as any composite (what
-    filtration ranks), and the two apart (:meth:`parts`), so that the guidance step lets the guards
-    win where the two pull a vehicle opposite ways (:func:`ctgpp.diffusion.guided.yield_to_guards`):
-    a target speed does not drive a car through the queue ahead, whatever the two losses' sizes."""
+    """A rule's or query's loss with the realism guards: their weighted sum, as any composite; the two
+    apart (:meth:`parts`), so that the guidance step lets the guards win where the two pull a vehicle
+    opposite ways (:func:`ctgpp.diffusion.guided.yield_to_guards`); and the guards first in what
+    filtration ranks (:meth:`ranking`). A target speed does not drive a car through the queue ahead,
+    whatever the two losses' sizes."""
 
     def __init__(self, rule: GuidanceLoss, guards: RealismGuards, rule_weight: float = 1.0) -> None:
         super().__init__([(rule, rule_weight), (guards, 1.0)])
