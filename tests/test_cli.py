@@ -59,6 +59,7 @@ def test_show_draws_the_numbered_picture(tmp_path: Path) -> None:
         (["simulate", "--sampler", "ddpm", "--eta", "1", "--out", "{tmp}/x"], "needs --sampler ddim"),
         (["bench", "--presets", "ddim@90.40.0", "--out", "{tmp}/x"], "must fall strictly from 99"),
         (["scenes", "--split", "nope"], "no scenes in split 'nope'"),
+        (["train", "--workers", "-1", "--out", "{tmp}/x"], "--workers must be 0"),
         (["data", "convert", "{tmp}/missing", "{tmp}/out"], "does not exist"),
         (
             ["evaluate", "--methods", "ctgpp-no_edge", "--checkpoint-of", "ctgpp-no_edge={tmp}/no", "--out",
