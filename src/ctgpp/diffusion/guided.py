@@ -88,7 +88,8 @@ def guide_mean(mean: Tensor, objective: Objective, radius: float, config: Guidan
     """Algorithm 2, lines 6–9: W Adam steps on J(μ + δ), δ clipped to ±radius; returns μ + δ.
 
     ``objective`` maps a tensor shaped like ``mean`` to the loss (any shape; its sum is minimized:
-    samples are independent, so the gradient of the sum is each sample's own). No gradient reaches
+    samples are independent, so the gradient of the sum is each sample's own), or to the pair (the
+    rule's loss, the guards' loss), whose gradients are joined by :func:`yield_to_guards`. No gradient reaches
     ``mean`` or anything it was computed from. Adam (β = 0.9, 0.999, ε = 1e-8, the defaults of
     ``torch.optim.Adam``, whose update this is) is written out: the optimizer object's bookkeeping
     cost more than the update itself at every one of the many small steps of a plan.
