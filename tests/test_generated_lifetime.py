@@ -33,6 +33,7 @@ from ctgpp.language.remote import GeneratedLossError, RemoteLoss
 from ctgpp.language.trial import REPEATS, SAMPLE_COUNTS
 from tests.llm_server import model_argv
 from tests.test_guidance_helpers import logged_x, real_observation
+from tests.test_llm_client import GOOD as COLLISION
 from tests.test_llm_client import MODEL, CannedServer, reply
 
 LATE = 30  # a call number beyond the trial's (one instance sees about 22 calls there)
@@ -309,13 +310,22 @@ def test_stopped_loss_that_owns_its_worker_stops_it(workers: tuple[LossChecker, 
 # ---- end to end: ctgpp simulate with a local OpenAI-compatible server -----------------------------
 
 
-# NaN as soon as sampling uses more samples than the trial's (N > 5), in the first guidance step
-NAN_FOR_MORE_SAMPLES = program("cost = cost * float('nan')", f"x.shape[1] > {max(SAMPLE_COUNTS)}")
+# NaN as soon as sampling uses a sample count that neither the trial (1, 2, 5) nor the meaning
+# check (PROBES plans) tried: N = 6, in the first guidance step
+SIX = max(SAMPLE_COUNTS) + 1
+NAN_AT_SIX_SAMPLES = program("cost = cost * float('nan')", f"x.shape[1] == {SIX}")
+# the prompt's collision example (it means what "vehicle 1 should collide with vehicle 2" means, so the
+# meaning check passes it), NaN at N = 6
+_RETURN = "        return (gap * weights).sum(-1) / weights.sum()  # (N,)\n"
+assert _RETURN in COLLISION
+COLLISION_NAN_AT_SIX = COLLISION.replace(_RETURN, (
+    "        cost = (gap * weights).sum(-1) / weights.sum()  # (N,)\n"
+    f"        if x.shape[1] == {SIX}:\n            cost = cost * float('nan')\n        return cost\n"))
 
 
 def simulate_argv(query: str, server: CannedServer, out: Path) -> list[str]:
     return model_argv(query, server, out, "--scene", "0103", "--steps", "1", "--samples",
-                      str(max(SAMPLE_COUNTS) + 1), "--animation", "none", "--guards", "off")
+                      str(SIX), "--animation", "none", "--guards", "off")
 
 
 def test_simulate_stops_with_one_line_and_writes_nothing(llm_env: CannedServer, tmp_path: Path,
@@ -323,7 +333,7 @@ def test_simulate_stops_with_one_line_and_writes_nothing(llm_env: CannedServer, 
     from ctgpp.cli.main import main
 
     query = "vehicle 3 should orbit vehicle 5 like a moon"  # the offline compiler does not know this
-    llm_env.replies = [reply(NAN_FOR_MORE_SAMPLES)]
+    llm_env.replies = [reply(NAN_AT_SIX_SAMPLES)]
     out = tmp_path / "run"
     assert main(simulate_argv(query, llm_env, out)) == 2
     err = capsys.readouterr().err.strip().splitlines()  # the progress bar, then the error
@@ -340,7 +350,7 @@ def test_simulate_falls_back_to_the_compiler(llm_env: CannedServer, tmp_path: Pa
     from ctgpp.cli.main import main
 
     query = "vehicle 1 should collide with vehicle 2"
-    llm_env.replies = [reply(NAN_FOR_MORE_SAMPLES)]
+    llm_env.replies = [reply(COLLISION_NAN_AT_SIX)]
     out = tmp_path / "run"
     assert main(simulate_argv(query, llm_env, out)) == 0
     assert "was stopped at call 1: forward returned non-finite values" in capsys.readouterr().out
@@ -356,12 +366,12 @@ def test_evaluate_queries_falls_back_to_the_compiler(llm_env: CannedServer, tmp_
     from ctgpp.cli.main import main
 
     query = "vehicle 1 should collide with vehicle 2"
-    llm_env.replies = [reply(NAN_FOR_MORE_SAMPLES)]
+    llm_env.replies = [reply(COLLISION_NAN_AT_SIX)]
     cases = tmp_path / "cases.json"
     case = {"family": "collision", "query": query, "scene": "scene-0103", "start_s": 3.0}
     cases.write_text(json.dumps([case]))
     out = tmp_path / "q"
-    flags = ["--steps", "1", "--samples", str(max(SAMPLE_COUNTS) + 1), "--guards", "off", "--duration", "1"]
+    flags = ["--steps", "1", "--samples", str(SIX), "--guards", "off", "--duration", "1"]
     argv = ["evaluate-queries", "--cases", str(cases), "--llm-model", MODEL, "--llm-base-url", llm_env.url]
     assert main([*argv, *flags, "--out", str(out)]) == 0
     with (out / "queries.csv").open(newline="") as f:

@@ -1,7 +1,9 @@
 """A query becomes a checked guidance loss through a language model (DESIGN.md, Language interface).
 
-prompt -> reply -> extract the code -> sandbox -> the trial on the real scene batch; on failure the
-error goes back to the model as a user message, for at most ``max_repairs`` more rounds. Accepted
+prompt -> reply -> extract the code -> sandbox -> the trial on the real scene batch -> where the offline
+compiler reads the query, its meaning (probe plans ranked as the compiler's loss ranks them,
+:mod:`ctgpp.language.meaning`); on failure the error goes back to the model as a user message, for at
+most ``max_repairs`` more rounds. Accepted
 programs are cached by (query, model, prompt version); a cached program is tried again the same way
 before use, and evicted when it fails. Here the program is only parsed and allow-listed: it is
 executed only in the worker process (:mod:`ctgpp.language.checks`), for its trial and — through
@@ -21,9 +23,11 @@ from torch import Tensor
 from ctgpp.guidance.context import GuidanceBatch
 from ctgpp.language.cache import LossCache
 from ctgpp.language.checks import CheckReport, LossChecker, LossCheckError
+from ctgpp.language.compiler import CompiledQuery
 from ctgpp.language.extract import ExtractionError, extract_code
+from ctgpp.language.meaning import judge_meaning
 from ctgpp.language.prompt import Message, build_messages, repair_message
-from ctgpp.language.remote import CALL_TIME_LIMIT_S, RemoteLoss
+from ctgpp.language.remote import CALL_TIME_LIMIT_S, GeneratedLossError, RemoteLoss
 from ctgpp.language.sandbox import SandboxError, check_source
 
 __all__ = ["ChatModel", "GeneratedLoss", "GenerationFailed", "Round", "generate_loss"]
@@ -91,12 +95,22 @@ def _model_name(llm: ChatModel) -> str:
     return str(getattr(getattr(llm, "config", None), "model", type(llm).__name__))
 
 
-def _accept(code: str, batch: GuidanceBatch, x: Tensor, checker: LossChecker,
-            time_limit_s: float) -> CheckReport:
-    """Allow-list ``code`` here (parsing only) and try it in the worker; raises SandboxError or
+def _accept(code: str, batch: GuidanceBatch, x: Tensor, checker: LossChecker, time_limit_s: float,
+            reference: CompiledQuery | None) -> CheckReport:
+    """Allow-list ``code`` here (parsing only), try it in the worker and, where the compiler reads
+    the query (``reference``), check that it means what the query means
+    (:func:`~ctgpp.language.meaning.judge_meaning`, in the worker too); raises SandboxError or
     LossCheckError."""
     check_source(code)
-    return checker.check(code, batch, x, time_limit_s)
+    report = checker.check(code, batch, x, time_limit_s)
+    if reference is not None:
+        try:
+            refusal = judge_meaning(RemoteLoss(code, checker, own_worker=False), reference, batch, x).refusal
+        except GeneratedLossError as err:
+            raise LossCheckError(str(err)) from None
+        if refusal is not None:
+            raise LossCheckError(refusal)
+    return report
 
 
 def generate_loss(
@@ -109,11 +123,14 @@ def generate_loss(
     cache: LossCache | bool = True,
     checker: LossChecker | None = None,
     time_limit_s: float = 5.0,
+    reference: CompiledQuery | None = None,
 ) -> GeneratedLoss:
     """Ask ``llm`` for a loss implementing ``query`` and check it on ``batch`` with x (B, N, T, 6).
 
     cache: a :class:`LossCache`, True for the default cache directory, False for none. checker: a
-    running :class:`LossChecker` to reuse (else one is started and stopped here). Raises
+    running :class:`LossChecker` to reuse (else one is started and stopped here). reference: the
+    offline compiler's reading of the query, when it has one: a program must rank probe plans as it
+    does (:mod:`ctgpp.language.meaning`), cached programs too. Raises
     :class:`GenerationFailed` after ``1 + max_repairs`` refused replies, and
     :class:`ctgpp.language.client.LLMError` when the model cannot be reached.
     """
@@ -124,19 +141,20 @@ def generate_loss(
     try:
         if store is not None and (cached := store.get(query, model)) is not None:
             try:
-                report = _accept(cached, batch, x, checker, time_limit_s)
+                report = _accept(cached, batch, x, checker, time_limit_s, reference)
                 return GeneratedLoss(cached, report.name, 0, report, model, cached=True)
             except (SandboxError, LossCheckError) as err:
                 log.warning("the cached loss for %r fails the checks (%s); asking the model", query, err)
                 store.discard(query, model)
-        return _rounds(query, llm, batch, x, max_repairs, store, checker, time_limit_s, model)
+        return _rounds(query, llm, batch, x, max_repairs, store, checker, time_limit_s, model, reference)
     finally:
         if own:
             checker.close()
 
 
 def _rounds(query: str, llm: ChatModel, batch: GuidanceBatch, x: Tensor, max_repairs: int,
-            store: LossCache | None, checker: LossChecker, time_limit_s: float, model: str) -> GeneratedLoss:
+            store: LossCache | None, checker: LossChecker, time_limit_s: float, model: str,
+            reference: CompiledQuery | None) -> GeneratedLoss:
     """The repair loop: one reply per round, the refusal sent back after each failed one."""
     messages = build_messages(query, batch.num_vehicles)
     errors: list[str] = []
@@ -148,7 +166,7 @@ def _rounds(query: str, llm: ChatModel, batch: GuidanceBatch, x: Tensor, max_rep
         messages.append({"role": "assistant", "content": reply})
         try:
             code = extract_code(reply)
-            report = _accept(code, batch, x, checker, time_limit_s)
+            report = _accept(code, batch, x, checker, time_limit_s, reference)
         except (ExtractionError, SandboxError, LossCheckError) as err:
             log.info("round %d for %r refused: %s", round_no, query, err)
             errors.append(f"round {round_no}: {err}")

@@ -89,7 +89,7 @@ def resolve_query(query: str, obs: Observation, llm: LLMConfig | None, max_repai
     checker.start()  # the worker imports torch while the model answers
     try:
         generated = generate_loss(query, LLMClient(llm), build_guidance_batch(obs), probe_x(obs), max_repairs,
-                                  checker=checker)
+                                  checker=checker, reference=compiled)
         loss = generated.build(checker)  # every call of sampling runs in the worker, limited
     except (GenerationFailed, LLMError, GeneratedLossError) as err:
         checker.close()
