@@ -14,7 +14,7 @@ from ctgpp.guidance.rules import SpeedLimit
 from ctgpp.language.checks import LossChecker, LossCheckError
 from ctgpp.language.prompt import examples
 from ctgpp.language.sandbox import SandboxError, check_source, load_loss_class
-from ctgpp.language.vocabulary import safe_builtins
+from ctgpp.language.vocabulary import HELPER_MODULES, safe_builtins
 from tests.test_guidance_helpers import logged_x, real_observation
 
 
@@ -288,3 +288,18 @@ def test_worker_survives_a_time_limit(checker: LossChecker, batch: GuidanceBatch
     with pytest.raises(LossCheckError, match="did not finish"):
         checker.check(slow, batch, x, time_limit_s=1.0)
     assert checker.check(load_loss_class(PAPER_STYLE["module function, lambda, zip, sum"]), batch, x)
+
+
+def test_an_import_of_a_helper_that_does_not_exist_lists_the_helpers_closest_first() -> None:
+    """What the 1.5B model sent three rounds running: a helper that does not exist. The refusal names
+    the module's helpers so that the next round can use one."""
+    program = loss_program(RETURN, head="from ctgpp.guidance.helpers import get_right_lane")
+    with pytest.raises(SandboxError) as refused:
+        check_source(program)
+    message = str(refused.value)
+    assert "ctgpp.guidance.helpers has no helper get_right_lane" in message
+    listed = message.split("the closest first: ")[1].split(". ")[0].split(", ")
+    assert listed[0] == "get_right_lane_projection"
+    assert set(listed) == set(HELPER_MODULES["ctgpp.guidance.helpers"])
+    with pytest.raises(SandboxError, match="the helper modules: ctgpp.guidance, "):
+        check_source(loss_program(RETURN, head="from ctgpp.guide import select_agent_ind"))

@@ -4,6 +4,8 @@ program may contain (see :mod:`ctgpp.language.sandbox` for the policy in words).
 from __future__ import annotations
 
 import ast
+import difflib
+from collections.abc import Collection
 
 from ctgpp.language.extract import loss_classes, main_class
 from ctgpp.language.vocabulary import (
@@ -185,10 +187,14 @@ class ProgramChecker:
             return
         allowed = HELPER_MODULES.get(stmt.module or "")
         if allowed is None or stmt.level:
-            raise _refuse(stmt, f"import from {stmt.module} is not allowed")
+            modules = ", ".join(sorted(m for m in HELPER_MODULES if m.startswith("ctgpp")))
+            raise _refuse(stmt, f"import from {stmt.module} is not allowed (the helper modules: {modules})")
         for alias in stmt.names:
-            if alias.name not in allowed or alias.asname is not None:
-                raise _refuse(stmt, f"from {stmt.module} import {alias.name} is not allowed")
+            if alias.asname is not None:
+                raise _refuse(stmt, f"from {stmt.module} import {alias.name} as {alias.asname} is not "
+                                    "allowed (import helpers under their own names)")
+            if alias.name not in allowed:
+                raise _refuse(stmt, _unknown_helper(stmt.module or "", alias.name, allowed))
 
     def _check_class(self, cls: ast.ClassDef) -> None:
         if cls.decorator_list:
@@ -399,3 +405,12 @@ def _module_path(node: ast.AST) -> str | None:
     if isinstance(node, ast.Attribute) and node.attr == "linalg" and _module_path(node.value) == "torch":
         return "torch.linalg"
     return None
+
+
+def _unknown_helper(module: str, name: str, allowed: Collection[str]) -> str:
+    """The refusal of ``from module import name`` where ``module`` has no helper ``name``: what it has,
+    the closest first (a small model otherwise sends the same import again)."""
+    close = difflib.get_close_matches(name, sorted(allowed), n=3, cutoff=0.0)
+    rest = sorted(set(allowed) - set(close))
+    return (f"from {module} import {name} is not allowed: {module} has no helper {name}. Its helpers, the "
+            f"closest first: {', '.join([*close, *rest])}. Use one of them, or compute it from x with torch.")
