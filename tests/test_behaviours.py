@@ -301,3 +301,22 @@ def test_a_miss_says_when_the_pair_starts_facing_opposite_ways(replay_0103: Roll
     assert not ok and said.endswith("one of them would have to turn round"), said
     ok, said = _verdict(replay_0103, "vehicle 2 must remain within 20 m of vehicle 0")
     assert not ok and "turn round" not in said, said
+
+
+def test_a_lane_change_needs_a_lane_on_that_side_at_the_start() -> None:
+    """The lane change's precondition, on scene-0103 at 5 s: vehicle 12 has a same-direction lane on
+    its right and none on its left; a vehicle the episode does not have is left to the verdict."""
+    from ctgpp.sim.closed_loop import initial_observation
+
+    scene = Catalog.open().load("scene-0103")
+    obs = initial_observation(scene, 5.0)
+    starts = {n: (obs.tracks.xy[a, obs.step].astype(np.float64), float(obs.tracks.yaw[a, obs.step]))
+              for n, a in enumerate(obs.controlled.tolist())}
+    lane_change = get_behaviour("lane_change")
+    assert lane_change.precondition is not None
+    assert lane_change.impossible(scene.lanes, starts, {"vehicle": 12, "side": "right"}) is None
+    why = lane_change.impossible(scene.lanes, starts, {"vehicle": 12, "side": "left"})
+    assert why is not None and why.startswith("vehicle 12 has no lane to change to: lane ")
+    assert why.endswith("has no same-direction lane on its left")
+    assert lane_change.impossible(scene.lanes, starts, {"vehicle": 99, "side": "left"}) is None
+    assert get_behaviour("keep_lane").impossible(scene.lanes, starts, {"vehicle": 12}) is None

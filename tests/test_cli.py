@@ -71,6 +71,9 @@ def test_show_draws_the_numbered_picture(tmp_path: Path) -> None:
          "does not exist"),
         (["evaluate", "--methods", "constvel", "--split", "nope", "--out", "{tmp}/x"], "no scenes in split"),
         (["evaluate", "--methods", "constvel", "--guide-lr", "0", "--out", "{tmp}/x"], "--guide-lr positive"),
+        (["simulate", "vehicle 0 should change to the left lane", "--start", "3", "--out", "{tmp}/x"],
+         "'vehicle 0 should change to the left lane' cannot happen in this scene: vehicle 0 has no lane to "
+         "change to: lane 227 has no same-direction lane on its left"),
     ],
 )
 def test_user_mistakes_get_one_clear_line_and_exit_2(

@@ -24,8 +24,11 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 from ctgpp.behaviours.timing import TimeWindow, windowed
 from ctgpp.rule_params import ParamInfo, resolve_params, rule_params
+from ctgpp.scene.types import LaneGraph
 from ctgpp.sim.rollout import Rollout
 
 if TYPE_CHECKING:
@@ -64,6 +67,10 @@ HAPPENS = "happens"  # "within N s": between t = 0 and N s (events, manoeuvres)
 
 Measure = Callable[[Rollout, Mapping[str, Any], Vehicles], float]
 Check = Callable[[Rollout, Mapping[str, Any], Vehicles], Verdict]
+Starts = Mapping[int, tuple[np.ndarray, float]]
+"""Displayed vehicle number -> its position (2,) m and heading rad at the episode's start."""
+Precondition = Callable[[LaneGraph, Starts, Mapping[str, Any]], str | None]
+"""What the scene must allow before the behaviour can happen at all: None, or why it cannot."""
 
 
 class MissingVehicle(ValueError):
@@ -82,6 +89,8 @@ class Behaviour:
     deadline: how "within N s" reads, :data:`HOLDS` (the behaviour holds from N s to the end: limits,
     bands, reach and stay) or :data:`HAPPENS` (it happens between t = 0 and N s: events, manoeuvres).
     ``violation`` and ``verdict`` take an optional time window (:mod:`~ctgpp.behaviours.timing`).
+    precondition: what the scene must allow at the start for the behaviour to be possible at all (a
+    lane on the side a lane change asks for), read by :meth:`impossible` before anything is simulated.
     """
 
     name: str
@@ -94,6 +103,7 @@ class Behaviour:
     phrasings: tuple[str, ...]
     loss: str = ""
     deadline: str = HOLDS
+    precondition: Precondition | None = None
 
     @property
     def rule(self) -> str:
@@ -126,6 +136,16 @@ class Behaviour:
         if self.deadline == HAPPENS:
             return TimeWindow(0.0, deadline_s)
         return TimeWindow(deadline_s, None, hold=True)
+
+    def impossible(self, lanes: LaneGraph, starts: Starts, params: Mapping[str, Any]) -> str | None:
+        """Why the behaviour cannot happen from these start states (None: it can, or the behaviour
+        has no precondition); a vehicle not in ``starts`` is left to the verdict."""
+        if self.precondition is None:
+            return None
+        try:
+            return self.precondition(lanes, starts, self.resolve(params))
+        except MissingVehicle:
+            return None
 
     def violation(self, rollout: Rollout, params: Mapping[str, Any], vehicles: Vehicles = None,
                   window: TimeWindow | None = None) -> Violation:

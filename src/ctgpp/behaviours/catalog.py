@@ -31,7 +31,8 @@ def _kind(module: ModuleType, default_window: str, default_deadline: str) -> Fac
              measures: str = "", window: str = default_window, deadline: str = default_deadline) -> Behaviour:
         stem = measures or name
         return register(Behaviour(name, summary, getattr(module, f"{stem}_violation"), unit, meaning,
-                                  getattr(module, f"{stem}_check"), window, phrasings, deadline=deadline))
+                                  getattr(module, f"{stem}_check"), window, phrasings, deadline=deadline,
+                                  precondition=getattr(module, f"{stem}_precondition", None)))
 
     make.__doc__ = (f"Register a behaviour measured and checked by :mod:`{module.__name__}` (judged on "
                     f"{default_window!r} unless ``window`` says otherwise).")

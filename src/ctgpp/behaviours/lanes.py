@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from ctgpp.behaviours.base import Vehicles, Verdict
+from ctgpp.behaviours.base import Starts, Vehicles, Verdict
 from ctgpp.behaviours.tracks import Track, both_valid, held_from, track, tracks, wrapped_deg
 from ctgpp.scene.lanes import (
     LaneProjection,
@@ -199,10 +199,13 @@ def keep_lane_check(rollout: Rollout, p: Params, vehicles: Vehicles) -> Verdict:
 # --- lane change, rightmost lane ---------------------------------------------------------------------
 
 
-def _lane_change_target(lanes: LaneGraph, t: Track, side: str) -> tuple[LaneProjection | None, str]:
+def _lane_change_target(lanes: LaneGraph, xy0: np.ndarray, yaw0: float,
+                        side: str) -> tuple[LaneProjection | None, str]:
+    """The same-direction lane on ``side`` of the lane a vehicle at ``xy0`` heading ``yaw0`` is on, or
+    None and why there is none."""
     from ctgpp.guidance.lane_paths import same_direction_neighbour
 
-    start = nearest_lane(lanes, t.xy0, t.yaw0)
+    start = nearest_lane(lanes, xy0, yaw0)
     if start is None:
         return None, "the vehicle starts on no lane"
     target = same_direction_neighbour(lanes, start, side)  # type: ignore[arg-type]
@@ -211,10 +214,20 @@ def _lane_change_target(lanes: LaneGraph, t: Track, side: str) -> tuple[LaneProj
     return target, ""
 
 
+def lane_change_precondition(lanes: LaneGraph, starts: Starts, p: Params) -> str | None:
+    """A lane change needs a same-direction lane on that side of the lane the vehicle starts on."""
+    number = int(p["vehicle"])
+    if number not in starts:
+        return None
+    xy0, yaw0 = starts[number]
+    target, why = _lane_change_target(lanes, xy0, yaw0, p["side"])
+    return None if target is not None else f"vehicle {number} has no lane to change to: {why}"
+
+
 def _lane_change_end(lanes: LaneGraph, t: Track, side: str) -> tuple[bool, float, str]:
     """Whether the track ends in the same-direction neighbour chain on ``side`` of its start lane,
     the distance (m) of its end from that chain, and what was measured."""
-    target, why = _lane_change_target(lanes, t, side)
+    target, why = _lane_change_target(lanes, t.xy0, t.yaw0, side)
     if target is None or not t.xy.size:
         return False, math.nan, why or "no simulated step"
     start = nearest_lane(lanes, t.xy0, t.yaw0)

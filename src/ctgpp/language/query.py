@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from ctgpp.behaviours import get_behaviour
 from ctgpp.data.windows import WindowConfig, build_window
 from ctgpp.guidance.base import GuidanceLoss
 from ctgpp.guidance.context import build_guidance_batch
@@ -70,16 +71,32 @@ def probe_x(obs: Observation) -> torch.Tensor:
     return torch.from_numpy(logged)[:, None]
 
 
+def check_possible(compiled: CompiledQuery, obs: Observation) -> None:
+    """Raise :class:`QueryError` (one line) when a part of the query cannot happen from the episode's
+    start whatever the traffic does (its behaviour's precondition, e.g. a lane change towards a side
+    with no lane): said before anything is simulated."""
+    tracks, step = obs.tracks, obs.step
+    starts = {number: (tracks.xy[agent, step].astype(np.float64), float(tracks.yaw[agent, step]))
+              for number, agent in enumerate(np.asarray(obs.controlled).tolist())}
+    for part in compiled.parts:
+        why = get_behaviour(part.rule).impossible(obs.scene.lanes, starts, part.params)
+        if why is not None:
+            raise QueryError(f"{part.text!r} cannot happen in this scene: {why}")
+
+
 def resolve_query(query: str, obs: Observation, llm: LLMConfig | None, max_repairs: int = 2) -> QueryLoss:
     """The loss for ``query`` in the episode whose start is ``obs``.
 
-    Raises :class:`QueryError` (a ``ValueError``) when neither path can produce a loss.
+    Raises :class:`QueryError` (a ``ValueError``) when neither path can produce a loss, or when the
+    compiler's reading of the query cannot happen in the scene (:func:`check_possible`).
     """
     try:
         compiled: CompiledQuery | None = compile_query(query, len(obs.controlled))
         compile_error: QueryError | None = None
     except QueryError as err:
         compiled, compile_error = None, err
+    if compiled is not None:
+        check_possible(compiled, obs)
     if llm is None:
         if compiled is None:
             assert compile_error is not None
