@@ -4,6 +4,7 @@ and a fallback that the result states. Real ``openai`` client against a canned l
 
 from __future__ import annotations
 
+import json
 from typing import Any
 
 import pytest
@@ -133,5 +134,9 @@ def test_evaluate_queries_measures_a_language_model(llm_env: CannedServer, tmp_p
                            methods=("constvel", "replay"), progress=False, duration_s=1.0, llm=llm)
     (row,) = rows
     assert (row["path"], row["rounds"]) == ("llm", "2") and float(row["llm_s"]) >= 0.0
+    (kept,) = [json.loads(line) for line in (tmp_path / "rounds.jsonl").read_text().splitlines()]
+    assert (kept["query"], kept["seed"], kept["path"]) == (QUERY, "0", "llm")
+    assert [r["reply"] for r in kept["rounds"]] == [reply(FLAT), reply(GOOD)]
+    assert "zero" in kept["rounds"][0]["refusal"] and kept["rounds"][1]["refusal"] is None
     table = markdown_table(rows, cases)
     assert "Language model: 1 of 1 case-seeds guided by its program (accepted in round 2: 1)" in table

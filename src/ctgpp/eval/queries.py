@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -170,8 +171,29 @@ def run_query_cases(
             assert guided.query is not None  # a query was given
             row.update(_provenance(guided.query))
             row["wall_s"] = f"{time.perf_counter() - began:.1f}"
+            _keep_rounds(results, row, guided.query)
             write(row)
     return read_records(results, KEY)
+
+
+def rounds_file(results: Path) -> Path:
+    """Where :func:`run_query_cases` keeps the language model's replies: ``rounds.jsonl`` beside
+    ``results``, one JSON object per guided episode that asked the model (its key fields, path and
+    every round's reply, refusal and seconds); a case-seed run again after a kill appears again, the
+    last line counts."""
+    return results.with_name("rounds.jsonl")
+
+
+def _keep_rounds(results: Path, row: dict[str, str], report: dict[str, Any]) -> None:
+    """Append the model's rounds of one guided episode to :func:`rounds_file` (nothing without them),
+    before its row is written: every finished row has its rounds on disk."""
+    if not report["rounds"]:
+        return
+    entry = {k: row[k] for k in (*KEY, "path")} | {"fallback": report["fallback"], "rounds": report["rounds"]}
+    with rounds_file(results).open("a", encoding="utf-8") as f:
+        f.write(json.dumps(entry) + "\n")
+        f.flush()
+        os.fsync(f.fileno())
 
 
 def _provenance(report: dict[str, Any]) -> dict[str, str]:
