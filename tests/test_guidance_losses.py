@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import replace
 
 import numpy as np
@@ -261,39 +260,3 @@ def test_closest_overlap_is_the_deepest_disc_pair_overlap() -> None:
     torch.testing.assert_close(got, want)
     assert (want > 0).any() and (want == 0).any()
     torch.testing.assert_close(torch.autograd.grad(got.sum(), a)[0], torch.autograd.grad(want.sum(), a)[0])
-
-
-def test_across_heading_keeps_the_value_and_only_the_gradient_across() -> None:
-    from ctgpp.guidance.rules_common import across_heading
-
-    pos = torch.tensor([[1.0, 2.0], [3.0, -1.0]], requires_grad=True)
-    yaw = torch.tensor([0.0, math.pi / 2])
-    out = across_heading(pos, yaw)
-    assert torch.equal(out, pos.detach())
-    (out * torch.tensor([[5.0, 7.0], [5.0, 7.0]])).sum().backward()
-    assert pos.grad is not None  # heading +x keeps the y part, heading +y the x part
-    torch.testing.assert_close(pos.grad, torch.tensor([[0.0, 7.0], [5.0, 0.0]]), atol=1e-6, rtol=0)
-
-
-def test_keep_lane_steers_a_drifting_vehicle_and_does_not_brake_it(
-    batch: GuidanceBatch, x: torch.Tensor
-) -> None:
-    """Vehicle 0 drifting 4 m off its lane (tolerance 1.5 m): keep_lane's gradient through the
-    dynamics reaches its yaw rates, not its accelerations (a full gradient slows it down, since a
-    slower vehicle drifts less)."""
-    from ctgpp.dynamics import rollout
-
-    n_t = x.shape[2]
-    actions = x[:, :1, :, 4:6].clone().float()
-    actions[0, 0, :, 1] = torch.where(torch.arange(n_t) < 10, 0.25, 0.0)  # a left swerve, then straight
-    actions.requires_grad_(True)
-    state0 = torch.zeros(x.shape[0], 1, 4)
-    state0[..., 2] = batch.speed[:, None]
-    states = rollout(state0, actions, batch.dt_s)
-    cost = make_loss("keep_lane", vehicle=0, tolerance_m=1.5)(torch.cat([states, actions], -1), batch)
-    assert float(cost[0, 0].detach()) > 0.5
-    cost.sum().backward()
-    grad = actions.grad
-    assert grad is not None
-    acc, yaw_rate = grad[0, 0, :, 0].abs().sum(), grad[0, 0, :, 1].abs().sum()
-    assert yaw_rate > 0.1 and acc < 0.01 * yaw_rate  # 0.045 × with the full gradient, all braking
