@@ -225,6 +225,34 @@ def test_a_turn_is_that_turns_heading_change(replay_0103: Rollout) -> None:
                         "vehicle 2 turns right at the next intersection")[0]
 
 
+def test_a_turn_the_own_lane_has_no_way_for_is_made_from_the_lane_beside_it(replay_0553: Rollout) -> None:
+    """Vehicle 17 of scene-0553 from 3 s (13 m/s, Boston) drives in a lane that goes straight through
+    the intersection 69 m ahead; the right turn there leaves from the lane on its right. "Turns right
+    at the next intersection" means changing to that lane and turning: driven so, it is met."""
+    r = replay_0553
+    lanes, a = r.scene.lanes, int(np.flatnonzero(r.number == 17)[0])
+    own = nearest_lane(lanes, r.sim.xy[a, r.current], float(r.sim.yaw[a, r.current]))
+    beside = same_direction_neighbour(lanes, own, "right")
+    right = turn_path(lanes, own, "right")
+    assert right is not None and beside is not None
+    assert right.lanes_over == 1 and right.start.lane == beside.lane != own.lane
+    assert right.lanes[0] == beside.lane and -100.0 < math.degrees(right.turn_rad) < -80.0
+    assert 60.0 < right.ahead_m < 80.0
+    assert turn_path(lanes, own, "straight").lanes_over == 0  # straight on: its own lane
+    steps = r.sim.num_steps - r.current
+    t = 0.1 * np.arange(steps)
+    metres = 11.0 * t  # 110 m in 10 s: the lane change, 69 m to the intersection, the turn
+    stay = _along(lanes, right.lanes, right.start.s_m, metres)  # on the turning lane's path
+    points = lane_points_ahead(lanes, own, 150.0, 0.5)
+    straight = points[np.minimum(np.round(metres / 0.5).astype(int), len(points) - 1)]
+    w = np.clip(t / 3.0, 0.0, 1.0)[:, None]  # over to the right lane within 3 s
+    turned = _drive(r, 17, (1 - w) * straight + w * stay, 11.0)
+    ok, said = _verdict(turned, "vehicle 17 turns right at the next intersection")
+    assert ok and "ahead from the lane 1 over turns -" in said, said
+    ok, said = _verdict(_drive(r, 17, straight, 11.0), "vehicle 17 turns right at the next intersection")
+    assert not ok and "the right way" in said, said  # straight on in its own lane: no right turn
+
+
 def _lane_setup(r: Rollout) -> tuple[int, int, object, object]:
     """Vehicle 17 (moving, toward an intersection) on its lane and its right same-direction neighbour."""
     lanes, b = r.scene.lanes, int(np.flatnonzero(r.number == 17)[0])

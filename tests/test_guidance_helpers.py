@@ -181,3 +181,21 @@ def test_map_aware_helpers(batch: GuidanceBatch, x_and_window) -> None:
     assert turns > 0
     with pytest.raises(ValueError, match="direction"):
         get_turn_lane(batch, 0, "backwards")  # type: ignore[arg-type]
+
+
+def test_a_turn_lane_starts_beside_a_vehicle_whose_lane_has_no_such_way() -> None:
+    """Vehicle 17 of scene-0553 at 3 s drives in a lane that goes straight through the intersection
+    69 m ahead; the right turn leaves from the lane on its right. The guidance's turn polyline runs
+    along that lane (about a lane width to the vehicle's right, beside it), then turns right."""
+    obs = real_observation("scene-0553", STEP)
+    batch = build_guidance_batch(obs)
+    line = get_turn_lane(batch, 17, "right")
+    assert line is not None
+    pos, _ = transform_coord_world_to_agent_i(line.double(), torch.zeros(len(line), 1, dtype=torch.float64),
+                                              batch, 17)
+    local = pos.numpy()  # (M, 2) in vehicle 17's frame
+    beside = local[np.argmin(np.abs(local[:, 0]))]  # the polyline's point abreast of the vehicle
+    assert -5.0 < beside[1] < -2.0, beside  # a lane to the right (y is left in the vehicle's frame)
+    seg = np.diff(local, axis=0)
+    heading = np.unwrap(np.arctan2(seg[:, 1], seg[:, 0]))
+    assert heading[-1] - heading[0] < -math.radians(60)  # then the right turn

@@ -203,7 +203,8 @@ lane_rule(
 )
 lane_rule(
     "turn_at_next_intersection", "A vehicle turns left or right (or goes straight) at the next "
-    "intersection: its heading change while moving is within 15° of that way's through the intersection.",
+    "intersection: its heading change while moving is within 15° of that way's through the intersection "
+    "(from its lane, or from the lane beside it that has that way).",
     "°", "|heading change - the turn's heading change|",
     ("vehicle 5 should turn right at the next intersection",
      "vehicle 5 should turn left at the next intersection",

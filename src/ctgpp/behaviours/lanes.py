@@ -320,8 +320,9 @@ def _turn(lanes: LaneGraph, t: Track, direction: str) -> tuple[bool, float, str,
     turned = np.degrees(np.cumsum(dyaw * moving))  # (T,) heading change up to each future step
     change = float(turned[-1]) if turned.size else 0.0
     miss = abs(change - wanted)
+    lane = "" if path.lanes_over == 0 else f" from the lane {path.lanes_over} over"
     said = (f"heading change while moving {change:+.0f}° (left +); the {direction} way through the "
-            f"intersection {path.ahead_m:.0f} m ahead turns {wanted:+.0f}° "
+            f"intersection {path.ahead_m:.0f} m ahead{lane} turns {wanted:+.0f}° "
             f"(needs within {TURN_MATCH_DEG:g}°)")
     return miss <= TURN_MATCH_DEG, miss, said, _turned_by(t, turned, wanted)
 

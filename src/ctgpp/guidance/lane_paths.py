@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 
 import numpy as np
@@ -201,25 +201,24 @@ def _heading_change(lanes: LaneGraph, lanes_in: list[int]) -> float:
 
 @dataclass(frozen=True)
 class TurnPath:
-    """A lane path through the next intersection: ``lanes`` from the vehicle's lane on, the indices
-    ``first``..``last`` of its intersection lanes, their heading change ``turn_rad`` (left positive)
-    and the distance ``ahead_m`` from the vehicle to the intersection."""
+    """A lane path through the next intersection: ``lanes`` from ``start`` on (the vehicle's lane, or a
+    same-direction lane beside it when the turn is made from there), the indices ``first``..``last``
+    of its intersection lanes, their heading change ``turn_rad`` (left positive) and the distance
+    ``ahead_m`` from ``start`` to the intersection; ``lanes_over``: how many lanes ``start`` lies
+    beside the vehicle's own (0: its own lane)."""
 
+    start: LaneProjection
     lanes: list[int]
     first: int
     last: int
     turn_rad: float
     ahead_m: float
+    lanes_over: int = 0
 
 
-def turn_path(lanes: LaneGraph, proj: LaneProjection, direction: Direction) -> TurnPath | None:
-    """The lane path from ``proj`` through the next intersection that turns ``direction``: "left"
-    (heading change over the intersection lanes above +30°), "right" (below -30°) or "straight"
-    (within ±30°); the sharpest such turn for left/right, the straightest for straight. None when no
-    intersection lies ahead within 150 m or no path through it turns that way. The guidance
-    (:func:`get_turn_lane`) steers along it and the verdict asks for its heading change."""
-    if direction not in ("left", "right", "straight"):
-        raise ValueError(f"direction must be 'left', 'right' or 'straight', not {direction!r}")
+def _turn_path_from(lanes: LaneGraph, proj: LaneProjection, direction: Direction) -> TurnPath | None:
+    """The sharpest (straightest for "straight") path from ``proj``'s own lane through the next
+    intersection that turns ``direction``, or None."""
     best, best_key = None, None
     for path in lanes_ahead(lanes, proj, INTERSECTION_SEARCH_M):
         found = _first_intersection(lanes, path, proj.s_m)
@@ -235,20 +234,50 @@ def turn_path(lanes: LaneGraph, proj: LaneProjection, direction: Direction) -> T
         )
         key = -abs(turn) if direction != "straight" else abs(turn)
         if ok and (best_key is None or key < best_key):
-            best, best_key = TurnPath(path, k, end, turn, ahead), key
+            best, best_key = TurnPath(proj, path, k, end, turn, ahead), key
     return best
 
 
-def _vehicle_turn_path(
-    data_batch: GuidanceBatch, i: int, direction: Direction
-) -> tuple[LaneProjection, TurnPath] | None:
-    """Vehicle i's lane projection and its :func:`turn_path` turning ``direction`` (looked up once per
-    guidance batch), or None where it is not on a lane or no path turns that way."""
+def road_lanes(lanes: LaneGraph, proj: LaneProjection, first_side: Side) -> list[tuple[LaneProjection, int]]:
+    """``proj`` and the same-direction lanes beside it (:func:`same_direction_neighbour`), each with how
+    many lanes over it lies: its own lane first, then the lanes on ``first_side`` outward, then those
+    on the other side outward."""
+    out, seen = [(proj, 0)], {proj.lane}
+    for side in (first_side, "left" if first_side == "right" else "right"):
+        here, over = proj, 0
+        while (nxt := same_direction_neighbour(lanes, here, side)) is not None and nxt.lane not in seen:
+            seen.add(nxt.lane)
+            here, over = nxt, over + 1
+            out.append((here, over))
+    return out
+
+
+def turn_path(lanes: LaneGraph, proj: LaneProjection, direction: Direction) -> TurnPath | None:
+    """The lane path from ``proj`` through the next intersection that turns ``direction``: "left"
+    (heading change over the intersection lanes above +30°), "right" (below -30°) or "straight"
+    (within ±30°); the sharpest such turn for left/right, the straightest for straight. Where the
+    vehicle's own lane has no such way (a right turn made only from the rightmost lane), the path
+    from the nearest same-direction lane beside it that has one, the turn's side first: "turn right
+    at the next intersection" from a middle lane means changing to the turning lane and turning.
+    None when no intersection lies ahead within 150 m or no path through it turns that way. The
+    guidance (:func:`get_turn_lane`) steers along it and the verdict asks for its heading change."""
+    if direction not in ("left", "right", "straight"):
+        raise ValueError(f"direction must be 'left', 'right' or 'straight', not {direction!r}")
+    first_side: Side = "left" if direction == "left" else "right"
+    for start, over in road_lanes(lanes, proj, first_side):
+        best = _turn_path_from(lanes, start, direction)
+        if best is not None:
+            return replace(best, lanes_over=over)
+    return None
+
+
+def _vehicle_turn_path(data_batch: GuidanceBatch, i: int, direction: Direction) -> TurnPath | None:
+    """Vehicle i's :func:`turn_path` turning ``direction`` (looked up once per guidance batch), or
+    None where it is not on a lane or no path turns that way."""
     key = ("turn_path", direction, i)
     if key not in data_batch.memo:
         proj = vehicle_lane(data_batch, i)
-        best = None if proj is None else turn_path(data_batch.scene.lanes, proj, direction)
-        data_batch.memo[key] = None if proj is None or best is None else (proj, best)
+        data_batch.memo[key] = None if proj is None else turn_path(data_batch.scene.lanes, proj, direction)
     return data_batch.memo[key]
 
 
@@ -256,28 +285,28 @@ def turn_exit(data_batch: GuidanceBatch, i: int, direction: Direction) -> np.nda
     """World point (2,) m where vehicle i's lane path through the next intersection that turns
     ``direction`` (:func:`turn_path`) leaves the intersection (the end of its last intersection
     lane); None where :func:`get_turn_lane` has no path."""
-    found = _vehicle_turn_path(data_batch, i, direction)
-    if found is None:
+    best = _vehicle_turn_path(data_batch, i, direction)
+    if best is None:
         return None
-    best = found[1]
     return np.asarray(data_batch.scene.lanes.lane(best.lanes[best.last])[-1], dtype=np.float64)
 
 
 def get_turn_lane(data_batch: GuidanceBatch, i: int, direction: Direction) -> Tensor | None:
     """Target polyline (M, 2), local world frame m, of a lane path from vehicle i through the next
     intersection that turns ``direction`` (:func:`turn_path`: the sharpest left or right turn, the
-    straightest way on). None when no intersection lies ahead within 150 m or no path through it
-    turns that way."""
+    straightest way on; from the same-direction lane beside vehicle i's where its own lane has no
+    such way). None when no intersection lies ahead within 150 m or no path through it turns that
+    way."""
     if direction not in ("left", "right", "straight"):
         raise ValueError(f"direction must be 'left', 'right' or 'straight', not {direction!r}")
 
     def build() -> Tensor | None:
-        found = _vehicle_turn_path(data_batch, i, direction)
-        if found is None:
+        best = _vehicle_turn_path(data_batch, i, direction)
+        if best is None:
             return None
-        proj, best = found
-        reach = max(_reach_m(data_batch, i), next_intersection_distance(data_batch, i) + 40.0)
-        return _to_tensor(data_batch, _path_polyline(data_batch.scene.lanes, best.lanes, proj.s_m, reach))
+        reach = max(_reach_m(data_batch, i), best.ahead_m + 40.0)
+        line = _path_polyline(data_batch.scene.lanes, best.lanes, best.start.s_m, reach)
+        return _to_tensor(data_batch, line)
 
     return _memo(data_batch, ("turn", direction, i), build)
 
