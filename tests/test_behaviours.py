@@ -253,6 +253,40 @@ def test_a_turn_the_own_lane_has_no_way_for_is_made_from_the_lane_beside_it(repl
     assert not ok and "the right way" in said, said  # straight on in its own lane: no right turn
 
 
+def _over_and_through(r: Rollout) -> Rollout:
+    """Vehicle 17 of scene-0553 from 3 s driven at 11 m/s over to the lane on its right (the rightmost,
+    within 3 s) and through the right turn that leaves from it, 69 m ahead."""
+    lanes, a = r.scene.lanes, int(np.flatnonzero(r.number == 17)[0])
+    own = nearest_lane(lanes, r.sim.xy[a, r.current], float(r.sim.yaw[a, r.current]))
+    right = turn_path(lanes, own, "right")
+    t = 0.1 * np.arange(r.sim.num_steps - r.current)
+    metres = 11.0 * t
+    stay = _along(lanes, right.lanes, right.start.s_m, metres)
+    points = lane_points_ahead(lanes, own, 150.0, 0.5)
+    straight = points[np.minimum(np.round(metres / 0.5).astype(int), len(points) - 1)]
+    w = np.clip(t / 3.0, 0.0, 1.0)[:, None]
+    return _drive(r, 17, (1 - w) * straight + w * stay, 11.0)
+
+
+def test_a_lane_reached_before_a_turn_is_judged_up_to_the_turn(replay_0553: Rollout) -> None:
+    """"Moves to the rightmost lane and then turns right": after the turn the vehicle drives in the
+    cross street's lanes, so the lane part is judged up to when the turn began (entering the
+    intersection, about 69 m / 11 m/s after the start), and the turn after it."""
+    rollout = _over_and_through(replay_0553)
+    query = "vehicle 17 moves to the rightmost lane and then turns right at the next intersection"
+    compiled = compile_query(query, int(rollout.controlled.sum()))
+    assert [(p.rule, p.stage) for p in compiled.parts] == [("move_to_rightmost_lane", 0),
+                                                           ("turn_at_next_intersection", 1)]
+    lane, turn = check_satisfied(rollout, compiled)
+    assert lane.satisfied and turn.satisfied, (lane.measured, turn.measured)
+    until = float(lane.measured.split("judged up to t = ")[1].split(" s")[0])
+    assert 5.5 <= until <= 7.5, lane.measured  # entering the intersection 69 m ahead at 11 m/s
+    reached = float(lane.measured.split("(from t = ")[1].split(" s")[0])
+    assert 0.0 < reached <= 3.1 and "after the earlier stage" in turn.measured
+    alone = check_satisfied(rollout, compile_query("vehicle 17 moves to the rightmost lane", 40))[0]
+    assert "judged up to" not in alone.measured  # no later stage: judged at the end, as ever
+
+
 def _lane_setup(r: Rollout) -> tuple[int, int, object, object]:
     """Vehicle 17 (moving, toward an intersection) on its lane and its right same-direction neighbour."""
     lanes, b = r.scene.lanes, int(np.flatnonzero(r.number == 17)[0])

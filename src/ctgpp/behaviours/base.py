@@ -54,12 +54,16 @@ class Verdict:
     and the ``window`` of the episode it was judged on; ``done_s``, for a behaviour that is achieved
     at a time (a lane reached, a turn made), the episode time (s) it was achieved at (0: at the
     start), which orders the stages of a sequence (:mod:`ctgpp.language.satisfaction`); None where
-    the behaviour does not say or was not achieved."""
+    the behaviour does not say or was not achieved. ``began_s``, for a manoeuvre that takes the
+    vehicle somewhere else (a turn: entering the intersection), the episode time it began: a part of
+    an earlier stage of a sequence for the same vehicle is judged up to then
+    (:mod:`ctgpp.language.satisfaction`)."""
 
     satisfied: bool
     measured: str
     window: str
     done_s: float | None = None
+    began_s: float | None = None
 
 
 HOLDS = "holds"  # "within N s": from N s to the end (limits, bands, reach and stay)
@@ -166,7 +170,8 @@ class Behaviour:
             found = self.check(windowed(rollout, window), self.resolve(params), vehicles)
         except MissingVehicle as err:
             return Verdict(False, str(err), where)
-        return found if window is None else Verdict(found.satisfied, found.measured, where, found.done_s)
+        return found if window is None else Verdict(found.satisfied, found.measured, where, found.done_s,
+                                                    found.began_s)
 
 
 _REGISTRY: dict[str, Behaviour] = {}

@@ -300,16 +300,17 @@ def rightmost_check(rollout: Rollout, p: Params, vehicles: Vehicles) -> Verdict:
 # --- turn at the next intersection -------------------------------------------------------------------
 
 
-def _turn(lanes: LaneGraph, t: Track, direction: str) -> tuple[bool, float, str, float | None]:
+def _turn(lanes: LaneGraph, t: Track, direction: str) -> tuple[bool, float, str, float | None, float | None]:
     """Whether the vehicle's heading change while moving matches the turn of the lane path through
-    the next intersection that turns ``direction`` (within 15°), the mismatch (°), the words and the
-    time (s) from which it matches to the end (None: not at the end)."""
+    the next intersection that turns ``direction`` (within 15°), the mismatch (°), the words, the
+    time (s) from which it matches to the end (None: not at the end) and the time it entered an
+    intersection lane (None: never)."""
     from ctgpp.guidance.lane_paths import turn_path
 
     start = nearest_lane(lanes, t.xy0, t.yaw0)
     path = None if start is None else turn_path(lanes, start, direction)  # type: ignore[arg-type]
     if path is None:
-        return False, math.nan, f"no intersection within 150 m ahead has a way {direction}", None
+        return False, math.nan, f"no intersection within 150 m ahead has a way {direction}", None, None
     exit_lane = lanes.lane(path.lanes[path.last])
     exit_heading = math.atan2(*(exit_lane[-1] - exit_lane[-2])[::-1])
     wanted = wrapped_deg(exit_heading - t.yaw0)
@@ -324,7 +325,17 @@ def _turn(lanes: LaneGraph, t: Track, direction: str) -> tuple[bool, float, str,
     said = (f"heading change while moving {change:+.0f}° (left +); the {direction} way through the "
             f"intersection {path.ahead_m:.0f} m ahead{lane} turns {wanted:+.0f}° "
             f"(needs within {TURN_MATCH_DEG:g}°)")
-    return miss <= TURN_MATCH_DEG, miss, said, _turned_by(t, turned, wanted)
+    return miss <= TURN_MATCH_DEG, miss, said, _turned_by(t, turned, wanted), _entered_intersection(lanes, t)
+
+
+def _entered_intersection(lanes: LaneGraph, t: Track) -> float | None:
+    """Episode time (s) of the first future step at which the vehicle is on an intersection lane, or
+    0 when it is on one at t = 0; None when it never is."""
+    along = lanes_along(lanes, *_with_start(t))  # (T+1,) from t = 0
+    inside = [k for k, q in enumerate(along) if q is not None and bool(lanes.intersection[q.lane])]
+    if not inside:
+        return None
+    return 0.0 if inside[0] == 0 else t.time(inside[0] - 1)
 
 
 def _turned_by(t: Track, turned: np.ndarray, wanted: float) -> float | None:
@@ -342,8 +353,9 @@ def turn_check(rollout: Rollout, p: Params, vehicles: Vehicles) -> Verdict:
     """The heading change while moving (turning on the spot is no turn) is within 15° of the heading
     change of the way through the next intersection that turns ``direction`` (from the vehicle's
     heading at t = 0 to the heading where that way leaves the intersection)."""
-    ok, _, said, done = _turn(rollout.scene.lanes, _valid(rollout, p["vehicle"]), p["direction"])
-    return Verdict(ok, said, "t = 0 to the end, steps at which the vehicle moves", done if ok else None)
+    ok, _, said, done, began = _turn(rollout.scene.lanes, _valid(rollout, p["vehicle"]), p["direction"])
+    window = "t = 0 to the end, steps at which the vehicle moves"
+    return Verdict(ok, said, window, done if ok else None, began)
 
 
 # --- cut in ------------------------------------------------------------------------------------------

@@ -8,7 +8,10 @@ states (a speed limit from when the vehicle could be under it, "slow down to" as
 A sequence ("one by one", "then": the parts' ``stage``) is judged in its order too: a part achieved
 at a time (its verdict's ``done_s``: a lane reached, a turn made) before a part of an earlier stage
 was achieved is not satisfied (one that held from t = 0 asked for no move and is in order). Where
-either part does not say when it was achieved, the order is not judged, and the report says so.
+either part does not say when it was achieved, the order is not judged, and the report says so. A
+part whose vehicle a later stage takes elsewhere ("move to the rightmost lane and then turn right":
+after the turn it drives in another street's lane) is judged up to the time that later manoeuvre
+began (its verdict's ``began_s``: entering the intersection), not at the end of the episode.
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 from ctgpp.behaviours import get_behaviour
+from ctgpp.behaviours.timing import TimeWindow
 from ctgpp.language.compiler import CompiledQuery, QueryPart
 from ctgpp.sim.rollout import Rollout
 
@@ -47,7 +51,8 @@ def check_satisfied(
     """One :class:`PartReport` per part of a compiled query, measured on the rollout, a sequence's
     stages in their order (module docstring)."""
     parts = compiled_or_parts.parts if isinstance(compiled_or_parts, CompiledQuery) else compiled_or_parts
-    found = [_checked(rollout, part) for part in parts]
+    checked = [_checked(rollout, part) for part in parts]
+    found = [_until_later_stage(rollout, part, parts, checked) for part in parts]
     reports = []
     for part, (report, done) in zip(parts, found, strict=True):
         earlier = [(p, d) for p, (_, d) in zip(parts, found, strict=True) if p.stage < part.stage]
@@ -77,10 +82,41 @@ def in_order(report: PartReport, done_s: float | None, earlier: Sequence[tuple[Q
                                     f"stage (t = {last:.1f} s)")
 
 
-def _checked(rollout: Rollout, part: QueryPart) -> tuple[PartReport, float | None]:
+def _subjects(part: QueryPart) -> set[int]:
+    """The vehicles a part is about: its ``vehicles``, else its behaviour's ``vehicle`` parameter."""
+    if part.vehicles is not None:
+        return set(part.vehicles)
+    vehicle = part.params.get("vehicle")
+    return {int(vehicle)} if isinstance(vehicle, int) else set()
+
+
+def _until_later_stage(
+    rollout: Rollout, part: QueryPart, parts: Sequence[QueryPart],
+    checked: Sequence[tuple[PartReport, float | None, float | None]],
+) -> tuple[PartReport, float | None]:
+    """``part``'s report and time achieved, judged up to the earliest time a part of a later stage for
+    one of its vehicles began its manoeuvre (module docstring); as checked when there is none, or when
+    the part names a time window of its own."""
+    index = list(parts).index(part)
+    report, done, _ = checked[index]
+    began = [b for q, (_, _, b) in zip(parts, checked, strict=True)
+             if q.stage > part.stage and b is not None and _subjects(q) & _subjects(part)]
+    if not began or part.window is not None:
+        return report, done
+    until = min(began)
+    report, done, _ = _checked(rollout, part, TimeWindow(0.0, until))
+    return replace(report, measured=f"{report.measured} (judged up to t = {until:.1f} s, when a later "
+                                    f"stage began)"), done
+
+
+def _checked(rollout: Rollout, part: QueryPart, window: TimeWindow | None = None
+             ) -> tuple[PartReport, float | None, float | None]:
+    """The report of ``part`` on its own (in ``window`` instead of the part's own, when given), the
+    time it was achieved (None: not said or not satisfied) and the time its manoeuvre began."""
     behaviour = get_behaviour(part.rule)
-    verdict = behaviour.verdict(rollout, part.params, part.vehicles, part.window)
-    violation = behaviour.violation(rollout, part.params, part.vehicles, part.window)
+    window = part.window if window is None else window
+    verdict = behaviour.verdict(rollout, part.params, part.vehicles, window)
+    violation = behaviour.violation(rollout, part.params, part.vehicles, window)
     report = PartReport(part.text, verdict.satisfied, verdict.measured, verdict.window, violation.value,
                         violation.unit)
-    return report, verdict.done_s if verdict.satisfied else None
+    return report, verdict.done_s if verdict.satisfied else None, verdict.began_s
