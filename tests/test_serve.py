@@ -362,7 +362,9 @@ def test_the_page_runs_a_sentence_and_plays_it(server: Server, browser: Any, tmp
     assert "make_loss" in browser.find_element(By.ID, "code").text
     links = [a.text for a in browser.find_elements(By.CSS_SELECTOR, "#downloads a")]
     assert {"metrics.json", "rollout.parquet"} <= set(links)
-    # play it again from the start and watch the time go on
+    # play it again from the start and watch the time go on (once the first playing has ended: the
+    # button pauses a playing animation, and a fast unguided run can be done before the animation is)
+    wait.until(lambda d: d.find_element(By.ID, "play").text == "Play")
     browser.find_element(By.ID, "play").click()
     start = float(browser.find_element(By.ID, "time-label").text.split()[2])
     wait.until(lambda d: float(d.find_element(By.ID, "time-label").text.split()[2]) > start + 0.5)

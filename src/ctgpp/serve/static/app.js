@@ -386,7 +386,10 @@
   function play() {
     const p = state.playback;
     if (!p) return;
-    if (state.frame >= p.time_s.length - 1) state.frame = p.current;
+    if (state.frame >= p.time_s.length - 1) {  // at the end: back to the start, shown at once
+      state.frame = p.current;
+      draw();
+    }
     state.playing = true;
     state.clock = { start: performance.now(), frame: state.frame };
     $("play").textContent = "Pause";
