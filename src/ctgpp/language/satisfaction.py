@@ -52,7 +52,7 @@ def check_satisfied(
     stages in their order (module docstring)."""
     parts = compiled_or_parts.parts if isinstance(compiled_or_parts, CompiledQuery) else compiled_or_parts
     checked = [_checked(rollout, part) for part in parts]
-    found = [_until_later_stage(rollout, part, parts, checked) for part in parts]
+    found = [_until_later_stage(rollout, k, parts, checked) for k in range(len(parts))]
     reports = []
     for part, (report, done) in zip(parts, found, strict=True):
         earlier = [(p, d) for p, (_, d) in zip(parts, found, strict=True) if p.stage < part.stage]
@@ -91,13 +91,13 @@ def _subjects(part: QueryPart) -> set[int]:
 
 
 def _until_later_stage(
-    rollout: Rollout, part: QueryPart, parts: Sequence[QueryPart],
+    rollout: Rollout, index: int, parts: Sequence[QueryPart],
     checked: Sequence[tuple[PartReport, float | None, float | None]],
 ) -> tuple[PartReport, float | None]:
-    """``part``'s report and time achieved, judged up to the earliest time a part of a later stage for
-    one of its vehicles began its manoeuvre (module docstring); as checked when there is none, or when
-    the part names a time window of its own."""
-    index = list(parts).index(part)
+    """The report and time achieved of ``parts[index]`` (``checked[index]`` on its own), judged up to
+    the earliest time a part of a later stage for one of its vehicles began its manoeuvre (module
+    docstring); as checked when there is none, or when the part names a time window of its own."""
+    part = parts[index]
     report, done, _ = checked[index]
     began = [b for q, (_, _, b) in zip(parts, checked, strict=True)
              if q.stage > part.stage and b is not None and _subjects(q) & _subjects(part)]
