@@ -22,18 +22,9 @@ from pathlib import Path
 import numpy as np
 
 from ctgpp.data.catalog import Catalog
-from ctgpp.guidance.lane_paths import same_direction_neighbour, turn_path
-from ctgpp.scene.lanes import LaneProjection, nearest_lane
+from ctgpp.guidance.lane_paths import lanes_beside, turn_path
+from ctgpp.scene.lanes import nearest_lane
 from ctgpp.sim.closed_loop import episode_config, episode_starts, initial_observation
-
-
-def rightmost(lanes, proj: LaneProjection) -> tuple[LaneProjection, int]:
-    """The rightmost same-direction lane beside ``proj`` and how many lanes to its right it is."""
-    seen, moves = {proj.lane}, 0
-    while (nxt := same_direction_neighbour(lanes, proj, "right")) is not None and nxt.lane not in seen:
-        seen.add(nxt.lane)
-        proj, moves = nxt, moves + 1
-    return proj, moves
 
 
 def main() -> None:
@@ -68,7 +59,8 @@ def main() -> None:
                     proj = nearest_lane(lanes, xy, yaw)
                     if proj is None:
                         continue
-                    right, moves = rightmost(lanes, proj)
+                    beside = lanes_beside(lanes, proj, "right")
+                    right, moves = (beside[-1] if beside else proj), len(beside)
                     turn = turn_path(lanes, right, "right")
                     if turn is None or turn.ahead_m > speed * args.reach_s + 5.0:
                         continue

@@ -261,13 +261,9 @@ END = "the last simulated step (the lane it starts on: t = 0)"
 
 
 def _lanes_to_the_right(lanes: LaneGraph, proj: LaneProjection) -> int:
-    from ctgpp.guidance.lane_paths import same_direction_neighbour
+    from ctgpp.guidance.lane_paths import lanes_beside
 
-    count, seen = 0, {proj.lane}
-    while (nxt := same_direction_neighbour(lanes, proj, "right")) is not None and nxt.lane not in seen:
-        seen.add(nxt.lane)
-        proj, count = nxt, count + 1
-    return count
+    return len(lanes_beside(lanes, proj, "right"))
 
 
 def rightmost_violation(rollout: Rollout, p: Params, vehicles: Vehicles) -> float:

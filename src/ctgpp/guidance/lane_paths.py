@@ -151,6 +151,17 @@ def same_direction_neighbour(lanes: LaneGraph, proj: LaneProjection, side: Side)
     return guess if _plausible_neighbour(lanes, proj, guess) else None
 
 
+def lanes_beside(lanes: LaneGraph, proj: LaneProjection, side: Side) -> list[LaneProjection]:
+    """The same-direction lanes on ``side`` of ``proj``, outward one :func:`same_direction_neighbour`
+    after another, each lane once (the last is the outermost: the rightmost lane for "right")."""
+    out, seen = [], {proj.lane}
+    while (nxt := same_direction_neighbour(lanes, proj, side)) is not None and nxt.lane not in seen:
+        seen.add(nxt.lane)
+        out.append(nxt)
+        proj = nxt
+    return out
+
+
 def get_rightmost_lane(data_batch: GuidanceBatch, i: int) -> Tensor | None:
     """Target polyline (M, 2) of the rightmost same-direction lane beside vehicle i (its own lane when
     it is already rightmost), continued straight ahead; None when the vehicle is not on a lane."""
@@ -159,12 +170,8 @@ def get_rightmost_lane(data_batch: GuidanceBatch, i: int) -> Tensor | None:
         proj = vehicle_lane(data_batch, i)
         if proj is None:
             return None
-        seen = {proj.lane}
-        lanes = data_batch.scene.lanes
-        while (nxt := same_direction_neighbour(lanes, proj, "right")) is not None and nxt.lane not in seen:
-            seen.add(nxt.lane)
-            proj = nxt
-        return _straight_polyline(data_batch, proj, i)
+        right = lanes_beside(data_batch.scene.lanes, proj, "right")
+        return _straight_polyline(data_batch, right[-1] if right else proj, i)
 
     return _memo(data_batch, ("rightmost", i), build)
 
@@ -242,13 +249,12 @@ def road_lanes(lanes: LaneGraph, proj: LaneProjection, first_side: Side) -> list
     """``proj`` and the same-direction lanes beside it (:func:`same_direction_neighbour`), each with how
     many lanes over it lies: its own lane first, then the lanes on ``first_side`` outward, then those
     on the other side outward."""
-    out, seen = [(proj, 0)], {proj.lane}
+    out, listed = [(proj, 0)], {proj.lane}
     for side in (first_side, "left" if first_side == "right" else "right"):
-        here, over = proj, 0
-        while (nxt := same_direction_neighbour(lanes, here, side)) is not None and nxt.lane not in seen:
-            seen.add(nxt.lane)
-            here, over = nxt, over + 1
-            out.append((here, over))
+        for over, beside in enumerate(lanes_beside(lanes, proj, side), start=1):
+            if beside.lane not in listed:
+                listed.add(beside.lane)
+                out.append((beside, over))
     return out
 
 
