@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -12,6 +13,7 @@ from ctgpp.eval.rule_setup import setup_rule
 from ctgpp.guidance import CompositeLoss, GuidanceBatch, build_guidance_batch, describe_rules, make_loss
 from ctgpp.guidance.base import registered_losses
 from ctgpp.guidance.rules import TargetSpeed
+from ctgpp.guidance.rules_interaction import ClearAhead
 from tests.test_guidance_helpers import logged_x, real_observation
 
 
@@ -260,3 +262,100 @@ def test_closest_overlap_is_the_deepest_disc_pair_overlap() -> None:
     torch.testing.assert_close(got, want)
     assert (want > 0).any() and (want == 0).any()
     torch.testing.assert_close(torch.autograd.grad(got.sum(), a)[0], torch.autograd.grad(want.sum(), a)[0])
+
+
+def test_across_heading_keeps_the_value_and_only_the_gradient_across() -> None:
+    from ctgpp.guidance.rules_common import across_heading
+
+    pos = torch.tensor([[1.0, 2.0], [3.0, -1.0]], requires_grad=True)
+    yaw = torch.tensor([0.0, math.pi / 2])
+    out = across_heading(pos, yaw)
+    assert torch.equal(out, pos.detach())
+    (out * torch.tensor([[5.0, 7.0], [5.0, 7.0]])).sum().backward()
+    assert pos.grad is not None  # heading +x keeps the y part, heading +y the x part
+    torch.testing.assert_close(pos.grad, torch.tensor([[0.0, 7.0], [5.0, 0.0]]), atol=1e-6, rtol=0)
+
+
+def test_keep_lane_steers_a_drifting_vehicle_and_does_not_brake_it(
+    batch: GuidanceBatch, x: torch.Tensor
+) -> None:
+    """Vehicle 0 drifting 4 m off its lane (tolerance 1.5 m): keep_lane's gradient through the
+    dynamics reaches its yaw rates, not its accelerations (a full gradient slows it down, since a
+    slower vehicle drifts less)."""
+    from ctgpp.dynamics import rollout
+
+    n_t = x.shape[2]
+    actions = x[:, :1, :, 4:6].clone().float()
+    actions[0, 0, :, 1] = torch.where(torch.arange(n_t) < 10, 0.25, 0.0)  # a left swerve, then straight
+    actions.requires_grad_(True)
+    state0 = torch.zeros(x.shape[0], 1, 4)
+    state0[..., 2] = batch.speed[:, None]
+    states = rollout(state0, actions, batch.dt_s)
+    cost = make_loss("keep_lane", vehicle=0, tolerance_m=1.5)(torch.cat([states, actions], -1), batch)
+    assert float(cost[0, 0].detach()) > 0.5
+    cost.sum().backward()
+    grad = actions.grad
+    assert grad is not None
+    acc, yaw_rate = grad[0, 0, :, 0].abs().sum(), grad[0, 0, :, 1].abs().sum()
+    assert yaw_rate > 0.1 and acc < 0.01 * yaw_rate  # 0.045 × with the full gradient, all braking
+
+
+# --- the road kept clear ahead (the collision guard's look-ahead) ----------------------------------
+
+
+def _two_cars(batch: GuidanceBatch, other_xy: tuple[float, float], obstacle_xy: tuple[float, float] | None = None):  # type: ignore[no-untyped-def]  # noqa: E501
+    """Vehicle 0 at the origin heading +x at 10 m/s, vehicle 1 standing at ``other_xy``, both 4 × 2 m
+    (discs of radius 1 m at −1 … +1 m along their length); one step of plan. With ``obstacle_xy``, the
+    first replayed agent stands there (every other replayed agent is left out)."""
+    valid = torch.zeros_like(batch.obstacles_valid)
+    obstacles_xy = batch.obstacles_xy.clone()
+    if obstacle_xy is not None:
+        valid[0] = True
+        obstacles_xy[0] = torch.tensor(obstacle_xy)
+    scene = replace(
+        batch, pose=torch.tensor([[0.0, 0.0, 0.0], [other_xy[0], other_xy[1], 0.0]]),
+        speed=torch.tensor([10.0, 0.0]), extent=torch.tensor([[4.0, 2.0], [4.0, 2.0]]),
+        obstacles_valid=valid, obstacles_xy=obstacles_xy,
+        obstacles_extent=torch.ones_like(batch.obstacles_extent),
+        obstacles_yaw=torch.zeros_like(batch.obstacles_yaw),
+        memo={},
+    )
+    x = torch.zeros(2, 1, 1, 6)
+    x[0, 0, 0, 2] = 10.0
+    return x, scene
+
+
+def test_clear_ahead_by_hand(batch: GuidanceBatch) -> None:
+    # the probe: 1 m (front disc) + 0.5 s × 10 m/s = 6 m ahead; vehicle 1's nearest disc at 8 − 1 = 7 m:
+    # 1 m apart, radii 1 + 1 and buffer 0.2 -> overlap 1.2 m
+    x, scene = _two_cars(batch, (8.0, 0.0))
+    x.requires_grad_()
+    cost = ClearAhead(headway_s=0.5, buffer_m=0.2)(x, scene)
+    assert cost.shape == (1,) and abs(float(cost.detach()) - 1.2) < 1e-3
+    (grad,) = torch.autograd.grad(cost.sum(), x)
+    assert float(grad[0, 0, 0, 2]) > 0  # the vehicle behind is asked to slow down (0.5 per m/s)
+    assert abs(float(grad[0, 0, 0, 2]) - 0.5) < 1e-3
+    assert float(grad[0, 0, 0, [0, 1, 3]].abs().sum()) == 0.0  # and not to swerve: place and heading free
+    assert float(grad[1].abs().sum()) == 0.0  # the one ahead answers for nothing
+    # what the plain collision guard sees: no overlap yet (the boxes are 4 m apart)
+    assert float(make_loss("no_collision", buffer_m=0.2)(x.detach(), scene)) == 0.0
+
+
+@pytest.mark.parametrize(
+    "case", ["beside in the next lane", "far ahead", "slow", "no headway", "pair asked to collide"]
+)
+def test_clear_ahead_is_zero_where_the_road_ahead_is_clear(case: str, batch: GuidanceBatch) -> None:
+    other = {"beside in the next lane": (6.0, 3.5), "far ahead": (12.0, 0.0)}.get(case, (8.0, 0.0))
+    x, scene = _two_cars(batch, other)
+    loss = ClearAhead(headway_s=0.0 if case == "no headway" else 0.5)
+    if case == "slow":
+        x[0, 0, 0, 2] = 0.5
+    if case == "pair asked to collide":
+        loss = loss.except_pairs([(1, 0)])
+    assert float(loss(x, scene)) == 0.0
+
+
+def test_clear_ahead_sees_a_replayed_agent(batch: GuidanceBatch) -> None:
+    # a 1 × 1 m pedestrian 6.5 m ahead (vehicle 1 far away): probe at 6 m, radius 1 + 0.5 + 0.2 -> 1.2 m
+    x, scene = _two_cars(batch, (0.0, 50.0), obstacle_xy=(6.5, 0.0))
+    assert abs(float(ClearAhead(headway_s=0.5)(x, scene)) - 1.2) < 1e-3

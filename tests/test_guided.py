@@ -17,6 +17,7 @@ from ctgpp.diffusion.guided import (
     GuidanceConfig,
     action_trajectories,
     clip_radii,
+    cut_to_need,
     guide_mean,
     guided_sample,
     yield_to_guards,
@@ -110,8 +111,56 @@ def test_clipping_bounds_the_change_of_the_mean_even_with_a_huge_lr() -> None:
     assert ((out - mean).abs() <= 0.05).all() and (out > mean).all()
 
 
+def test_a_step_is_cut_to_what_the_loss_needs() -> None:
+    """Hand-computed, samples of one vehicle row (N, 1, 2): a step (−0.3, −0.3) against the gradient
+    (1, 1) promises a decrease of 0.6; a loss of 0.06 needs a tenth of it (factor 1), 0.24 with
+    factor 4; a loss of 1 needs all of it (the step is never lengthened); a sample whose step
+    promises nothing, or whose loss is not above zero, keeps its step."""
+    move = torch.tensor([[-0.3, -0.3], [-0.3, -0.3], [0.3, 0.3], [-0.3, -0.3]])[:, None]
+    grad = torch.ones(4, 1, 2)
+    cost = torch.tensor([0.06, 1.0, 0.06, -2.0])
+    out = cut_to_need(move, grad, cost, 1.0)
+    want = torch.tensor([[-0.03, -0.03], [-0.3, -0.3], [0.3, 0.3], [-0.3, -0.3]])
+    torch.testing.assert_close(out[:, 0], want)
+    factor4 = cut_to_need(move[:1], grad[:1], cost[:1], 4.0)
+    torch.testing.assert_close(factor4, torch.tensor([[[-0.12, -0.12]]]))
+    # one cost for all samples bounds the whole step: 0.06 of the 1.2 promised by the first two rows
+    torch.testing.assert_close(cut_to_need(move[:2], grad[:2], torch.tensor(0.06), 1.0), move[:2] * 0.05)
+
+
+def test_the_vehicles_a_rule_moves_keep_their_step() -> None:
+    """Two vehicle rows of one sample, each promising 0.6: the first kept (a rule moves it) keeps its
+    step and does not count, the second is cut to the 0.06 that the cost needs."""
+    move = torch.full((1, 2, 2), -0.3)
+    out = cut_to_need(move, torch.ones(1, 2, 2), torch.tensor([0.06]), 1.0, torch.tensor([[True, False]]))
+    torch.testing.assert_close(out, torch.tensor([[[-0.3, -0.3], [-0.03, -0.03]]]))
+
+
+def test_a_guard_barely_crossed_is_not_overshot() -> None:
+    """A guard 0.01 over its bound: Adam's first step moves x by the full clip radius (0.3) whatever
+    the gradient's size and leaves it 0.29 past the bound; cut to need (factor 1), x lands on it. A
+    rule's own loss, given alone, keeps Algorithm 2's step."""
+    mean = torch.full((1, 1, 1, 1), 1.01)
+
+    def hinge(x: Tensor) -> Tensor:
+        return torch.relu(x - 1.0).sum((1, 2, 3))  # (N,)
+
+    def guards_alone(x: Tensor) -> tuple[Tensor, Tensor]:
+        return x.new_zeros(()), hinge(x)
+
+    adam = guide_mean(mean, guards_alone, 0.3, GuidanceConfig(inner_steps=1, lr=0.9, need_factor=0))
+    torch.testing.assert_close(adam, torch.full_like(mean, 0.71))
+    cut = guide_mean(mean, guards_alone, 0.3, GuidanceConfig(inner_steps=1, lr=0.9, need_factor=1.0))
+    torch.testing.assert_close(cut, torch.full_like(mean, 1.0))
+    rule = guide_mean(mean, hinge, 0.3, GuidanceConfig(inner_steps=1, lr=0.9, need_factor=1.0))
+    torch.testing.assert_close(rule, adam)
+    with pytest.raises(ValueError, match="need_factor"):
+        GuidanceConfig(need_factor=-1.0)
+
+
 def test_guidance_steps_are_those_of_torch_adam() -> None:
-    """The written-out Adam of guide_mean takes torch.optim.Adam's steps (then the clip)."""
+    """The written-out Adam of guide_mean takes torch.optim.Adam's steps (then the clip), its steps not cut
+    to need."""
 
     def objective(x: Tensor) -> Tensor:
         return ((x - 0.3).sin() * x).sum((1, 2, 3)) + (x**3).abs().sum()
@@ -128,7 +177,8 @@ def test_guidance_steps_are_those_of_torch_adam() -> None:
         return mean + delta.detach()
 
     mean = torch.randn(2, 5, 8, 2, generator=torch.Generator().manual_seed(0))
-    for config in (GuidanceConfig(3, 0.3), GuidanceConfig(7, 0.05), GuidanceConfig(1, 1.0)):
+    for config in (GuidanceConfig(3, 0.3, need_factor=0), GuidanceConfig(7, 0.05, need_factor=0),
+                   GuidanceConfig(1, 1.0, need_factor=0)):
         want = with_torch_adam(mean, 0.4, config)
         torch.testing.assert_close(guide_mean(mean, objective, 0.4, config), want)
 

@@ -9,14 +9,17 @@ any other) and added to the rule's or query's loss by :func:`with_guards`:
   dragged onto it across whatever lies between; the fail metric leaves such vehicles out too).
 - ``collision``: :class:`~ctgpp.guidance.rules_interaction.NoCollision` between every pair of
   vehicles (moving or held still) and between every vehicle and every replayed agent (pedestrians,
-  cyclists, static objects, vehicles that appear later): all that the guidance batch holds. A pair
-  the loss asks to collide is left out (``LossScope.collide``); each of the two still keeps
-  clear of everyone else.
+  cyclists, static objects, vehicles that appear later): all that the guidance batch holds; and
+  :class:`~ctgpp.guidance.rules_interaction.ClearAhead`: each moving vehicle keeps the road it covers
+  in the next ``headway_s`` seconds clear of them, so that it brakes or steers for what is ahead
+  before its plan's box touches it. A pair the loss asks to collide is left out of both
+  (``LossScope.collide``); each of the two still keeps clear of everyone else.
 - ``lane``: :class:`~ctgpp.guidance.rules_map.KeepLane` — within ``lane_tolerance_m`` of one of its
   lane paths, turns included, never further than it is now — for every vehicle the loss leaves in
   its lane (:meth:`LossScope.keeps_lane`): not the vehicles it sends across lanes (lane change,
   rightmost lane, turn, goal, reach a point, stop region, cut in, stay beside or head the way of
-  another, both vehicles of a collision and the one that rear-ends).
+  another, both vehicles of a collision and the one that rear-ends). Its gradient steers and never
+  brakes (:class:`~ctgpp.guidance.rules_map.KeepLane`): braking is the collision guard's to ask.
 
 An opaque loss (a language model's program) may do anything to any vehicle: only the off-road
 guard, and the collision guard against replayed agents, apply then.
@@ -26,8 +29,9 @@ rule's opposing part, and filtration prefers the samples that keep the guards (:
 the guards win.
 
 Weights. The sampler's Adam step moves every action element by about the learning rate whatever
-the size of its gradient (:mod:`ctgpp.guidance.rules_relative`), so weights do not set how hard a
-guard pushes a vehicle it alone concerns; they matter where a vehicle is pulled two ways (the
+the size of its gradient (:mod:`ctgpp.guidance.rules_relative`) — cut, for the guards, to what their
+cost needs (:func:`ctgpp.diffusion.guided.cut_to_need`) — so weights barely set how hard a guard
+pushes a vehicle it alone concerns; they matter where a vehicle is pulled two ways (the
 query's pair) and in filtration, which composes the plan with the lowest total. Each guard costs
 metres (mean depth off the road, overlap depth, distance out of the lane), as the rules do, so all
 weigh 1, the rule or query too: on the quickstart query over 20 seeds, a collision weight of 5 or a
@@ -49,14 +53,15 @@ from ctgpp.guidance.base import GuidanceLoss
 from ctgpp.guidance.composite import CompositeLoss, join_costs
 from ctgpp.guidance.context import GuidanceBatch
 from ctgpp.guidance.rules_common import sample_sdf
-from ctgpp.guidance.rules_interaction import NoCollision
+from ctgpp.guidance.rules_interaction import ClearAhead, NoCollision
 from ctgpp.guidance.rules_map import KeepLane
 from ctgpp.guidance.rules_motion import NoOffroad
 from ctgpp.guidance.scope import LossScope, pair
 
 GUARD_NAMES = ("offroad", "collision", "lane")
 COLLISION_WEIGHT = 1.0  # 5 measured worse (BENCHMARKS.md, Realism guards)
-LANE_TOLERANCE_M = 1.5  # 1.0 and 2.0 measured worse
+LANE_TOLERANCE_M = 1.5  # 1.0 and 2.0 measured worse (with the steering lane guard too, on Peachtree)
+HEADWAY_S = 0.5  # the road kept clear ahead, in seconds at the vehicle's speed; 1.0 measured no better
 # filtration ranks a plan by its guards' cost times this, plus the rule's: a sample that keeps the guards
 # is chosen over one that meets the rule better but collides (a centimetre of overlap outweighs a 1 m/s
 # miss of a target speed); among samples that keep them alike, the rule decides
@@ -68,7 +73,9 @@ class GuardConfig:
     """Which realism guards run (``guards``, a subset of ``GUARD_NAMES``) and how they weigh.
 
     Default: all three (``ctgpp simulate``); :meth:`off` runs none (the paper's protocol, ``ctgpp
-    evaluate``). ``rule_weight`` weighs the rule's or query's loss against the guards.
+    evaluate``). ``rule_weight`` weighs the rule's or query's loss against the guards; ``headway_s``
+    is how far ahead (seconds at its speed) the collision guard keeps a vehicle's road clear (0: only
+    the boxes of the plan).
     """
 
     guards: tuple[str, ...] = GUARD_NAMES
@@ -79,12 +86,15 @@ class GuardConfig:
     offroad_margin_m: float = 0.5
     collision_buffer_m: float = 0.2
     lane_tolerance_m: float = LANE_TOLERANCE_M
+    headway_s: float = HEADWAY_S
 
     def __post_init__(self) -> None:
         unknown = [g for g in self.guards if g not in GUARD_NAMES]
         if unknown:
             raise ValueError(f"unknown guard {unknown[0]!r}; the guards are: {', '.join(GUARD_NAMES)}")
         object.__setattr__(self, "guards", tuple(g for g in GUARD_NAMES if g in self.guards))
+        if self.headway_s < 0:
+            raise ValueError(f"headway_s must not be negative, got {self.headway_s}")
 
     @classmethod
     def off(cls) -> GuardConfig:
@@ -121,6 +131,7 @@ class RealismGuards(GuidanceLoss):
         self.offroad = NoOffroad(config.offroad_margin_m)
         self.lane = KeepLane(None, config.lane_tolerance_m)
         self._collision: dict[int, NoCollision] = {}
+        self._ahead: dict[int, ClearAhead] = {}
 
     @property
     def couples_agents(self) -> bool:  # type: ignore[override]
@@ -138,6 +149,15 @@ class RealismGuards(GuidanceLoss):
             self._collision[num_vehicles] = loss
         return self._collision[num_vehicles]
 
+    def ahead_loss(self, num_vehicles: int) -> ClearAhead:
+        """The guard that keeps the road ahead clear, the loss's pairs left out."""
+        if num_vehicles not in self._ahead:
+            pairs = exempt_pairs(self.addressed, num_vehicles)
+            loss = ClearAhead(self.config.headway_s, self.config.collision_buffer_m).except_pairs(pairs)
+            self.add_module(f"ahead{num_vehicles}", loss)
+            self._ahead[num_vehicles] = loss
+        return self._ahead[num_vehicles]
+
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         n_b, cfg = x.shape[0], self.config
         moves = x.detach().flatten(1).abs().amax(1) > 0  # (B,): False for a vehicle held in every sample
@@ -152,6 +172,8 @@ class RealismGuards(GuidanceLoss):
         if "collision" not in cfg.guards:
             return per_vehicle
         collision = self.collision_loss(n_b)(x, data_batch, agt_mask)  # (N,)
+        if cfg.headway_s > 0:
+            collision = collision + self.ahead_loss(n_b)(x, data_batch, mask)
         return per_vehicle.sum(0) + cfg.collision_weight * collision  # (B, N) -> (N)
 
 
@@ -231,6 +253,7 @@ def guard_report(
             "vehicles": moving,
             "weight": config.collision_weight,
             "buffer_m": config.collision_buffer_m,
+            "headway_s": config.headway_s,
             "exempt_pairs": "all vehicle pairs" if scope.collide is None
             else [list(pair(a, b)) for a, b in exempt_pairs(scope, num_vehicles)],
         }

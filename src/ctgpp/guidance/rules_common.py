@@ -48,6 +48,15 @@ def world_states(x: Tensor, data_batch: GuidanceBatch) -> tuple[Tensor, Tensor]:
     return pos, yaw[..., 0]
 
 
+def across_heading(pos: Tensor, yaw: Tensor) -> Tensor:
+    """pos (..., 2) unchanged in value, whose gradient keeps only its part across the heading yaw (...)
+    rad: a cost of the result steers a vehicle and never asks it to slow down or speed up (a lane's
+    distance shrinks with the distance driven: its full gradient brakes a vehicle that drifts)."""
+    heading = torch.stack([torch.cos(yaw), torch.sin(yaw)], dim=-1).detach()  # (..., 2)
+    delta = pos - pos.detach()  # zero, carrying pos's gradient
+    return pos.detach() + delta - (delta * heading).sum(-1, keepdim=True) * heading
+
+
 def disc_layout(extent: Tensor) -> tuple[Tensor, Tensor]:
     """Discs tracing boxes of extent (..., 2) length, width m as capsules: NUM_DISCS discs of radius
     half the width (...) m, centred evenly along the length (offsets (..., D) m) from half a width

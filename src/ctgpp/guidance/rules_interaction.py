@@ -136,6 +136,104 @@ class NoCollision(Rule):
         return lay
 
 
+class ClearAhead(Rule):
+    """Each moving vehicle keeps clear the road it will cover in the next ``headway_s`` seconds: a disc
+    of its half width, ``headway_s`` × its speed ahead of its front disc along its heading, must not
+    overlap (plus ``buffer_m``) any other vehicle or replayed agent, at every step of the plan. The
+    cost is that overlap (m), weighted by ``decay``**t as :class:`NoCollision`'s, summed over
+    vehicles and agents.
+
+    A collision guard that waits for the plan's boxes to overlap acts late: the denoiser's early
+    plans drive on, and a vehicle at 6 m/s passing a stopped car that juts into its lane clipped it
+    (BENCHMARKS.md, Guards that steer, look ahead, and take the step their cost needs). This one
+    costs as soon as what lies ahead is nearer than the distance the vehicle covers in ``headway_s``,
+    and its gradient only slows the vehicle (the disc moves back with the speed; its place and
+    heading carry no gradient): a vehicle behind another brakes, it does not swerve out of its lane
+    (swerving is the overlap's to ask, :class:`NoCollision`). Only the vehicle behind answers for the
+    gap — the other side's discs carry no gradient — and a vehicle slower than ``min_speed_mps``
+    keeps no headway (its disc would only repeat the collision's). Pairs left out with
+    :meth:`except_pairs` (a pair asked to collide) cost nothing; replayed agents always count.
+    """
+
+    couples_agents: ClassVar[bool] = True
+
+    def __init__(
+        self, headway_s: float = 0.5, buffer_m: float = 0.2, decay: float = 0.95, min_speed_mps: float = 1.0
+    ) -> None:
+        super().__init__()
+        if headway_s < 0:
+            raise ValueError(f"headway_s must not be negative, got {headway_s}")
+        self.headway_s, self.buffer_m = float(headway_s), float(buffer_m)
+        self.decay, self.min_speed_mps = float(decay), float(min_speed_mps)
+        self.exempt: frozenset[Pair] = frozenset()
+
+    def except_pairs(self, pairs: Iterable[tuple[int, int]]) -> ClearAhead:
+        """The same rule with the vehicle pairs ``pairs`` (displayed numbers, either order) left out."""
+        out = ClearAhead(self.headway_s, self.buffer_m, self.decay, self.min_speed_mps)
+        out.exempt = frozenset(pair(a, b) for a, b in pairs)
+        return out
+
+    def scope(self) -> LossScope:
+        return LossScope.everyone()
+
+    def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
+        n_b, n, n_t = x.shape[:3]
+        extent = data_batch.extent.to(x)
+        offsets, radius = disc_layout(extent)  # (B, D), (B,)
+        pos, yaw = world_states(x, data_batch)  # (B, N, T, 2), (B, N, T)
+        speed = x[..., 2].clamp_min(0.0)  # (B, N, T)
+        ahead = offsets[:, -1, None, None] + self.headway_s * speed  # (B, N, T) m from the centre
+        heading = torch.stack([torch.cos(yaw), torch.sin(yaw)], dim=-1).detach()
+        # the disc ahead of each vehicle (B, N, T, 2), moved by the speed alone: it brakes, never swerves
+        reach = ahead - ahead.detach()  # zero, carrying the speed's gradient
+        probe = pos.detach() + (ahead.detach() + reach)[..., None] * heading
+        moving = speed.detach() >= self.min_speed_mps  # (B, N, T)
+        if agt_mask is not None:
+            moving = moving & agt_mask.to(device=x.device, dtype=torch.bool)[:, None, None]
+        costs = [self._vehicles(probe, radius, pos.detach(), yaw.detach(), offsets, moving)]
+        costs.append(self._replayed(probe, radius, data_batch, n_t, moving))
+        pen, n_idx, t_idx = (torch.cat(parts) for parts in zip(*costs, strict=True))
+        weight = time_weights(n_t, self.decay, x)[t_idx]
+        return x.new_zeros(n).index_add(0, n_idx, pen * weight)  # (N,)
+
+    def _vehicles(
+        self, probe: Tensor, radius: Tensor, pos: Tensor, yaw: Tensor, offsets: Tensor, moving: Tensor
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """(overlap (K,), sample (K,), step (K,)) of each probe that comes near another vehicle."""
+        n_b = probe.shape[0]
+        reach = offsets.amax(-1) + radius  # (B,)
+        with torch.no_grad():
+            d2 = ((probe.detach()[:, None] - pos[None]) ** 2).sum(-1)  # (A, B, N, T)
+            near = d2 < ((radius[:, None] + reach[None] + self.buffer_m)[..., None, None]) ** 2
+            near &= moving[:, None]
+            near &= ~torch.eye(n_b, dtype=torch.bool, device=probe.device)[..., None, None]
+            for a, b in self.exempt:
+                if max(a, b) < n_b:
+                    near[a, b] = near[b, a] = False
+            a_i, b_i, n_i, t_i = torch.nonzero(near, as_tuple=True)
+        discs = disc_centres(pos[b_i, n_i, t_i], yaw[b_i, n_i, t_i], offsets[b_i])  # (K, D, 2) no grad
+        probes = probe[a_i, n_i, t_i][:, None]  # (K, 1, 2)
+        return _closest_overlap(probes, radius[a_i], discs, radius[b_i], self.buffer_m), n_i, t_i
+
+    def _replayed(
+        self, probe: Tensor, radius: Tensor, data_batch: GuidanceBatch, n_t: int, moving: Tensor
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """The same against the replayed agents' logged discs."""
+        like = probe
+        o_offsets, o_radius = disc_layout(data_batch.obstacles_extent.to(like))  # (O, D), (O,)
+        xy, o_yaw = data_batch.obstacles_xy[:, :n_t].to(like), data_batch.obstacles_yaw[:, :n_t].to(like)
+        valid = data_batch.obstacles_valid[:, :n_t].to(like.device)  # (O, T)
+        reach = o_offsets.amax(-1) + o_radius  # (O,)
+        with torch.no_grad():
+            d2 = ((probe.detach()[:, None] - xy[None, :, None]) ** 2).sum(-1)  # (A, O, N, T)
+            limit = (radius[:, None] + reach[None] + self.buffer_m)[..., None, None]
+            near = (d2 < limit**2) & moving[:, None] & valid[None, :, None]
+            a_i, o_i, n_i, t_i = torch.nonzero(near, as_tuple=True)
+        discs = disc_centres(xy[o_i, t_i], o_yaw[o_i, t_i], o_offsets[o_i])  # (K, D, 2)
+        probes = probe[a_i, n_i, t_i][:, None]  # (K, 1, 2)
+        return _closest_overlap(probes, radius[a_i], discs, o_radius[o_i], self.buffer_m), n_i, t_i
+
+
 @dataclass(frozen=True)
 class _Replayed:
     """Replayed agents over a horizon of T steps: discs (O, T, D, 2), radius (O,), reach (O,) the

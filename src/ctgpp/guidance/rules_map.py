@@ -43,7 +43,14 @@ from ctgpp.guidance.lane_paths import (
     project_onto_polyline,
     turn_exit,
 )
-from ctgpp.guidance.rules_common import Rule, apply_mask, check_vehicle, soft_abs, world_states
+from ctgpp.guidance.rules_common import (
+    Rule,
+    across_heading,
+    apply_mask,
+    check_vehicle,
+    soft_abs,
+    world_states,
+)
 from ctgpp.guidance.scope import LossScope
 from ctgpp.scene.lanes import lane_points_ahead, nearest_lane
 
@@ -277,7 +284,9 @@ class KeepLane(Rule):
     — beyond an allowance: ``tolerance_m``, or how far the vehicle is from them now when that is more
     (it is never pulled in from where it drives, only kept from drifting further). Zero for a vehicle
     on no lane. Unlike ``follow_lane`` it lets the vehicle take any turn and tolerates the lane's
-    width, so that it is zero for a vehicle driving in its lane."""
+    width, so that it is zero for a vehicle driving in its lane. Its gradient steers only
+    (:func:`~ctgpp.guidance.rules_common.across_heading`): a vehicle that drifts is turned back, not
+    slowed down."""
 
     param_doc = {
         "vehicle": ("", "displayed number of the vehicle; None for every vehicle"),
@@ -300,8 +309,8 @@ class KeepLane(Rule):
         if agt_mask is not None:  # the lanes of vehicles left out are not even looked up
             rows = [r and bool(m) for r, m in zip(rows, agt_mask.tolist(), strict=True)]
         paths = [get_lane_paths(data_batch, b) if rows[b] else [] for b in range(n_b)]
-        pos, _ = world_states(x, data_batch)  # (B, N, T, 2)
-        dist, _ = lane_path_distance(pos, paths)  # (B, N, T)
+        pos, yaw = world_states(x, data_batch)  # (B, N, T, 2), (B, N, T)
+        dist, _ = lane_path_distance(across_heading(pos, yaw), paths)  # (B, N, T): steers, never brakes
         now = [self._distance_now(data_batch, b) if rows[b] else 0.0 for b in range(n_b)]
         allowance = x.new_tensor(now).clamp_min(self.tolerance_m)  # (B,) m
         return apply_mask(torch.relu(dist - allowance[:, None, None]).mean(-1), agt_mask)

@@ -20,7 +20,7 @@ from ctgpp.dynamics import clip_actions, rollout
 from ctgpp.geometry import local_to_world
 from ctgpp.guidance.base import GuidanceLoss
 from ctgpp.guidance.context import build_guidance_batch
-from ctgpp.guidance.guards import GuardedLoss
+from ctgpp.guidance.guards import GuardedLoss, RealismGuards
 from ctgpp.interfaces import Observation, Plan
 from ctgpp.model.checkpoint import load_checkpoint
 from ctgpp.model.denoiser import Denoiser
@@ -187,6 +187,8 @@ class DiffusionPolicy:
                 traj = every_vehicle(action_trajectories(normalizer.denormalize_actions(x), moving, cfg.dt_s))
                 if isinstance(loss_fn, GuardedLoss):  # the rule's and the guards' apart: the guards win
                     return loss_fn.parts(traj, data_batch)
+                if isinstance(loss_fn, RealismGuards):  # the guards alone: their steps are cut to need
+                    return traj.new_zeros(()), loss_fn(traj, data_batch)
                 return loss_fn(traj, data_batch)
 
         x0 = guided_sample(denoise, (n, len(rows), f, 2), self.sampler, objective, self.guidance_config, gen)
