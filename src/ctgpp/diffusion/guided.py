@@ -106,10 +106,10 @@ def guide_mean(mean: Tensor, objective: Objective, radius: float, config: Guidan
     samples are independent, so the gradient of the sum is each sample's own), or to the pair (the
     rule's loss, the guards' loss), whose gradients are joined by :func:`yield_to_guards` and whose
     step is cut to what the guards need (``config.need_factor``; the vehicles the rule moves keep
-    their whole step). No gradient reaches
-    ``mean`` or anything it was computed from. Adam (β = 0.9, 0.999, ε = 1e-8, the defaults of
-    ``torch.optim.Adam``, whose update this is) is written out: the optimizer object's bookkeeping
-    cost more than the update itself at every one of the many small steps of a plan.
+    their whole step). No gradient reaches ``mean`` or anything it was computed from. Adam (β = 0.9,
+    0.999, ε = 1e-8, the defaults of ``torch.optim.Adam``, whose update this is) is written out: the
+    optimizer object's bookkeeping cost more than the update itself at every one of the many small
+    steps of a plan.
     """
     base = mean.detach()
     delta, m, v = torch.zeros_like(base), torch.zeros_like(base), torch.zeros_like(base)

@@ -177,9 +177,8 @@ class ClearAhead(Rule):
         return LossScope.everyone()
 
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
-        n_b, n, n_t = x.shape[:3]
-        extent = data_batch.extent.to(x)
-        offsets, radius = disc_layout(extent)  # (B, D), (B,)
+        n, n_t = x.shape[1], x.shape[2]
+        offsets, radius = disc_layout(data_batch.extent.to(x))  # (B, D), (B,)
         pos, yaw = world_states(x, data_batch)  # (B, N, T, 2), (B, N, T)
         speed = x[..., 2].clamp_min(0.0)  # (B, N, T)
         ahead = offsets[:, -1, None, None] + self.headway_s * speed  # (B, N, T) m from the centre
