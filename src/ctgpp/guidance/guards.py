@@ -130,8 +130,7 @@ class RealismGuards(GuidanceLoss):
         self.config, self.addressed = config, scope
         self.offroad = NoOffroad(config.offroad_margin_m)
         self.lane = KeepLane(None, config.lane_tolerance_m)
-        self._collision: dict[int, NoCollision] = {}
-        self._ahead: dict[int, ClearAhead] = {}
+        self._pair_guards: dict[int, tuple[NoCollision, ClearAhead]] = {}
 
     @property
     def couples_agents(self) -> bool:  # type: ignore[override]
@@ -140,23 +139,18 @@ class RealismGuards(GuidanceLoss):
     def scope(self) -> LossScope:
         return LossScope.everyone()
 
-    def collision_loss(self, num_vehicles: int) -> NoCollision:
-        """The collision guard of a scene of ``num_vehicles`` vehicles, the loss's pairs left out."""
-        if num_vehicles not in self._collision:
+    def pair_guards(self, num_vehicles: int) -> tuple[NoCollision, ClearAhead]:
+        """The collision guard of a scene of ``num_vehicles`` vehicles — no overlap, and the road ahead
+        kept clear — with the pairs the loss may ask to collide left out."""
+        if num_vehicles not in self._pair_guards:
             pairs = exempt_pairs(self.addressed, num_vehicles)
-            loss = NoCollision(self.config.collision_buffer_m).except_pairs(pairs)
-            self.add_module(f"collision{num_vehicles}", loss)
-            self._collision[num_vehicles] = loss
-        return self._collision[num_vehicles]
-
-    def ahead_loss(self, num_vehicles: int) -> ClearAhead:
-        """The guard that keeps the road ahead clear, the loss's pairs left out."""
-        if num_vehicles not in self._ahead:
-            pairs = exempt_pairs(self.addressed, num_vehicles)
-            loss = ClearAhead(self.config.headway_s, self.config.collision_buffer_m).except_pairs(pairs)
-            self.add_module(f"ahead{num_vehicles}", loss)
-            self._ahead[num_vehicles] = loss
-        return self._ahead[num_vehicles]
+            cfg = self.config
+            overlap = NoCollision(cfg.collision_buffer_m).except_pairs(pairs)
+            ahead = ClearAhead(cfg.headway_s, cfg.collision_buffer_m).except_pairs(pairs)
+            self.add_module(f"collision{num_vehicles}", overlap)
+            self.add_module(f"ahead{num_vehicles}", ahead)
+            self._pair_guards[num_vehicles] = (overlap, ahead)
+        return self._pair_guards[num_vehicles]
 
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         n_b, cfg = x.shape[0], self.config
@@ -171,9 +165,10 @@ class RealismGuards(GuidanceLoss):
             per_vehicle = per_vehicle + cfg.lane_weight * self.lane(x, data_batch, mask & keeps)
         if "collision" not in cfg.guards:
             return per_vehicle
-        collision = self.collision_loss(n_b)(x, data_batch, agt_mask)  # (N,)
+        overlap, ahead = self.pair_guards(n_b)
+        collision = overlap(x, data_batch, agt_mask)  # (N,)
         if cfg.headway_s > 0:
-            collision = collision + self.ahead_loss(n_b)(x, data_batch, mask)
+            collision = collision + ahead(x, data_batch, mask)
         return per_vehicle.sum(0) + cfg.collision_weight * collision  # (B, N) -> (N)
 
 

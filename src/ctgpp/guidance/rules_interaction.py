@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import Any, ClassVar, TypeVar
 
 import torch
 from torch import Tensor
@@ -35,8 +35,34 @@ def _closest_overlap(a: Tensor, ra: Tensor, b: Tensor, rb: Tensor, buffer_m: flo
     return torch.relu(ra + rb + buffer_m - torch.sqrt(d2 + 1e-6))
 
 
+_Guard = TypeVar("_Guard", bound="PairGuard")
+
+
+class PairGuard(Rule):
+    """A rule between every vehicle and every other agent, of which some vehicle pairs can be left
+    out (:meth:`except_pairs`: a pair that a collision rule asks to crash); contacts with replayed
+    agents always count. Subclasses say in :meth:`_same` how to build one with their parameters."""
+
+    couples_agents: ClassVar[bool] = True
+    exempt: frozenset[Pair] = frozenset()  # vehicle pairs left out; an instance sets its own
+
+    def _same(self: _Guard) -> _Guard:
+        """A new rule with this one's parameters (and no pair left out)."""
+        raise NotImplementedError
+
+    def except_pairs(self: _Guard, pairs: Iterable[tuple[int, int]]) -> _Guard:
+        """The same rule with the vehicle pairs ``pairs`` (displayed numbers, either order) left out:
+        their contacts cost nothing."""
+        out = self._same()
+        out.exempt = frozenset(pair(a, b) for a, b in pairs)
+        return out
+
+    def scope(self) -> LossScope:
+        return LossScope.everyone()
+
+
 @register_loss("no_collision")
-class NoCollision(Rule):
+class NoCollision(PairGuard):
     """No vehicle collides with another vehicle or with a replayed agent (pedestrians, cyclists,
     static objects, vehicles not controlled): each box is traced by discs along its length
     (:func:`~ctgpp.guidance.rules_common.disc_layout`); the
@@ -48,7 +74,6 @@ class NoCollision(Rule):
     plausible scene they are nearly all of them. :meth:`except_pairs` leaves some vehicle pairs out.
     """
 
-    couples_agents: ClassVar[bool] = True
     param_doc = {
         "buffer_m": ("m", "extra clearance required between discs"),
         "decay": ("per step", "weight of step t is decay**t: near-term collisions matter more"),
@@ -58,18 +83,10 @@ class NoCollision(Rule):
         super().__init__()
         self.buffer_m = float(buffer_m)
         self.decay = float(decay)
-        self.exempt: frozenset[Pair] = frozenset()  # vehicle pairs left out (:meth:`except_pairs`)
         self._layout_of: tuple[GuidanceBatch, int, torch.dtype, _Layout] | None = None
 
-    def except_pairs(self, pairs: Iterable[tuple[int, int]]) -> NoCollision:
-        """The same rule with the vehicle pairs ``pairs`` (displayed numbers) left out: their contacts
-        cost nothing (a pair that a collision rule asks to crash). Contacts with replayed agents stay."""
-        out = NoCollision(self.buffer_m, self.decay)
-        out.exempt = frozenset(pair(a, b) for a, b in pairs)
-        return out
-
-    def scope(self) -> LossScope:
-        return LossScope.everyone()
+    def _same(self) -> NoCollision:
+        return NoCollision(self.buffer_m, self.decay)
 
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         n, n_t = x.shape[1], x.shape[2]
@@ -124,19 +141,25 @@ class NoCollision(Rule):
         if cached is not None and cached[0] is data_batch and cached[1:3] == (n_t, like.dtype):
             return cached[3]
         offsets, radius = disc_layout(data_batch.extent.to(like))  # (B, D), (B,)
-        o_offsets, o_radius = disc_layout(data_batch.obstacles_extent.to(like))  # (O, D), (O,)
-        xy, yaw = data_batch.obstacles_xy[:, :n_t].to(like), data_batch.obstacles_yaw[:, :n_t].to(like)
-        valid = data_batch.obstacles_valid[:, :n_t].to(like.device)
-        o_reach = o_offsets.amax(-1) + o_radius
-        lo, hi = _boxes(xy, o_reach, valid)
-        replayed = _Replayed(disc_centres(xy, yaw, o_offsets[:, None]), o_radius, o_reach, xy, valid, lo, hi)
         weights = time_weights(n_t, self.decay, like)
+        replayed = replayed_agents(data_batch, n_t, like)
         lay = _Layout(offsets, radius, offsets.amax(-1) + radius, weights, replayed)
         self._layout_of = (data_batch, n_t, like.dtype, lay)
         return lay
 
 
-class ClearAhead(Rule):
+def replayed_agents(data_batch: GuidanceBatch, n_t: int, like: Tensor) -> _Replayed:
+    """The replayed agents' discs and boxes over a horizon of ``n_t`` steps (dtype and device of
+    ``like``). Not kept in the batch's memo: a batch copied with other agents shares that dict."""
+    offsets, radius = disc_layout(data_batch.obstacles_extent.to(like))  # (O, D), (O,)
+    xy, yaw = data_batch.obstacles_xy[:, :n_t].to(like), data_batch.obstacles_yaw[:, :n_t].to(like)
+    valid = data_batch.obstacles_valid[:, :n_t].to(like.device)
+    reach = offsets.amax(-1) + radius
+    lo, hi = _boxes(xy, reach, valid)
+    return _Replayed(disc_centres(xy, yaw, offsets[:, None]), radius, reach, xy, valid, lo, hi)
+
+
+class ClearAhead(PairGuard):
     """Each moving vehicle keeps clear the road it will cover in the next ``headway_s`` seconds: a disc
     of its half width, ``headway_s`` × its speed ahead of its front disc along its heading, must not
     overlap (plus ``buffer_m``) any other vehicle or replayed agent, at every step of the plan. The
@@ -155,8 +178,6 @@ class ClearAhead(Rule):
     :meth:`except_pairs` (a pair asked to collide) cost nothing; replayed agents always count.
     """
 
-    couples_agents: ClassVar[bool] = True
-
     def __init__(
         self, headway_s: float = 0.5, buffer_m: float = 0.2, decay: float = 0.95, min_speed_mps: float = 1.0
     ) -> None:
@@ -165,16 +186,9 @@ class ClearAhead(Rule):
             raise ValueError(f"headway_s must not be negative, got {headway_s}")
         self.headway_s, self.buffer_m = float(headway_s), float(buffer_m)
         self.decay, self.min_speed_mps = float(decay), float(min_speed_mps)
-        self.exempt: frozenset[Pair] = frozenset()
 
-    def except_pairs(self, pairs: Iterable[tuple[int, int]]) -> ClearAhead:
-        """The same rule with the vehicle pairs ``pairs`` (displayed numbers, either order) left out."""
-        out = ClearAhead(self.headway_s, self.buffer_m, self.decay, self.min_speed_mps)
-        out.exempt = frozenset(pair(a, b) for a, b in pairs)
-        return out
-
-    def scope(self) -> LossScope:
-        return LossScope.everyone()
+    def _same(self) -> ClearAhead:
+        return ClearAhead(self.headway_s, self.buffer_m, self.decay, self.min_speed_mps)
 
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         n, n_t = x.shape[1], x.shape[2]
@@ -218,19 +232,15 @@ class ClearAhead(Rule):
         self, probe: Tensor, radius: Tensor, data_batch: GuidanceBatch, n_t: int, moving: Tensor
     ) -> tuple[Tensor, Tensor, Tensor]:
         """The same against the replayed agents' logged discs."""
-        like = probe
-        o_offsets, o_radius = disc_layout(data_batch.obstacles_extent.to(like))  # (O, D), (O,)
-        xy, o_yaw = data_batch.obstacles_xy[:, :n_t].to(like), data_batch.obstacles_yaw[:, :n_t].to(like)
-        valid = data_batch.obstacles_valid[:, :n_t].to(like.device)  # (O, T)
-        reach = o_offsets.amax(-1) + o_radius  # (O,)
+        rep = replayed_agents(data_batch, n_t, probe)
         with torch.no_grad():
-            d2 = ((probe.detach()[:, None] - xy[None, :, None]) ** 2).sum(-1)  # (A, O, N, T)
-            limit = (radius[:, None] + reach[None] + self.buffer_m)[..., None, None]
-            near = (d2 < limit**2) & moving[:, None] & valid[None, :, None]
+            d2 = ((probe.detach()[:, None] - rep.xy[None, :, None]) ** 2).sum(-1)  # (A, O, N, T)
+            limit = (radius[:, None] + rep.reach[None] + self.buffer_m)[..., None, None]
+            near = (d2 < limit**2) & moving[:, None] & rep.valid[None, :, None]
             a_i, o_i, n_i, t_i = torch.nonzero(near, as_tuple=True)
-        discs = disc_centres(xy[o_i, t_i], o_yaw[o_i, t_i], o_offsets[o_i])  # (K, D, 2)
         probes = probe[a_i, n_i, t_i][:, None]  # (K, 1, 2)
-        return _closest_overlap(probes, radius[a_i], discs, o_radius[o_i], self.buffer_m), n_i, t_i
+        pen = _closest_overlap(probes, radius[a_i], rep.discs[o_i, t_i], rep.radius[o_i], self.buffer_m)
+        return pen, n_i, t_i
 
 
 @dataclass(frozen=True)
