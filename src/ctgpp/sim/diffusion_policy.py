@@ -19,6 +19,7 @@ from ctgpp.diffusion.guided import GuidanceConfig, action_trajectories, guided_s
 from ctgpp.dynamics import clip_actions, rollout
 from ctgpp.geometry import local_to_world
 from ctgpp.guidance.base import GuidanceLoss
+from ctgpp.guidance.caps import cap_speeds, speed_caps
 from ctgpp.guidance.context import build_guidance_batch
 from ctgpp.guidance.guards import GuardedLoss, RealismGuards
 from ctgpp.interfaces import Observation, Plan
@@ -193,6 +194,9 @@ class DiffusionPolicy:
 
         x0 = guided_sample(denoise, (n, len(rows), f, 2), self.sampler, objective, self.guidance_config, gen)
         actions[:, rows] = clip_actions(normalizer.denormalize_actions(x0))  # (N, V, F, 2)
+        caps = speed_caps(loss_fn.rule, v) if isinstance(loss_fn, GuardedLoss) else None
+        if caps is not None:  # a query's speed limit holds exactly, not only as far as guidance bends
+            actions = cap_speeds(actions, current[:, 2], caps, cfg.dt_s)
         traj = action_trajectories(actions, current, cfg.dt_s)  # (V, N, F, 6)
         if objective is None:
             return PlanSamples(actions, current, traj, None, torch.zeros(v, dtype=torch.long))
