@@ -194,7 +194,7 @@ class DiffusionPolicy:
 
         x0 = guided_sample(denoise, (n, len(rows), f, 2), self.sampler, objective, self.guidance_config, gen)
         actions[:, rows] = clip_actions(normalizer.denormalize_actions(x0))  # (N, V, F, 2)
-        caps = speed_caps(loss_fn.rule, v) if isinstance(loss_fn, GuardedLoss) else None
+        caps = speed_caps(self.guidance.rule, v) if isinstance(self.guidance, GuardedLoss) else None
         if caps is not None:  # a query's speed limit holds exactly, not only as far as guidance bends
             actions = cap_speeds(actions, current[:, 2], caps, cfg.dt_s)
         traj = action_trajectories(actions, current, cfg.dt_s)  # (V, N, F, 6)
