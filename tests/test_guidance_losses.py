@@ -181,27 +181,27 @@ def test_make_loss_errors() -> None:
 
 
 def _dense_no_collision(x: torch.Tensor, batch: GuidanceBatch, buffer_m: float, decay: float) -> torch.Tensor:
-    """The no-collision cost by its definition, over every disc pair of every vehicle pair and every
-    vehicle–replayed pair at every sample and step: (N,)."""
-    from ctgpp.guidance.rules_common import disc_centres, disc_layout, time_weights, world_states
+    """The no-collision cost by its definition, over every outline disc pair (the capsule's discs and
+    the corners) of every vehicle pair and every vehicle–replayed pair at every sample and step: (N,)."""
+    from ctgpp.guidance.rules_common import outline_layout, outline_points, time_weights, world_states
 
-    def hinge(a, ra, b, rb):  # discs (..., D, 2), radii (...) -> the largest hinged overlap (...)
-        d = torch.sqrt(((a[..., :, None, :] - b[..., None, :, :]) ** 2).sum(-1) + 1e-6)  # (..., D, D)
-        return torch.relu((ra + rb + buffer_m)[..., None, None] - d).flatten(-2).amax(-1)
+    def hinge(a, ra, b, rb):  # discs (..., P, 2), radii (..., P) -> the largest hinged overlap (...)
+        d = torch.sqrt(((a[..., :, None, :] - b[..., None, :, :]) ** 2).sum(-1) + 1e-6)  # (..., P, P)
+        return torch.relu(ra[..., :, None] + rb[..., None, :] + buffer_m - d).flatten(-2).amax(-1)
 
     n_t = x.shape[2]
     pos, yaw = world_states(x, batch)
-    offsets, radius = disc_layout(batch.extent.to(x))
-    discs = disc_centres(pos, yaw, offsets[:, None, None])  # (B, N, T, D, 2)
-    ra = radius[:, None, None, None]
-    pen = hinge(discs[:, None], ra, discs[None], radius[None, :, None, None])
+    offsets, radii = outline_layout(batch.extent.to(x))  # (B, P, 2), (B, P)
+    points = outline_points(pos, yaw, offsets[:, None, None])  # (B, N, T, P, 2)
+    ra = radii[:, None, None, None]  # (B, 1, 1, 1, P)
+    pen = hinge(points[:, None], ra, points[None], radii[None, :, None, None])
     pen = pen * (1 - torch.eye(x.shape[0], dtype=x.dtype))[..., None, None]  # (B, B, N, T) without self pairs
     w = time_weights(n_t, decay, x)
     cost = 0.5 * (pen * w).sum((0, 1, 3))
-    o_off, o_rad = disc_layout(batch.obstacles_extent.to(x))
+    o_off, o_rad = outline_layout(batch.obstacles_extent.to(x))
     o_xy, o_yaw = batch.obstacles_xy[:, :n_t].to(x), batch.obstacles_yaw[:, :n_t].to(x)
-    o_discs = disc_centres(o_xy, o_yaw, o_off[:, None])
-    o_pen = hinge(discs[:, None], ra, o_discs[None, :, None], o_rad[None, :, None, None])
+    o_points = outline_points(o_xy, o_yaw, o_off[:, None])  # (O, T, P, 2)
+    o_pen = hinge(points[:, None], ra, o_points[None, :, None], o_rad[None, :, None, None])
     return cost + (o_pen * batch.obstacles_valid[None, :, None, :n_t] * w).sum((0, 1, 3))  # (B, O, N, T)
 
 
@@ -264,6 +264,40 @@ def test_closest_overlap_is_the_deepest_disc_pair_overlap() -> None:
     torch.testing.assert_close(torch.autograd.grad(got.sum(), a)[0], torch.autograd.grad(want.sum(), a)[0])
 
 
+def test_outlines_are_the_capsule_and_the_corners_by_hand() -> None:
+    from ctgpp.guidance.rules_common import NUM_DISCS, outline_layout, outline_points, outline_reach
+
+    offsets, radii = outline_layout(torch.tensor([[4.0, 2.0]]))  # a 4 x 2 m box
+    assert offsets.shape == (1, NUM_DISCS + 4, 2) and radii.shape == (1, NUM_DISCS + 4)
+    torch.testing.assert_close(offsets[0, :NUM_DISCS, 0], torch.linspace(-1.0, 1.0, NUM_DISCS))
+    assert radii[0, :NUM_DISCS].eq(1.0).all() and radii[0, NUM_DISCS:].eq(0.0).all()
+    corners = outline_points(torch.tensor([[10.0, 5.0]]), torch.tensor([math.pi / 2]), offsets)[0, NUM_DISCS:]
+    want = torch.tensor([[9.0, 7.0], [11.0, 7.0], [9.0, 3.0], [11.0, 3.0]])  # heading +y: left is -x
+    torch.testing.assert_close(corners, want, atol=1e-6, rtol=0)
+    torch.testing.assert_close(outline_reach(offsets, radii), torch.tensor([math.sqrt(5.0)]))
+
+
+def test_a_corner_jutting_past_the_capsules_rounding_is_a_contact(batch: GuidanceBatch) -> None:
+    """Vehicle 1 (4 x 2 m) turned 45° with its corner 0.05 m beside vehicle 0's side: the capsules
+    stay 0.3 m apart (no overlap even with the 0.2 m buffer), the corner is inside the buffer."""
+    from ctgpp.guidance.rules_common import disc_layout, outline_layout, outline_points
+
+    two = replace(batch, origin=batch.origin + 1e4, pose=torch.zeros(2, 3), speed=torch.zeros(2),
+                  extent=torch.tensor([[4.0, 2.0]] * 2), memo={}, obstacles_valid=batch.obstacles_valid & False)
+    yaw = math.pi / 4
+    offsets, _ = outline_layout(torch.tensor([4.0, 2.0]))
+    corner = outline_points(torch.zeros(2), torch.tensor(yaw), offsets)[-1]  # rear right, relative to the centre
+    centre = torch.tensor([0.0, 1.05]) - corner  # that corner 0.05 m above vehicle 0's left side
+    x = torch.zeros(2, 1, 1, 6)
+    x[1, 0, 0, :2], x[1, 0, 0, 3] = centre, yaw
+    along, radius = disc_layout(torch.tensor([4.0, 2.0]))
+    discs = [centre + along[:, None] * torch.tensor([math.cos(yaw), math.sin(yaw)]), along[:, None] * torch.tensor([1.0, 0.0])]
+    gap = torch.cdist(discs[0], discs[1]).min() - 2 * radius
+    assert gap > 0.25  # the capsules alone: no contact within the buffer
+    cost = make_loss("no_collision", buffer_m=0.2)(x, two)
+    torch.testing.assert_close(cost, torch.tensor([0.15]), atol=1e-4, rtol=0)  # 1 + 0.2 - 1.05
+
+
 def test_across_heading_keeps_the_value_and_only_the_gradient_across() -> None:
     from ctgpp.guidance.rules_common import across_heading
 
@@ -274,6 +308,17 @@ def test_across_heading_keeps_the_value_and_only_the_gradient_across() -> None:
     (out * torch.tensor([[5.0, 7.0], [5.0, 7.0]])).sum().backward()
     assert pos.grad is not None  # heading +x keeps the y part, heading +y the x part
     torch.testing.assert_close(pos.grad, torch.tensor([[0.0, 7.0], [5.0, 0.0]]), atol=1e-6, rtol=0)
+
+
+def test_steered_path_keeps_positions_and_moves_only_headings() -> None:
+    from ctgpp.guidance.rules_common import steered_path
+
+    x = torch.randn(2, 3, 5, 6, requires_grad=True)
+    moved = steered_path(x, 0.1)
+    assert torch.equal(moved.detach(), x.detach())
+    moved[..., :2].sum().backward()
+    assert x.grad is not None and x.grad[..., 3].abs().sum() > 0
+    assert x.grad[..., [0, 1, 2, 4, 5]].abs().sum() == 0  # no gradient reaches positions or speeds
 
 
 def test_keep_lane_steers_a_drifting_vehicle_and_does_not_brake_it(
@@ -297,7 +342,8 @@ def test_keep_lane_steers_a_drifting_vehicle_and_does_not_brake_it(
     grad = actions.grad
     assert grad is not None
     acc, yaw_rate = grad[0, 0, :, 0].abs().sum(), grad[0, 0, :, 1].abs().sum()
-    assert yaw_rate > 0.1 and acc < 0.01 * yaw_rate  # 0.045 × with the full gradient, all braking
+    assert yaw_rate > 0.1 and acc == 0  # 0.045 × with the full gradient, all braking; on a bend
+    # the positions' offsets across their headings still depend on the earlier speeds: steered_path
 
 
 # --- the road kept clear ahead (the collision guard's look-ahead) ----------------------------------

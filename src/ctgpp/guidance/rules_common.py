@@ -57,6 +57,19 @@ def across_heading(pos: Tensor, yaw: Tensor) -> Tensor:
     return pos.detach() + delta - (delta * heading).sum(-1, keepdim=True) * heading
 
 
+def steered_path(x: Tensor, dt_s: float) -> Tensor:
+    """x (..., T, 6) whose positions keep their values but depend on the headings alone: the sampled
+    speeds are held, so a gradient through them reaches the yaw rates, never the accelerations (the
+    counterpart of :func:`~ctgpp.guidance.rules_relative.along_path`). Position t is the sum over
+    k ≤ t of speed_k · dt · (cos yaw_k, sin yaw_k), as in the unicycle rollout; on a bend a position's
+    offset across its own heading still depends on the earlier speeds (driven along other headings),
+    so :func:`across_heading` alone lets a lane's distance brake a vehicle in a curve."""
+    speed, yaw = x[..., 2].detach(), x[..., 3]
+    heading = torch.stack([torch.cos(yaw), torch.sin(yaw)], dim=-1)  # (..., T, 2)
+    moved = torch.cumsum((speed * dt_s)[..., None] * (heading - heading.detach()), dim=-2)  # zero-valued
+    return torch.cat([x[..., :2].detach() + moved, x[..., 2:]], dim=-1)
+
+
 def disc_layout(extent: Tensor) -> tuple[Tensor, Tensor]:
     """Discs tracing boxes of extent (..., 2) length, width m as capsules: NUM_DISCS discs of radius
     half the width (...) m, centred evenly along the length (offsets (..., D) m) from half a width
@@ -71,6 +84,38 @@ def disc_layout(extent: Tensor) -> tuple[Tensor, Tensor]:
     reach = (length / 2 - radius).clamp_min(0.0)  # (...) the end discs' offset
     frac = torch.linspace(-1.0, 1.0, NUM_DISCS, dtype=extent.dtype, device=extent.device)
     return reach[..., None] * frac, radius
+
+
+def outline_layout(extent: Tensor) -> tuple[Tensor, Tensor]:
+    """The points whose discs trace boxes of extent (..., 2) length, width m for contacts: the capsule
+    of :func:`disc_layout` and the box's four corners, discs of radius 0. The capsule rounds a corner
+    off by 0.4 of the half width (0.38 m for a 1.9 m wide car), and a box standing across another's
+    path touches it with a corner first: a car passing a stopped one angled into its lane clipped that
+    corner while the capsules kept 0.2 m apart (BENCHMARKS.md). Returns offsets (..., P, 2) m in the
+    box's frame (forward, left) and radii (..., P) m, P = NUM_DISCS + 4."""
+    along, radius = disc_layout(extent)  # (..., D), (...)
+    half_l, half_w = extent[..., 0].clamp_min(0.1) / 2, extent[..., 1].clamp_min(0.1) / 2
+    corners_along = torch.stack([half_l, half_l, -half_l, -half_l], dim=-1)  # (..., 4)
+    corners_across = torch.stack([half_w, -half_w, half_w, -half_w], dim=-1)
+    offsets = torch.stack([
+        torch.cat([along, corners_along], dim=-1),
+        torch.cat([torch.zeros_like(along), corners_across], dim=-1),
+    ], dim=-1)  # (..., P, 2)
+    radii = torch.cat([radius[..., None].expand_as(along), torch.zeros_like(corners_along)], dim=-1)
+    return offsets, radii
+
+
+def outline_reach(offsets: Tensor, radii: Tensor) -> Tensor:
+    """(...) m: how far from a box's centre its outline (offsets (..., P, 2), radii (..., P)) reaches."""
+    return (torch.linalg.vector_norm(offsets, dim=-1) + radii).amax(-1)
+
+
+def outline_points(pos: Tensor, yaw: Tensor, offsets: Tensor) -> Tensor:
+    """Outline points (..., P, 2) of boxes at pos (..., 2), yaw (...) with offsets (..., P, 2) m
+    (forward, left) in each box's frame, whose leading dimensions broadcast against ``pos``'s."""
+    heading = torch.stack([torch.cos(yaw), torch.sin(yaw)], dim=-1)[..., None, :]  # (..., 1, 2)
+    left = torch.stack([-torch.sin(yaw), torch.cos(yaw)], dim=-1)[..., None, :]
+    return pos[..., None, :] + offsets[..., 0:1] * heading + offsets[..., 1:2] * left
 
 
 def disc_centres(pos: Tensor, yaw: Tensor, offsets: Tensor) -> Tensor:

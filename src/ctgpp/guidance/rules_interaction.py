@@ -19,8 +19,10 @@ from ctgpp.guidance.context import GuidanceBatch
 from ctgpp.guidance.rules_common import (
     Rule,
     check_vehicle,
-    disc_centres,
     disc_layout,
+    outline_layout,
+    outline_points,
+    outline_reach,
     time_weights,
     world_states,
 )
@@ -28,11 +30,12 @@ from ctgpp.guidance.scope import LossScope, Pair, pair
 
 
 def _closest_overlap(a: Tensor, ra: Tensor, b: Tensor, rb: Tensor, buffer_m: float) -> Tensor:
-    """Hinged overlap (m) of disc sets a (K, Da, 2), radii ra (K,), and b (K, Db, 2), rb (K,) -> (K,):
-    max(ra + rb + buffer − distance, 0) at the closest disc pair, the largest over all pairs (the hinge
-    falls as the distance grows)."""
-    d2 = ((a[:, :, None] - b[:, None]) ** 2).sum(-1).flatten(1).amin(-1)  # (K,) closest pair, squared
-    return torch.relu(ra + rb + buffer_m - torch.sqrt(d2 + 1e-6))
+    """Hinged overlap (m) of disc sets a (K, Da, 2), radii ra (K, Da) or one per set (K,), and b
+    (K, Db, 2), rb (K, Db) or (K,) -> (K,): max(ra + rb + buffer − distance, 0) over all disc pairs."""
+    ra = ra[:, None].expand(a.shape[:2]) if ra.ndim == 1 else ra
+    rb = rb[:, None].expand(b.shape[:2]) if rb.ndim == 1 else rb
+    d = torch.sqrt(((a[:, :, None] - b[:, None]) ** 2).sum(-1) + 1e-6)  # (K, Da, Db)
+    return torch.relu(ra[:, :, None] + rb[:, None] + buffer_m - d).flatten(1).amax(-1)
 
 
 _Guard = TypeVar("_Guard", bound="PairGuard")
@@ -64,8 +67,8 @@ class PairGuard(Rule):
 @register_loss("no_collision")
 class NoCollision(PairGuard):
     """No vehicle collides with another vehicle or with a replayed agent (pedestrians, cyclists,
-    static objects, vehicles not controlled): each box is traced by discs along its length
-    (:func:`~ctgpp.guidance.rules_common.disc_layout`); the
+    static objects, vehicles not controlled): each box is traced by discs along its length and its
+    four corners (:func:`~ctgpp.guidance.rules_common.outline_layout`); the
     cost is the overlap (m) of the closest disc pair plus ``buffer_m``, hinged at zero, weighted by
     ``decay``**t over the horizon (normalized), summed over vehicles and obstacles.
 
@@ -103,7 +106,7 @@ class NoCollision(PairGuard):
         rows = x[a_all, n_all, t_all]  # (K, 6)
         pose = data_batch.pose.to(x)[a_all]  # (K, 3)
         xy = local_to_world(rows[:, :2], pose[:, :2], pose[:, 2])
-        discs = disc_centres(xy, rows[:, 3] + pose[:, 2], lay.offsets[a_all])  # (K, D, 2)
+        discs = outline_points(xy, rows[:, 3] + pose[:, 2], lay.offsets[a_all])  # (K, P, 2)
         near = kv + ko  # contacts; the vehicle sides a are discs[:near]
         side_b = torch.cat([discs[near:], lay.replayed.discs[o_o, t_o]])  # (near, D, 2)
         radius_b = torch.cat([lay.radius[b_v], lay.replayed.radius[o_o]])
@@ -140,23 +143,24 @@ class NoCollision(PairGuard):
         cached = self._layout_of
         if cached is not None and cached[0] is data_batch and cached[1:3] == (n_t, like.dtype):
             return cached[3]
-        offsets, radius = disc_layout(data_batch.extent.to(like))  # (B, D), (B,)
+        offsets, radius = outline_layout(data_batch.extent.to(like))  # (B, P, 2), (B, P)
         weights = time_weights(n_t, self.decay, like)
         replayed = replayed_agents(data_batch, n_t, like)
-        lay = _Layout(offsets, radius, offsets.amax(-1) + radius, weights, replayed)
+        lay = _Layout(offsets, radius, outline_reach(offsets, radius), weights, replayed)
         self._layout_of = (data_batch, n_t, like.dtype, lay)
         return lay
 
 
 def replayed_agents(data_batch: GuidanceBatch, n_t: int, like: Tensor) -> _Replayed:
-    """The replayed agents' discs and boxes over a horizon of ``n_t`` steps (dtype and device of
-    ``like``). Not kept in the batch's memo: a batch copied with other agents shares that dict."""
-    offsets, radius = disc_layout(data_batch.obstacles_extent.to(like))  # (O, D), (O,)
+    """The replayed agents' outlines (discs and corners) and boxes over a horizon of ``n_t`` steps
+    (dtype and device of ``like``). Not kept in the batch's memo: a batch copied with other agents
+    shares that dict."""
+    offsets, radius = outline_layout(data_batch.obstacles_extent.to(like))  # (O, P, 2), (O, P)
     xy, yaw = data_batch.obstacles_xy[:, :n_t].to(like), data_batch.obstacles_yaw[:, :n_t].to(like)
     valid = data_batch.obstacles_valid[:, :n_t].to(like.device)
-    reach = offsets.amax(-1) + radius
+    reach = outline_reach(offsets, radius)
     lo, hi = _boxes(xy, reach, valid)
-    return _Replayed(disc_centres(xy, yaw, offsets[:, None]), radius, reach, xy, valid, lo, hi)
+    return _Replayed(outline_points(xy, yaw, offsets[:, None]), radius, reach, xy, valid, lo, hi)
 
 
 class ClearAhead(PairGuard):
@@ -203,18 +207,22 @@ class ClearAhead(PairGuard):
         moving = speed.detach() >= self.min_speed_mps  # (B, N, T)
         if agt_mask is not None:
             moving = moving & agt_mask.to(device=x.device, dtype=torch.bool)[:, None, None]
-        costs = [self._vehicles(probe, radius, pos.detach(), yaw.detach(), offsets, moving)]
+        outline = outline_layout(data_batch.extent.to(x))  # the others' outlines: (B, P, 2), (B, P)
+        costs = [self._vehicles(probe, radius, pos.detach(), yaw.detach(), outline, moving)]
         costs.append(self._replayed(probe, radius, data_batch, n_t, moving))
         pen, n_idx, t_idx = (torch.cat(parts) for parts in zip(*costs, strict=True))
         weight = time_weights(n_t, self.decay, x)[t_idx]
         return x.new_zeros(n).index_add(0, n_idx, pen * weight)  # (N,)
 
     def _vehicles(
-        self, probe: Tensor, radius: Tensor, pos: Tensor, yaw: Tensor, offsets: Tensor, moving: Tensor
+        self, probe: Tensor, radius: Tensor, pos: Tensor, yaw: Tensor, outline: tuple[Tensor, Tensor],
+        moving: Tensor,
     ) -> tuple[Tensor, Tensor, Tensor]:
-        """(overlap (K,), sample (K,), step (K,)) of each probe that comes near another vehicle."""
+        """(overlap (K,), sample (K,), step (K,)) of each probe (radius (B,)) that comes near another
+        vehicle's outline (offsets (B, P, 2), radii (B, P))."""
         n_b = probe.shape[0]
-        reach = offsets.amax(-1) + radius  # (B,)
+        offsets, radii = outline
+        reach = outline_reach(offsets, radii)  # (B,)
         with torch.no_grad():
             d2 = ((probe.detach()[:, None] - pos[None]) ** 2).sum(-1)  # (A, B, N, T)
             near = d2 < ((radius[:, None] + reach[None] + self.buffer_m)[..., None, None]) ** 2
@@ -224,9 +232,9 @@ class ClearAhead(PairGuard):
                 if max(a, b) < n_b:
                     near[a, b] = near[b, a] = False
             a_i, b_i, n_i, t_i = torch.nonzero(near, as_tuple=True)
-        discs = disc_centres(pos[b_i, n_i, t_i], yaw[b_i, n_i, t_i], offsets[b_i])  # (K, D, 2) no grad
+        points = outline_points(pos[b_i, n_i, t_i], yaw[b_i, n_i, t_i], offsets[b_i])  # (K, P, 2) no grad
         probes = probe[a_i, n_i, t_i][:, None]  # (K, 1, 2)
-        return _closest_overlap(probes, radius[a_i], discs, radius[b_i], self.buffer_m), n_i, t_i
+        return _closest_overlap(probes, radius[a_i], points, radii[b_i], self.buffer_m), n_i, t_i
 
     def _replayed(
         self, probe: Tensor, radius: Tensor, data_batch: GuidanceBatch, n_t: int, moving: Tensor
@@ -245,9 +253,10 @@ class ClearAhead(PairGuard):
 
 @dataclass(frozen=True)
 class _Replayed:
-    """Replayed agents over a horizon of T steps: discs (O, T, D, 2), radius (O,), reach (O,) the
-    radius plus the farthest disc's offset, xy (O, T, 2) centres, valid (O, T) bool, and the boxes
-    lo, hi (O, 2) their reach covers (:func:`_boxes`; empty for an agent never valid)."""
+    """Replayed agents over a horizon of T steps: outline discs (O, T, P, 2) and radii (O, P)
+    (:func:`~ctgpp.guidance.rules_common.outline_layout`), reach (O,) how far the outline reaches from
+    the centre, xy (O, T, 2) centres, valid (O, T) bool, and the boxes lo, hi (O, 2) their reach covers
+    (:func:`_boxes`; empty for an agent never valid)."""
 
     discs: Tensor
     radius: Tensor
@@ -260,8 +269,9 @@ class _Replayed:
 
 @dataclass(frozen=True)
 class _Layout:
-    """What stays fixed while one batch is guided: the vehicles' disc offsets (B, D), radius (B,) and
-    reach (B,) (radius plus farthest offset), the time weights (T,) and the replayed agents."""
+    """What stays fixed while one batch is guided: the vehicles' outline offsets (B, P, 2) and radii
+    (B, P), reach (B,) (how far the outline reaches from the centre), the time weights (T,) and the
+    replayed agents."""
 
     offsets: Tensor
     radius: Tensor

@@ -49,6 +49,7 @@ from ctgpp.guidance.rules_common import (
     apply_mask,
     check_vehicle,
     soft_abs,
+    steered_path,
     world_states,
 )
 from ctgpp.guidance.scope import LossScope
@@ -309,7 +310,7 @@ class KeepLane(Rule):
         if agt_mask is not None:  # the lanes of vehicles left out are not even looked up
             rows = [r and bool(m) for r, m in zip(rows, agt_mask.tolist(), strict=True)]
         paths = [get_lane_paths(data_batch, b) if rows[b] else [] for b in range(n_b)]
-        pos, yaw = world_states(x, data_batch)  # (B, N, T, 2), (B, N, T)
+        pos, yaw = world_states(steered_path(x, data_batch.dt_s), data_batch)  # (B, N, T, 2), (B, N, T)
         dist, _ = lane_path_distance(across_heading(pos, yaw), paths)  # (B, N, T): steers, never brakes
         now = [self._distance_now(data_batch, b) if rows[b] else 0.0 for b in range(n_b)]
         allowance = x.new_tensor(now).clamp_min(self.tolerance_m)  # (B,) m
