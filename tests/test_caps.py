@@ -58,7 +58,8 @@ def test_capped_speeds_by_hand() -> None:
 
 def test_capped_speeds_never_exceed_the_cap_once_under_it() -> None:
     gen = torch.Generator().manual_seed(0)
-    acts = torch.stack([torch.rand(4, 6, 52, generator=gen) * 18 - 10, torch.randn(4, 6, 52, generator=gen)], -1)
+    acc = torch.rand(4, 6, 52, generator=gen) * 18 - 10  # within the action bounds, m/s²
+    acts = torch.stack([acc, torch.randn(4, 6, 52, generator=gen)], -1)
     speed0 = torch.rand(6, generator=gen) * 15
     caps = torch.tensor([5.0, 8.0, math.inf, 2.0, 12.0, 0.5])
     capped = cap_speeds(acts, speed0, caps, 0.1)
@@ -75,7 +76,8 @@ def test_capped_speeds_never_exceed_the_cap_once_under_it() -> None:
 def test_a_query_speed_limit_holds_from_the_first_step_it_can() -> None:
     """The mini_val case whose cars drive 9–10 m/s: every vehicle under 8 m/s from the step it could
     be, braking at the action bound (guidance alone braked at about 4 m/s²)."""
-    result = ctgpp.simulate("scene-0103", "no vehicle should go faster than 8 m/s", start_s=3.0, duration_s=3.0)
+    query = "no vehicle should go faster than 8 m/s"
+    result = ctgpp.simulate("scene-0103", query, start_s=3.0, duration_s=3.0)
     part = result.record()["query"]["parts"][0]
     assert part["satisfied"], part["measured"]
     speed = result.rollout.sim.speed[:, result.rollout.future]  # (A, T)

@@ -283,15 +283,17 @@ def test_a_corner_jutting_past_the_capsules_rounding_is_a_contact(batch: Guidanc
     from ctgpp.guidance.rules_common import disc_layout, outline_layout, outline_points
 
     two = replace(batch, origin=batch.origin + 1e4, pose=torch.zeros(2, 3), speed=torch.zeros(2),
-                  extent=torch.tensor([[4.0, 2.0]] * 2), memo={}, obstacles_valid=batch.obstacles_valid & False)
+                  extent=torch.tensor([[4.0, 2.0]] * 2), memo={},
+                  obstacles_valid=batch.obstacles_valid & False)  # no replayed agent
     yaw = math.pi / 4
     offsets, _ = outline_layout(torch.tensor([4.0, 2.0]))
-    corner = outline_points(torch.zeros(2), torch.tensor(yaw), offsets)[-1]  # rear right, relative to the centre
+    corner = outline_points(torch.zeros(2), torch.tensor(yaw), offsets)[-1]  # rear right, from the centre
     centre = torch.tensor([0.0, 1.05]) - corner  # that corner 0.05 m above vehicle 0's left side
     x = torch.zeros(2, 1, 1, 6)
     x[1, 0, 0, :2], x[1, 0, 0, 3] = centre, yaw
     along, radius = disc_layout(torch.tensor([4.0, 2.0]))
-    discs = [centre + along[:, None] * torch.tensor([math.cos(yaw), math.sin(yaw)]), along[:, None] * torch.tensor([1.0, 0.0])]
+    heading = torch.tensor([math.cos(yaw), math.sin(yaw)])
+    discs = [centre + along[:, None] * heading, along[:, None] * torch.tensor([1.0, 0.0])]
     gap = torch.cdist(discs[0], discs[1]).min() - 2 * radius
     assert gap > 0.25  # the capsules alone: no contact within the buffer
     cost = make_loss("no_collision", buffer_m=0.2)(x, two)

@@ -9,17 +9,19 @@ any other) and added to the rule's or query's loss by :func:`with_guards`:
   dragged onto it across whatever lies between; the fail metric leaves such vehicles out too).
 - ``collision``: :class:`~ctgpp.guidance.rules_interaction.NoCollision` between every pair of
   vehicles (moving or held still) and between every vehicle and every replayed agent (pedestrians,
-  cyclists, static objects, vehicles that appear later): all that the guidance batch holds; and
-  :class:`~ctgpp.guidance.rules_interaction.ClearAhead`: each moving vehicle keeps the road it covers
-  in the next ``headway_s`` seconds clear of them, so that it brakes or steers for what is ahead
-  before its plan's box touches it. A pair the loss asks to collide is left out of both
+  cyclists, static objects, vehicles that appear later), each box traced by its capsule and its
+  four corners (:func:`~ctgpp.guidance.rules_common.outline_layout`): all that the guidance batch
+  holds; and :class:`~ctgpp.guidance.rules_interaction.ClearAhead`: each moving vehicle keeps the
+  road it covers in the next ``headway_s`` seconds clear of them, so that it brakes for what is
+  ahead before its plan's box touches it. A pair the loss asks to collide is left out of both
   (``LossScope.collide``); each of the two still keeps clear of everyone else.
 - ``lane``: :class:`~ctgpp.guidance.rules_map.KeepLane` — within ``lane_tolerance_m`` of one of its
   lane paths, turns included, never further than it is now — for every vehicle the loss leaves in
   its lane (:meth:`LossScope.keeps_lane`): not the vehicles it sends across lanes (lane change,
   rightmost lane, turn, goal, reach a point, stop region, cut in, stay beside or head the way of
   another, both vehicles of a collision and the one that rear-ends). Its gradient steers and never
-  brakes (:class:`~ctgpp.guidance.rules_map.KeepLane`): braking is the collision guard's to ask.
+  brakes, on a bend too (:class:`~ctgpp.guidance.rules_map.KeepLane`): braking is the collision
+  guard's to ask.
 
 An opaque loss (a language model's program) may do anything to any vehicle: only the off-road
 guard, and the collision guard against replayed agents, apply then.

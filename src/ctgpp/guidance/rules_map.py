@@ -286,8 +286,8 @@ class KeepLane(Rule):
     (it is never pulled in from where it drives, only kept from drifting further). Zero for a vehicle
     on no lane. Unlike ``follow_lane`` it lets the vehicle take any turn and tolerates the lane's
     width, so that it is zero for a vehicle driving in its lane. Its gradient steers only
-    (:func:`~ctgpp.guidance.rules_common.across_heading`): a vehicle that drifts is turned back, not
-    slowed down."""
+    (:func:`~ctgpp.guidance.rules_common.steered_path`, :func:`~ctgpp.guidance.rules_common.across_heading`):
+    a vehicle that drifts is turned back, not slowed down, on a bend too."""
 
     param_doc = {
         "vehicle": ("", "displayed number of the vehicle; None for every vehicle"),
