@@ -9,7 +9,8 @@ never raised, just enough that the speed after the step is at most the cap, and 
 braking bound. Only the speeds over the cap change; the paths' shapes (yaw rates) are kept.
 
 :func:`speed_caps` reads the caps of a query's loss (a ``speed_limit``, alone, in an "and", or for
-some vehicles); :func:`cap_speeds` applies them to sampled actions.
+some vehicles); :func:`cap_speeds` applies them to sampled actions. A language model's program is
+opaque (it runs in its worker): its limits are left to guidance.
 """
 
 from __future__ import annotations
@@ -42,7 +43,8 @@ def _collect(loss: GuidanceLoss, caps: Tensor, rows: list[int]) -> None:
         for r in rows:
             caps[r] = min(float(caps[r]), loss.limit_mps - loss.margin_mps)
     elif isinstance(loss, ForVehicles):
-        _collect(loss.loss, caps, [r for r in rows if r in set(loss.vehicles)])
+        named = set(loss.vehicles)
+        _collect(loss.loss, caps, [r for r in rows if r in named])
     elif isinstance(loss, CompositeLoss):
         for part, weight in zip(loss.losses, loss.weights, strict=True):
             if weight > 0:

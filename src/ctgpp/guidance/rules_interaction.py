@@ -108,7 +108,7 @@ class NoCollision(PairGuard):
         xy = local_to_world(rows[:, :2], pose[:, :2], pose[:, 2])
         discs = outline_points(xy, rows[:, 3] + pose[:, 2], lay.offsets[a_all])  # (K, P, 2)
         near = kv + ko  # contacts; the vehicle sides a are discs[:near]
-        side_b = torch.cat([discs[near:], lay.replayed.discs[o_o, t_o]])  # (near, D, 2)
+        side_b = torch.cat([discs[near:], lay.replayed.discs[o_o, t_o]])  # (near, P, 2)
         radius_b = torch.cat([lay.radius[b_v], lay.replayed.radius[o_o]])
         pen = _closest_overlap(discs[:near], lay.radius[a_all[:near]], side_b, radius_b, self.buffer_m)
         weight = lay.time_weights[torch.cat([t_v, t_o])]

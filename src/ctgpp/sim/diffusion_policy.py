@@ -96,6 +96,8 @@ class DiffusionPolicy:
     loss, sampling follows Algorithm 2 (``guidance_config``) and filtration picks per vehicle the
     sample with the lowest loss; when the loss couples vehicles, the paper keeps one sample for the
     whole scene, the default composes the plan vehicle by vehicle (``GuidanceConfig.compose``).
+    With the realism guards, a query's speed limit also caps the sampled accelerations
+    (:mod:`ctgpp.guidance.caps`): it holds exactly, not only as far as guidance bends a plan.
     """
 
     name = "ctgpp"
