@@ -48,6 +48,8 @@ class PairGuard(Rule):
 
     couples_agents: ClassVar[bool] = True
     exempt: frozenset[Pair] = frozenset()  # vehicle pairs left out; an instance sets its own
+    decay: float  # weight of step t is decay**t (normalized)
+    _layout_of: tuple[GuidanceBatch, int, torch.dtype, _Layout] | None = None  # the last batch's
 
     def _same(self: _Guard) -> _Guard:
         """A new rule with this one's parameters (and no pair left out)."""
@@ -62,6 +64,19 @@ class PairGuard(Rule):
 
     def scope(self) -> LossScope:
         return LossScope.everyone()
+
+    def _layout(self, data_batch: GuidanceBatch, n_t: int, like: Tensor) -> _Layout:
+        """The vehicles' and the replayed agents' outlines over the horizon and the time weights, kept
+        while the same batch is guided (every denoising and Adam step of one plan)."""
+        cached = self._layout_of
+        if cached is not None and cached[0] is data_batch and cached[1:3] == (n_t, like.dtype):
+            return cached[3]
+        offsets, radius = outline_layout(data_batch.extent.to(like))  # (B, P, 2), (B, P)
+        weights = time_weights(n_t, self.decay, like)
+        replayed = replayed_agents(data_batch, n_t, like)
+        lay = _Layout(offsets, radius, outline_reach(offsets, radius), weights, replayed)
+        self._layout_of = (data_batch, n_t, like.dtype, lay)
+        return lay
 
 
 @register_loss("no_collision")
@@ -86,7 +101,6 @@ class NoCollision(PairGuard):
         super().__init__()
         self.buffer_m = float(buffer_m)
         self.decay = float(decay)
-        self._layout_of: tuple[GuidanceBatch, int, torch.dtype, _Layout] | None = None
 
     def _same(self) -> NoCollision:
         return NoCollision(self.buffer_m, self.decay)
@@ -136,19 +150,6 @@ class NoCollision(PairGuard):
         close = ((pos[vi] - rep.xy[oi][:, None]) ** 2).sum(-1) < reach**2  # (P, N, T)
         q, n_o, t_o = torch.nonzero(close & rep.valid[oi][:, None], as_tuple=True)
         return (i[p], j[p], n_v, t_v), (vi[q], oi[q], n_o, t_o)
-
-    def _layout(self, data_batch: GuidanceBatch, n_t: int, like: Tensor) -> _Layout:
-        """The discs of the vehicles and of the replayed agents over the horizon, kept while the same
-        batch is guided (every denoising and Adam step of one plan)."""
-        cached = self._layout_of
-        if cached is not None and cached[0] is data_batch and cached[1:3] == (n_t, like.dtype):
-            return cached[3]
-        offsets, radius = outline_layout(data_batch.extent.to(like))  # (B, P, 2), (B, P)
-        weights = time_weights(n_t, self.decay, like)
-        replayed = replayed_agents(data_batch, n_t, like)
-        lay = _Layout(offsets, radius, outline_reach(offsets, radius), weights, replayed)
-        self._layout_of = (data_batch, n_t, like.dtype, lay)
-        return lay
 
 
 def replayed_agents(data_batch: GuidanceBatch, n_t: int, like: Tensor) -> _Replayed:
@@ -207,22 +208,20 @@ class ClearAhead(PairGuard):
         moving = speed.detach() >= self.min_speed_mps  # (B, N, T)
         if agt_mask is not None:
             moving = moving & agt_mask.to(device=x.device, dtype=torch.bool)[:, None, None]
-        outline = outline_layout(data_batch.extent.to(x))  # the others' outlines: (B, P, 2), (B, P)
-        costs = [self._vehicles(probe, radius, pos.detach(), yaw.detach(), outline, moving)]
-        costs.append(self._replayed(probe, radius, data_batch, n_t, moving))
+        lay = self._layout(data_batch, n_t, x)  # the others' outlines, kept for the batch
+        costs = [self._vehicles(probe, radius, pos.detach(), yaw.detach(), lay, moving)]
+        costs.append(self._replayed(probe, radius, lay.replayed, moving))
         pen, n_idx, t_idx = (torch.cat(parts) for parts in zip(*costs, strict=True))
-        weight = time_weights(n_t, self.decay, x)[t_idx]
+        weight = lay.time_weights[t_idx]
         return x.new_zeros(n).index_add(0, n_idx, pen * weight)  # (N,)
 
     def _vehicles(
-        self, probe: Tensor, radius: Tensor, pos: Tensor, yaw: Tensor, outline: tuple[Tensor, Tensor],
-        moving: Tensor,
+        self, probe: Tensor, radius: Tensor, pos: Tensor, yaw: Tensor, lay: _Layout, moving: Tensor
     ) -> tuple[Tensor, Tensor, Tensor]:
         """(overlap (K,), sample (K,), step (K,)) of each probe (radius (B,)) that comes near another
-        vehicle's outline (offsets (B, P, 2), radii (B, P))."""
+        vehicle's outline (``lay``)."""
         n_b = probe.shape[0]
-        offsets, radii = outline
-        reach = outline_reach(offsets, radii)  # (B,)
+        offsets, radii, reach = lay.offsets, lay.radius, lay.reach  # (B, P, 2), (B, P), (B,)
         with torch.no_grad():
             d2 = ((probe.detach()[:, None] - pos[None]) ** 2).sum(-1)  # (A, B, N, T)
             near = d2 < ((radius[:, None] + reach[None] + self.buffer_m)[..., None, None]) ** 2
@@ -237,10 +236,9 @@ class ClearAhead(PairGuard):
         return _closest_overlap(probes, radius[a_i], points, radii[b_i], self.buffer_m), n_i, t_i
 
     def _replayed(
-        self, probe: Tensor, radius: Tensor, data_batch: GuidanceBatch, n_t: int, moving: Tensor
+        self, probe: Tensor, radius: Tensor, rep: _Replayed, moving: Tensor
     ) -> tuple[Tensor, Tensor, Tensor]:
-        """The same against the replayed agents' logged discs."""
-        rep = replayed_agents(data_batch, n_t, probe)
+        """The same against the replayed agents' logged outlines."""
         with torch.no_grad():
             d2 = ((probe.detach()[:, None] - rep.xy[None, :, None]) ** 2).sum(-1)  # (A, O, N, T)
             limit = (radius[:, None] + rep.reach[None] + self.buffer_m)[..., None, None]
