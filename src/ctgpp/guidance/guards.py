@@ -14,7 +14,9 @@ any other) and added to the rule's or query's loss by :func:`with_guards`:
   holds; and :class:`~ctgpp.guidance.rules_interaction.ClearAhead`: each moving vehicle keeps the
   road it covers in the next ``headway_s`` seconds clear of them, so that it brakes for what is
   ahead before its plan's box touches it. A pair the loss asks to collide is left out of both
-  (``LossScope.collide``); each of the two still keeps clear of everyone else.
+  (``LossScope.collide``); each of the two still keeps clear of everyone else. Its hard side runs
+  on the executed plans (:mod:`ctgpp.guidance.brakes`, :func:`braking_exemptions`): a vehicle whose
+  chosen plan still drives into what is ahead of it within 2 s brakes just enough.
 - ``lane``: :class:`~ctgpp.guidance.rules_map.KeepLane` — within ``lane_tolerance_m`` of one of its
   lane paths, turns included, never further than it is now — for every vehicle the loss leaves in
   its lane (:meth:`LossScope.keeps_lane`): not the vehicles it sends across lanes (lane change,
@@ -58,7 +60,7 @@ from ctgpp.guidance.rules_common import sample_sdf
 from ctgpp.guidance.rules_interaction import ClearAhead, NoCollision
 from ctgpp.guidance.rules_map import KeepLane
 from ctgpp.guidance.rules_motion import NoOffroad
-from ctgpp.guidance.scope import LossScope, pair
+from ctgpp.guidance.scope import LossScope, Pair, pair
 
 GUARD_NAMES = ("offroad", "collision", "lane")
 COLLISION_WEIGHT = 1.0  # 5 measured worse (BENCHMARKS.md, Realism guards)
@@ -188,6 +190,16 @@ def exempt_pairs(scope: LossScope, num_vehicles: int) -> list[tuple[int, int]]:
     collide (every pair when the loss is opaque)."""
     vehicles = range(num_vehicles)
     return [(a, b) for a in vehicles for b in vehicles if a < b and scope.may_collide(a, b)]
+
+
+def braking_exemptions(loss: GuidanceLoss | None, num_vehicles: int) -> frozenset[Pair] | None:
+    """The vehicle pairs that braking for what is ahead (:mod:`ctgpp.guidance.brakes`) leaves out under
+    ``loss`` — the collision guard's (those the loss may ask to collide) — or None where no collision
+    guard runs (guards off, or without the collision guard): then nothing brakes."""
+    guards = loss.guards if isinstance(loss, GuardedLoss) else loss
+    if not isinstance(guards, RealismGuards) or "collision" not in guards.config.guards:
+        return None
+    return guards.pair_guards(num_vehicles)[0].exempt
 
 
 def with_guards(

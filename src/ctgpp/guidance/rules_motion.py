@@ -25,6 +25,7 @@ from ctgpp.guidance.rules_common import (
     disc_layout,
     sample_sdf,
     soft_abs,
+    time_weights,
     world_states,
 )
 from ctgpp.guidance.scope import LossScope
@@ -59,18 +60,25 @@ class TargetSpeed(Rule):
     ``speed_mps`` is one speed for all, or a tensor (B, S) per vehicle and step: column t is future
     step t (t = 0 is the step after the current one), or with ``absolute_steps`` column j is scene
     step j (evaluation rule 5: 50% of each vehicle's logged speed, :mod:`ctgpp.eval.rule_setup`); NaN
-    entries are ignored.
+    entries are ignored. With ``decay`` below 1 step t weighs decay**t (normalized): the near term,
+    which the closed loop executes, counts most, and a vehicle gets to its speed sooner.
     """
 
     param_doc = {
         "speed_mps": ("m/s", "target speed, one for all or a (B, S) tensor per vehicle and step"),
         "absolute_steps": ("", "columns of a tensor speed_mps are scene steps, not future steps"),
+        "decay": ("per step", "weight of step t is decay**t (1: every step alike)"),
     }
 
-    def __init__(self, speed_mps: float | Tensor = 5.0, absolute_steps: bool = False) -> None:
+    def __init__(
+        self, speed_mps: float | Tensor = 5.0, absolute_steps: bool = False, decay: float = 1.0
+    ) -> None:
         super().__init__()
+        if not 0 < decay <= 1:
+            raise ValueError(f"decay must be in (0, 1], got {decay}")
         self.speed_mps = speed_mps if isinstance(speed_mps, Tensor) else float(speed_mps)
         self.absolute_steps = bool(absolute_steps)
+        self.decay = float(decay)
 
     def targets(self, x: Tensor, data_batch: GuidanceBatch) -> Tensor:
         """(B, T) target speeds for x's horizon, NaN where there is none."""
@@ -91,8 +99,9 @@ class TargetSpeed(Rule):
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         target = self.targets(x, data_batch)[:, None]  # (B, 1, T)
         has = ~torch.isnan(target)
-        dev = soft_abs(x[..., 2] - torch.nan_to_num(target)) * has  # (B, N, T)
-        cost = dev.sum(-1) / has.sum(-1).clamp_min(1)
+        w = has * time_weights(x.shape[2], self.decay, x)  # (B, 1, T)
+        dev = soft_abs(x[..., 2] - torch.nan_to_num(target)) * w  # (B, N, T)
+        cost = dev.sum(-1) / w.sum(-1).clamp_min(1e-12)
         return apply_mask(cost, agt_mask)
 
 

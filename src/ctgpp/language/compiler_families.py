@@ -30,6 +30,7 @@ DEFAULT_STOP_RADIUS_M = 3.0
 FOLLOW_RANGE_M = (10.0, 30.0)  # "follow vehicle N": the paper's keep-distance range
 SPEED_MARGIN_MPS = 0.5  # a compiled speed limit aims this far under the limit the verdict holds
 DISTANCE_MARGIN_M = 2.0  # a compiled distance band aims this far inside the band the verdict holds
+TARGET_SPEED_DECAY = 0.98  # "drive at v" weighs step t by this**t: the executed near term counts most
 
 
 Handler = Callable[[Clause, Context], list[PartSpec]]
@@ -173,7 +174,8 @@ def _keep_lane(c: Clause, ctx: Context) -> list[PartSpec]:
 
 
 def _target_speed(c: Clause, ctx: Context) -> list[PartSpec]:
-    return [PartSpec("target_speed", "target_speed", {"speed_mps": _speed(c)}, scope(c, ctx))]
+    params = {"speed_mps": _speed(c), "decay": TARGET_SPEED_DECAY}
+    return [PartSpec("target_speed", "target_speed", params, scope(c, ctx))]
 
 
 def _band(follower: int, leader: int, lo: float, hi: float) -> dict[str, Any]:

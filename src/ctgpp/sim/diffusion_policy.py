@@ -19,9 +19,10 @@ from ctgpp.diffusion.guided import GuidanceConfig, action_trajectories, guided_s
 from ctgpp.dynamics import clip_actions, rollout
 from ctgpp.geometry import local_to_world
 from ctgpp.guidance.base import GuidanceLoss
+from ctgpp.guidance.brakes import brake_for_contacts
 from ctgpp.guidance.caps import cap_speeds, speed_caps
 from ctgpp.guidance.context import build_guidance_batch
-from ctgpp.guidance.guards import GuardedLoss, RealismGuards
+from ctgpp.guidance.guards import GuardedLoss, RealismGuards, braking_exemptions
 from ctgpp.interfaces import Observation, Plan
 from ctgpp.model.checkpoint import load_checkpoint
 from ctgpp.model.denoiser import Denoiser
@@ -208,6 +209,14 @@ class DiffusionPolicy:
         chosen = filtration(rank(traj, data_batch), coupled, v)
         if coupled and self.guidance_config.compose:
             chosen = compose(traj, lambda scenes: rank(scenes, data_batch), chosen)
+        exempt = braking_exemptions(loss_fn, v)
+        if exempt is not None:  # the collision guard's hard side: nothing ahead is driven into
+            picked = actions[chosen, torch.arange(v)]  # (V, F, 2)
+            held_back = brake_for_contacts(picked, current, data_batch, exempt)
+            if not torch.equal(held_back, picked):
+                actions[chosen, torch.arange(v)] = held_back
+                traj = action_trajectories(actions, current, cfg.dt_s)
+                loss = loss_fn(traj, data_batch)
         return PlanSamples(actions, current, traj, loss, chosen)
 
     def sample_actions(self, obs: Observation) -> tuple[np.ndarray, np.ndarray]:
