@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import pytest
 import torch
 
@@ -11,7 +9,7 @@ from ctgpp.dynamics import rollout
 from ctgpp.dynamics.unicycle import ACC_MIN_MPS2
 from ctgpp.guidance import GuidanceBatch, build_guidance_batch
 from ctgpp.guidance.brakes import BRAKE_HORIZON_S, brake_for_contacts, braked
-from tests.test_guidance_helpers import real_observation
+from tests.test_guidance_helpers import boxes_scene, real_observation
 
 F = 52  # plan steps of 0.1 s
 
@@ -26,20 +24,9 @@ def _scene(batch: GuidanceBatch, poses: list[tuple[float, float, float]], speeds
     """Vehicles of 4 × 2 m at ``poses`` (x, y, yaw) driving at ``speeds``; with ``obstacle``, the first
     replayed agent (1 × 1 m) stands there, every other is left out. Returns the batch and the current
     states (V, 4) in each vehicle's frame."""
-    n = len(poses)
-    valid = torch.zeros_like(batch.obstacles_valid)
-    xy = batch.obstacles_xy.clone()
-    if obstacle is not None:
-        valid[0] = True
-        xy[0] = torch.tensor(obstacle)
-    scene = replace(
-        batch, pose=torch.tensor(poses), speed=torch.tensor(speeds), extent=torch.tensor([[4.0, 2.0]] * n),
-        obstacles_valid=valid, obstacles_xy=xy, obstacles_extent=torch.ones_like(batch.obstacles_extent),
-        obstacles_yaw=torch.zeros_like(batch.obstacles_yaw), memo={},
-    )
-    current = torch.zeros(n, 4)
+    current = torch.zeros(len(poses), 4)
     current[:, 2] = torch.tensor(speeds)
-    return scene, current
+    return boxes_scene(batch, poses, speeds, obstacle), current
 
 
 def _travel(actions: torch.Tensor, current: torch.Tensor, steps: int) -> torch.Tensor:

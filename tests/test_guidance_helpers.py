@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -32,6 +33,26 @@ from ctgpp.sim.closed_loop import SimConfig, _padded
 from ctgpp.sim.policy import Observation
 
 STEP = 30
+
+
+def boxes_scene(
+    batch: GuidanceBatch, poses: list[tuple[float, float, float]], speeds: list[float],
+    obstacle_xy: tuple[float, float] | None = None,
+) -> GuidanceBatch:
+    """``batch`` with its vehicles replaced by 4 × 2 m boxes at ``poses`` (x, y, yaw; local world frame)
+    driving at ``speeds``; with ``obstacle_xy``, the first replayed agent (1 × 1 m, heading +x) stands
+    there and every other replayed agent is left out."""
+    valid = torch.zeros_like(batch.obstacles_valid)
+    xy = batch.obstacles_xy.clone()
+    if obstacle_xy is not None:
+        valid[0] = True
+        xy[0] = torch.tensor(obstacle_xy)
+    return replace(
+        batch, pose=torch.tensor(poses), speed=torch.tensor(speeds),
+        extent=torch.tensor([[4.0, 2.0]] * len(poses)), obstacles_valid=valid, obstacles_xy=xy,
+        obstacles_extent=torch.ones_like(batch.obstacles_extent),
+        obstacles_yaw=torch.zeros_like(batch.obstacles_yaw), memo={},
+    )
 
 
 def real_observation(scene_id: str = "scene-0103", step: int = STEP) -> Observation:

@@ -14,7 +14,7 @@ from ctgpp.guidance import CompositeLoss, GuidanceBatch, build_guidance_batch, d
 from ctgpp.guidance.base import registered_losses
 from ctgpp.guidance.rules import TargetSpeed
 from ctgpp.guidance.rules_interaction import ClearAhead
-from tests.test_guidance_helpers import logged_x, real_observation
+from tests.test_guidance_helpers import boxes_scene, logged_x, real_observation
 
 
 @pytest.fixture(scope="module")
@@ -355,19 +355,7 @@ def _two_cars(batch: GuidanceBatch, other_xy: tuple[float, float], obstacle_xy: 
     """Vehicle 0 at the origin heading +x at 10 m/s, vehicle 1 standing at ``other_xy``, both 4 × 2 m
     (discs of radius 1 m at −1 … +1 m along their length); one step of plan. With ``obstacle_xy``, the
     first replayed agent stands there (every other replayed agent is left out)."""
-    valid = torch.zeros_like(batch.obstacles_valid)
-    obstacles_xy = batch.obstacles_xy.clone()
-    if obstacle_xy is not None:
-        valid[0] = True
-        obstacles_xy[0] = torch.tensor(obstacle_xy)
-    scene = replace(
-        batch, pose=torch.tensor([[0.0, 0.0, 0.0], [other_xy[0], other_xy[1], 0.0]]),
-        speed=torch.tensor([10.0, 0.0]), extent=torch.tensor([[4.0, 2.0], [4.0, 2.0]]),
-        obstacles_valid=valid, obstacles_xy=obstacles_xy,
-        obstacles_extent=torch.ones_like(batch.obstacles_extent),
-        obstacles_yaw=torch.zeros_like(batch.obstacles_yaw),
-        memo={},
-    )
+    scene = boxes_scene(batch, [(0.0, 0.0, 0.0), (other_xy[0], other_xy[1], 0.0)], [10.0, 0.0], obstacle_xy)
     x = torch.zeros(2, 1, 1, 6)
     x[0, 0, 0, 2] = 10.0
     return x, scene

@@ -27,6 +27,7 @@ from torch import Tensor
 from ctgpp.dynamics import rollout
 from ctgpp.dynamics.unicycle import ACC_MIN_MPS2, bound_yaw_rate
 from ctgpp.guidance.context import GuidanceBatch
+from ctgpp.guidance.rules_common import world_states
 from ctgpp.guidance.scope import Pair
 
 BRAKE_HORIZON_S = 2.0  # contacts this far ahead in the plan count
@@ -85,12 +86,9 @@ def braked(actions: Tensor, current: Tensor, share: Tensor, steps: int, dt_s: fl
 
 def _world(actions: Tensor, current: Tensor, batch: GuidanceBatch) -> tuple[Tensor, Tensor]:
     """Positions (V, F, 2) m (the batch's local world frame) and headings (V, F) rad of the plans."""
-    states = rollout(current, actions, batch.dt_s)  # (V, F, 4) in each vehicle's frame
-    pose = batch.pose.to(states)
-    c, s = torch.cos(pose[:, 2])[:, None], torch.sin(pose[:, 2])[:, None]
-    x, y = states[..., 0], states[..., 1]
-    pos = torch.stack([pose[:, 0:1] + c * x - s * y, pose[:, 1:2] + s * x + c * y], dim=-1)
-    return pos, states[..., 3] + pose[:, 2:3]
+    states = rollout(current, actions, batch.dt_s)  # (V, F, 4) (x, y, v, yaw) in each vehicle's frame
+    pos, yaw = world_states(states[:, None], batch)  # (V, 1, F, 2), (V, 1, F)
+    return pos[:, 0], yaw[:, 0]
 
 
 def _touches_ahead(
