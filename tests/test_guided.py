@@ -17,7 +17,7 @@ from ctgpp.diffusion.guided import (
     GuidanceConfig,
     action_trajectories,
     clip_radii,
-    cut_to_need,
+    guard_step,
     guide_mean,
     guided_sample,
     yield_to_guards,
@@ -111,35 +111,44 @@ def test_clipping_bounds_the_change_of_the_mean_even_with_a_huge_lr() -> None:
     assert ((out - mean).abs() <= 0.05).all() and (out > mean).all()
 
 
-def test_a_step_is_cut_to_what_the_loss_needs() -> None:
-    """Hand-computed, samples of one vehicle row (N, 1, 2): a step (−0.3, −0.3) against the gradient
-    (1, 1) promises a decrease of 0.6; a loss of 0.06 needs a tenth of it (factor 1), 0.24 with
-    factor 4; a loss of 1 needs all of it (the step is never lengthened); a sample whose step
-    promises nothing, or whose loss is not above zero, keeps its step."""
-    move = torch.tensor([[-0.3, -0.3], [-0.3, -0.3], [0.3, 0.3], [-0.3, -0.3]])[:, None]
-    grad = torch.ones(4, 1, 2)
-    cost = torch.tensor([0.06, 1.0, 0.06, -2.0])
-    out = cut_to_need(move, grad, cost, 1.0)
-    want = torch.tensor([[-0.03, -0.03], [-0.3, -0.3], [0.3, 0.3], [-0.3, -0.3]])
-    torch.testing.assert_close(out[:, 0], want)
-    factor4 = cut_to_need(move[:1], grad[:1], cost[:1], 4.0)
-    torch.testing.assert_close(factor4, torch.tensor([[[-0.12, -0.12]]]))
-    # one cost for all samples bounds the whole step: 0.06 of the 1.2 promised by the first two rows
-    torch.testing.assert_close(cut_to_need(move[:2], grad[:2], torch.tensor(0.06), 1.0), move[:2] * 0.05)
+def test_the_guards_step_along_their_gradient_as_far_as_their_cost_needs() -> None:
+    """Hand-computed, two samples of two vehicle rows (N, 2, 2): sample 0's guard cost 0.5 with the
+    gradient (1, 0) on the first row and (0, 0.01) on the second — the step is −0.5 · grad / 1.0001,
+    so the second row, with a hundredth of the first's share, moves a hundredth as far (Adam's sign
+    step would move both by the whole learning rate); factor 4 goes four times as far. Sample 1, with
+    no cost, does not move; one cost for all samples steps them together."""
+    grad = torch.zeros(2, 2, 2)
+    grad[0, 0, 0], grad[0, 1, 1], grad[1, 0, 0] = 1.0, 0.01, 1.0
+    step = guard_step(grad, torch.tensor([0.5, 0.0]), 1.0)
+    torch.testing.assert_close(step[0], -0.5 / 1.0001 * grad[0])
+    assert float(step[0, 1].abs().max()) == pytest.approx(0.01 * float(step[0, 0].abs().max()))
+    assert bool((step[1] == 0).all())
+    torch.testing.assert_close(guard_step(grad, torch.tensor([0.5, 0.0]), 4.0), 4 * step)
+    torch.testing.assert_close(guard_step(grad, torch.tensor(0.5), 1.0), -0.5 / 2.0001 * grad)
+    assert bool((guard_step(torch.zeros(1, 1, 2), torch.tensor([1.0]), 1.0) == 0).all())
 
 
-def test_the_vehicles_a_rule_moves_keep_their_step() -> None:
-    """Two vehicle rows of one sample, each promising 0.6: the first kept (a rule moves it) keeps its
-    step and does not count, the second is cut to the 0.06 that the cost needs."""
-    move = torch.full((1, 2, 2), -0.3)
-    out = cut_to_need(move, torch.ones(1, 2, 2), torch.tensor([0.06]), 1.0, torch.tensor([[True, False]]))
-    torch.testing.assert_close(out, torch.tensor([[[-0.3, -0.3], [-0.03, -0.03]]]))
+def test_a_vehicle_with_a_small_share_in_a_guards_cost_moves_a_little() -> None:
+    """A guard relu(x_a + 0.01 · x_b − 1) at x_a = 1.1, x_b = 0: with Adam's step (factor 0) both move
+    by the whole radius 0.3, x_b too though it makes 1 % of the cost; the guards' own step moves x_b
+    a hundredth of x_a and, the cost being linear there, lands on the bound (factor 1)."""
+    mean = torch.tensor([1.1, 0.0]).reshape(1, 2, 1, 1)
+
+    def guards_alone(x: Tensor) -> tuple[Tensor, Tensor]:
+        return x.new_zeros(()), torch.relu(x[:, 0, 0, 0] + 0.01 * x[:, 1, 0, 0] - 1.0)  # (N,)
+
+    adam = guide_mean(mean, guards_alone, 0.3, GuidanceConfig(inner_steps=1, lr=0.9, need_factor=0))
+    torch.testing.assert_close(adam - mean, torch.full_like(mean, -0.3))
+    own = guide_mean(mean, guards_alone, 0.3, GuidanceConfig(inner_steps=1, lr=0.9, need_factor=1.0))
+    moved = (own - mean).flatten()
+    assert float(moved[1]) == pytest.approx(0.01 * float(moved[0]), rel=1e-4)
+    assert float(guards_alone(own)[1]) == pytest.approx(0.0, abs=1e-6)
 
 
 def test_a_guard_barely_crossed_is_not_overshot() -> None:
     """A guard 0.01 over its bound: Adam's first step moves x by the full clip radius (0.3) whatever
-    the gradient's size and leaves it 0.29 past the bound; cut to need (factor 1), x lands on it. A
-    rule's own loss, given alone, keeps Algorithm 2's step."""
+    the gradient's size and leaves it 0.29 past the bound; the guards' own step (factor 1) lands it on
+    the bound. A rule's own loss, given alone, keeps Algorithm 2's step."""
     mean = torch.full((1, 1, 1, 1), 1.01)
 
     def hinge(x: Tensor) -> Tensor:
@@ -221,18 +230,19 @@ def test_the_rule_yields_to_the_guards_where_they_conflict() -> None:
 
 def test_a_guard_wins_over_a_much_larger_rule_pulling_the_other_way() -> None:
     """x is pulled up by a rule 1000 times steeper than the guard that pulls it down: summed, the rule
-    would win; given apart, (rule, guard), x follows the guard (Adam's step: its lr whatever the size)."""
+    would win; given apart, (rule, guard), x follows the guard — the rule's opposing part removed, the
+    guard's own step: its cost 0.3 over its gradient's |1|² = 6, times the need factor 4, −0.2 each."""
     mean = torch.zeros(1, 1, 3, 2)
 
     def summed(x: Tensor) -> Tensor:
-        return -1000.0 * x.sum() + x.sum()
+        return -1000.0 * x.sum() + x.sum() + 0.3
 
     def apart(x: Tensor) -> tuple[Tensor, Tensor]:
-        return -1000.0 * x.sum(), x.sum()
+        return -1000.0 * x.sum(), x.sum() + 0.3
 
     config = GuidanceConfig(inner_steps=1, lr=0.1)
     assert (guide_mean(mean, summed, 1.0, config) > 0).all()
-    torch.testing.assert_close(guide_mean(mean, apart, 1.0, config), torch.full_like(mean, -0.1))
+    torch.testing.assert_close(guide_mean(mean, apart, 1.0, config), torch.full_like(mean, -0.2))
     # where the guard is satisfied (no gradient), the rule alone moves x
     torch.testing.assert_close(guide_mean(mean, lambda x: (-x.sum(), x.sum() * 0.0), 1.0, config),
                                torch.full_like(mean, 0.1))

@@ -25,8 +25,8 @@ from ctgpp.metrics import (
     vehicle_outcomes,
 )
 from ctgpp.metrics.motion import yaw_sign_changes
-from ctgpp.metrics.offroad import map_end_points
 from ctgpp.scene.lanes import centerline_distance
+from ctgpp.scene.map_ends import map_end_points
 from ctgpp.scene.types import AgentTracks, AgentType, DrivableArea, LaneGraph, Scene
 from ctgpp.sim.closed_loop import episode_starts, simulate
 from ctgpp.sim.policy import ConstantVelocityPolicy, ReplayPolicy
@@ -229,6 +229,7 @@ def test_driving_on_past_where_the_mapped_road_stops_is_beyond_the_map():
     ev = events_by_vehicle(r)
     assert ev[3]["offroad"] is None
     assert ev[3]["beyond_map"] == {"time_s": 3.0, "reason": "it drives on past the end of the mapped road"}
+    assert ev[3]["lane_leave"] is None  # 2 m past the lane's end at 3.3 s: beyond the map, no lane to keep
     assert ev[4]["offroad"] == {"time_s": 3.0} and ev[4]["beyond_map"] is None
     assert ev[0]["offroad"] == {"time_s": 2.0} and ev[0]["beyond_map"] is None
     # the lane along y = 0 ends inside the road (drivable 3 m past it): not where the map stops

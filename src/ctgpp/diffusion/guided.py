@@ -26,12 +26,12 @@ from ctgpp.diffusion.schedule import Sampler, randn_like
 from ctgpp.dynamics import bound_yaw_rate, clip_actions, rollout
 
 # x -> the loss, or (the rule's or query's loss, the realism guards' loss): the guards then win where
-# the two pull a vehicle opposite ways (:func:`yield_to_guards`), and their step is cut to need
-# (:func:`cut_to_need`) but for the vehicles the rule moves
+# the two pull a vehicle opposite ways (:func:`yield_to_guards`), and they move the plans by their own
+# step along their gradient (:func:`guard_step`)
 Objective = Callable[[Tensor], "Tensor | tuple[Tensor, Tensor]"]
 ADAM_BETAS = (0.9, 0.999)
 ADAM_EPS = 1e-8
-NEED_FACTOR = 4.0  # GuidanceConfig.need_factor; 1 let collisions back (BENCHMARKS.md)
+NEED_FACTOR = 4.0  # GuidanceConfig.need_factor; 1 let collisions back (BENCHMARKS.md, with the cut step)
 
 
 @dataclass(frozen=True)
@@ -53,14 +53,19 @@ class GuidanceConfig:
     follows its map.
 
     need_factor: where the objective gives the realism guards apart (the pair (rule, guards), or
-    (0, guards) for the guards alone), each sample's step is cut so that the decrease of the guards'
-    cost it promises to first order is at most this many times that cost (:func:`cut_to_need`; 0: no
-    cut, Algorithm 2's step); the vehicles the rule's gradient moves keep their step. Adam's first
-    step moves every action whose gradient is not zero by the full learning rate, clipped to the
-    radius, whatever the gradient's size: a vehicle 0.1 m out of its lane had all its yaw rates turned
-    by 0.15 rad/s and its plan ended 1.4 m out. A rule's or query's own loss is never cut (with every
-    loss cut, the paper's no-collision rule let more vehicles collide: BENCHMARKS.md, Guard steps cut
-    to need).
+    (0, guards) for the guards alone), the guards move each sample by their own step, not Adam's:
+    along their gradient, as far as brings their cost to zero to first order, times this factor (a
+    relaxed Polyak step, :func:`guard_step`; 0: the guards' gradient joins the rule's in Adam,
+    Algorithm 2's step). Adam's first step moves every action whose gradient is not zero by the full
+    learning rate, clipped to the radius, whatever the gradient's size: a vehicle 0.1 m out of its
+    lane had all its yaw rates turned by 0.15 rad/s and its plan ended 1.4 m out, and at the first
+    denoising steps, where the plans are mostly noise and overlap everywhere in a dense queue, every
+    vehicle with the least share in an overlap braked by the whole radius (NGSIM Peachtree's guarded
+    traffic stopped 30 % of its moving vehicles, the log none). Cutting that step to the cost's need
+    kept its direction, the signs of the gradient (BENCHMARKS.md, Guard steps along their gradient);
+    the gradient's own direction moves the actions that make the cost. A rule's or query's own loss
+    keeps Adam's step (with every loss cut to need, the paper's no-collision rule let more vehicles
+    collide: BENCHMARKS.md, Guard steps cut to need).
 
     compose: for a loss that couples vehicles, filtration composes the plan vehicle by vehicle from
     the N samples (:func:`ctgpp.diffusion.filtration.compose`; the default: with the fast sampler,
@@ -104,12 +109,13 @@ def guide_mean(mean: Tensor, objective: Objective, radius: float, config: Guidan
 
     ``objective`` maps a tensor shaped like ``mean`` to the loss (any shape; its sum is minimized:
     samples are independent, so the gradient of the sum is each sample's own), or to the pair (the
-    rule's loss, the guards' loss), whose gradients are joined by :func:`yield_to_guards` and whose
-    step is cut to what the guards need (``config.need_factor``; the vehicles the rule moves keep
-    their whole step). No gradient reaches ``mean`` or anything it was computed from. Adam (β = 0.9,
-    0.999, ε = 1e-8, the defaults of ``torch.optim.Adam``, whose update this is) is written out: the
-    optimizer object's bookkeeping cost more than the update itself at every one of the many small
-    steps of a plan.
+    rule's loss, the guards' loss): then Adam steps on the rule's gradient with the part that opposes
+    the guards removed (:func:`yield_to_guards`), and the guards add their own step along their
+    gradient (:func:`guard_step`, ``config.need_factor``; with a factor of 0 their gradient joins the
+    rule's in Adam instead). No gradient reaches ``mean`` or anything it was computed from. Adam
+    (β = 0.9, 0.999, ε = 1e-8, the defaults of ``torch.optim.Adam``, whose update this is) is written
+    out: the optimizer object's bookkeeping cost more than the update itself at every one of the many
+    small steps of a plan.
     """
     base = mean.detach()
     delta, m, v = torch.zeros_like(base), torch.zeros_like(base), torch.zeros_like(base)
@@ -119,9 +125,17 @@ def guide_mean(mean: Tensor, objective: Objective, radius: float, config: Guidan
             out = objective(point)
             raw = out if isinstance(out, tuple) else (out,)
             parts = [part.sum() for part in raw]
+        guards_step = torch.zeros_like(base)
         if any(part.requires_grad for part in parts):
             g = [_gradient(part, point, retain=k + 1 < len(parts)) for k, part in enumerate(parts)]
-            grad = g[0] if len(g) == 1 else yield_to_guards(g[0], g[1]) + g[1]
+            grad = g[0]
+            if len(raw) == 2:  # (rule, guards)
+                grad = yield_to_guards(g[0], g[1])
+                if config.need_factor > 0:
+                    cost = _per_sample(raw[1].detach(), base.shape[0])
+                    guards_step = guard_step(g[1], cost, config.need_factor)
+                else:
+                    grad = grad + g[1]
         elif step == 1:  # the loss does not depend on x here (nothing near to avoid, say): no move at all
             break
         else:  # no longer depends on x: a zero gradient, and Adam's momentum carries on
@@ -130,36 +144,24 @@ def guide_mean(mean: Tensor, objective: Objective, radius: float, config: Guidan
         v.mul_(ADAM_BETAS[1]).addcmul_(grad, grad, value=1 - ADAM_BETAS[1])
         denom = (v.sqrt() / math.sqrt(1 - ADAM_BETAS[1] ** step)).add_(ADAM_EPS)
         move = -config.lr / (1 - ADAM_BETAS[0] ** step) * m / denom
-        if config.need_factor > 0 and len(raw) == 2 and parts[1].requires_grad:  # the guards' part
-            cost = _per_sample(raw[1].detach(), base.shape[0])
-            ruled = g[0].flatten(2).abs().amax(2) > 0  # (N, M) the rows the rule moves: not cut
-            move = cut_to_need(move.clamp(-radius, radius), g[1], cost, config.need_factor, ruled)
-        delta.add_(move)
+        delta.add_(move.clamp(-radius, radius) + guards_step)
         delta.clamp_(-radius, radius)  # line 9: clip the change to ±σ_k
     return base + delta
 
 
-def cut_to_need(
-    move: Tensor, grad: Tensor, cost: Tensor, factor: float, keep: Tensor | None = None
-) -> Tensor:
-    """``move`` (N, M, ...) — N samples of M vehicles' rows — with each sample's step scaled down
-    (never up) so that the decrease of the loss it promises to first order, −⟨grad, move⟩, is at most
-    ``factor`` × that sample's ``cost`` (N,) (a Polyak step's bound, relaxed by ``factor``); a cost ()
-    for all samples together bounds the whole step. The rows of ``keep`` (N, M) bool (the vehicles a
-    rule or query moves) keep their step and do not count in the promise. A step that promises no
-    decrease, or of a loss not above zero (no hinge to reach: a program may return a negative cost),
-    is left as it is. By sample, not by vehicle: the guards couple vehicles (a collision's cost is the
-    pair's); bounding each vehicle's step by its sample's cost instead left a vehicle 0.1 m out of
-    its lane turned 0.9 m out (BENCHMARKS.md)."""
-    rows = -(grad * move).flatten(2).sum(2)  # (N, M) what each row's step promises
-    free = torch.ones_like(rows, dtype=torch.bool) if keep is None else ~keep
-    gain = (rows * free).sum(1)  # (N,)
+def guard_step(grad: Tensor, cost: Tensor, factor: float) -> Tensor:
+    """The realism guards' step of N samples (grad (N, M, ...), their gradient at x; cost (N,), each
+    sample's guard cost, or () for all samples together): −factor · cost · grad / |grad|², per sample
+    — along the gradient, as far as brings the cost to zero to first order (Polyak's step for a loss
+    whose least value is zero, relaxed by ``factor``). An action moves in proportion to how much it
+    makes the cost: a vehicle with a small share in an overlap moves a little, one with none not at
+    all. Zero for a sample with no cost (a guard is a hinge) or no gradient."""
     if cost.ndim == 0:
-        cost, gain = cost.reshape(1), gain.sum().reshape(1)
-    scale = (factor * cost / gain.clamp_min(1e-12)).clamp(max=1.0)
-    scale = torch.where((gain > 0) & (cost > 0), scale, torch.ones_like(scale))  # (N,) or (1,)
-    scale = torch.where(free, scale[:, None], torch.ones_like(rows))  # (N, M)
-    return move * scale.reshape(*scale.shape, *[1] * (move.ndim - 2))
+        norm2 = (grad * grad).sum()
+    else:
+        norm2 = (grad * grad).flatten(1).sum(1)  # (N,)
+    size = factor * cost.clamp_min(0.0) / norm2.clamp_min(1e-12)  # no gradient: grad is 0, so is the step
+    return -size.reshape(*size.shape, *[1] * (grad.ndim - size.ndim)) * grad
 
 
 def _per_sample(cost: Tensor, num_samples: int) -> Tensor:

@@ -18,6 +18,7 @@ import torch
 from torch import Tensor
 
 from ctgpp.interfaces import Observation
+from ctgpp.scene.map_ends import open_drivable
 from ctgpp.scene.types import DrivableArea, Scene
 
 
@@ -130,7 +131,7 @@ def build_guidance_batch(obs: Observation, future_steps: int = 52) -> GuidanceBa
     obst_valid = log.valid[obst][:, t] & inside[None]  # (O, T)
     obst_xy = np.where(obst_valid[..., None], log.xy[obst][:, t] - origin, 0.0)  # (O, T, 2)
 
-    drivable = scene.drivable
+    drivable = open_drivable(scene)  # the road goes on where the map's crop cut its lanes
     return GuidanceBatch(
         scene=scene,
         step=step,

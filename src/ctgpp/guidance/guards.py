@@ -32,10 +32,11 @@ Priority. Where the rule and a guard pull a vehicle opposite ways, the guidance 
 rule's opposing part, and filtration prefers the samples that keep the guards (:class:`GuardedLoss`):
 the guards win.
 
-Weights. The sampler's Adam step moves every action element by about the learning rate whatever
-the size of its gradient (:mod:`ctgpp.guidance.rules_relative`) — cut, for the guards, to what their
-cost needs (:func:`ctgpp.diffusion.guided.cut_to_need`) — so weights barely set how hard a guard
-pushes a vehicle it alone concerns; they matter where a vehicle is pulled two ways (the
+Weights. The sampler's Adam step moves every action element of a rule by about the learning rate
+whatever the size of its gradient (:mod:`ctgpp.guidance.rules_relative`); the guards take their own
+step, along their gradient as far as their cost needs (:func:`ctgpp.diffusion.guided.guard_step`),
+which a guard's weight alone does not change — so weights do not set how hard a guard pushes a
+vehicle it alone concerns; they matter where a vehicle is pulled two ways (the
 query's pair) and in filtration, which composes the plan with the lowest total. Each guard costs
 metres (mean depth off the road, overlap depth, distance out of the lane), as the rules do, so all
 weigh 1, the rule or query too: on the quickstart query over 20 seeds, a collision weight of 5 or a

@@ -42,6 +42,7 @@ INTERSECTION_SEARCH_M = 150.0
 NEIGHBOUR_OFFSET_M = (2.0, 6.0)  # centerline spacing of a plausible neighbour lane
 NEIGHBOUR_MAX_HEADING_RAD = math.radians(20.0)
 LANE_WIDTH_M = 3.5  # where a neighbour is looked for when the lane graph links none
+CONTINUE_SPACING_M = 2.0  # point spacing of a path continued past the end of its last lane
 
 
 def vehicle_lane(data_batch: GuidanceBatch, i: int) -> LaneProjection | None:
@@ -61,9 +62,17 @@ def _reach_m(data_batch: GuidanceBatch, i: int) -> float:
 
 
 def _path_polyline(lanes: LaneGraph, path: list[int], start_s_m: float, reach_m: float) -> np.ndarray:
-    """(M, 2) world centerline of lanes ``path`` joined end to start, cut to [start_s, start_s + reach]."""
+    """(M, 2) world centerline of lanes ``path`` joined end to start, cut to [start_s, start_s + reach];
+    where the path's last lane has no successor before that reach (the map's crop cut the road, or
+    the lane graph has a gap), continued straight on along its last direction up to it."""
     line = np.concatenate([lanes.lane(path[0])] + [lanes.lane(j)[1:] for j in path[1:]])
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(line, axis=0), axis=1))])
+    missing = start_s_m + reach_m - s[-1]
+    step = line[-1] - line[-2]
+    if missing > 0 and not lanes.successors_of(path[-1]) and np.linalg.norm(step) > 0:
+        marks = np.arange(1, int(missing // CONTINUE_SPACING_M) + 2) * CONTINUE_SPACING_M  # (K,) m
+        more = line[-1] + marks[:, None] * step / np.linalg.norm(step)
+        line, s = np.concatenate([line, more]), np.concatenate([s, s[-1] + marks])
     lo, hi = max(start_s_m - BEHIND_M, 0.0), min(start_s_m + reach_m, s[-1])
     keep = (s > lo) & (s < hi)
     first = np.stack([np.interp(lo, s, line[:, 0]), np.interp(lo, s, line[:, 1])])[None]  # (1, 2)

@@ -11,7 +11,8 @@ start (``outcomes``), each a share of them or a mean over them, per episode:
   still count);
 - ``first_partner_held`` / ``_moving`` / ``_replayed``: the agent of its first collision is a held
   vehicle, another moving one, or a replayed agent; the three add up to ``moving_collision_rate``;
-- ``lane_leave``: > 2 m from every same-direction centerline at some step (``lane_keeping``);
+- ``lane_leave``: > 2 m from every same-direction centerline at some step (``lane_keeping``) before
+  it goes beyond the map (past the end of the mapped road there are no lanes to keep);
 - ``stop_rate``: slower than 0.2 m/s at some step; ``yaw_sign_changes``: yaw-rate sign changes per
   10 s (``motion``);
 - ``ade_5s``, ``fde_5s``, ``ade_10s``, ``fde_10s``: displacement from the log (m), over the moving
@@ -123,7 +124,8 @@ def first_partner_replayed(rollout: Rollout) -> MetricValue:
 
 @register_metric("lane_leave")
 def lane_leave(rollout: Rollout) -> MetricValue:
-    """Share of the moving vehicles > 2 m from every same-direction centerline at some future step."""
+    """Share of the moving vehicles > 2 m from every same-direction centerline at some future step
+    before they go beyond the map."""
     return _share(rollout, vehicle_outcomes(rollout).lane_step >= 0)
 
 

@@ -22,11 +22,10 @@ import numpy as np
 
 from ctgpp.metrics.collision import collided_vehicles, controlled_vehicle_indices
 from ctgpp.metrics.registry import MetricValue, register_metric
+from ctgpp.scene.map_ends import map_end_points
 from ctgpp.scene.types import Scene
 from ctgpp.sim.rollout import Rollout
 
-# a lane end is where the map stops when the road is not drivable this far past it
-MAP_END_PROBE_M = 3.0
 # a vehicle first off the road within these of such an end (past it, beside its centerline) drove off the map
 MAP_END_ALONG_M = (-1.0, 6.0)
 MAP_END_LATERAL_M = 2.5
@@ -77,21 +76,6 @@ def beyond_map_steps(rollout: Rollout, agents: np.ndarray | None = None) -> np.n
     sim_step = np.where((off_step >= 0) & off_map, off_step, -1)
     both = np.stack([log_step, sim_step])  # (2, C)
     return np.where((both >= 0).any(axis=0), np.where(both >= 0, both, n).min(axis=0), -1)
-
-
-def map_end_points(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
-    """Where the mapped road stops: the last points (K, 2) and unit directions (K, 2) of the lanes
-    with no successor beyond whose end the road is not drivable (:data:`MAP_END_PROBE_M` on), on the
-    raster. A lane that ends inside the road (a merge, a gap in the lane graph) is not one."""
-    lanes = scene.lanes
-    last = lanes.offsets[1:] - 1  # (L,) each lane's last point (a lane has at least two)
-    step = lanes.points[last] - lanes.points[last - 1]  # (L, 2) its last segment
-    norm = np.hypot(step[:, 0], step[:, 1])
-    open_end = ~np.isin(np.arange(lanes.num_lanes), lanes.successors[:, 0]) & (norm > 0)
-    end, unit = lanes.points[last][open_end], step[open_end] / norm[open_end, None]
-    probe = end + MAP_END_PROBE_M * unit
-    stops = scene.drivable.covers(probe) & ~scene.drivable.is_drivable(probe)
-    return end[stops], unit[stops]
 
 
 def past_map_end(scene: Scene, xy: np.ndarray) -> np.ndarray:

@@ -33,7 +33,9 @@ class VehicleOutcomes:
     agent, replayed ones included) and the agent hit then. offroad_step: the first off-road step of
     a vehicle that stays on the map (-1 for one beyond the map: it is reported by ``beyond_step``,
     see ``offroad.beyond_map_steps``). lane_step: first step > 2 m from every same-direction
-    centerline (``lane_keeping``), measured for the moving vehicles only (-1 for held ones).
+    centerline (``lane_keeping``), measured for the moving vehicles only (-1 for held ones) and up
+    to where a vehicle goes beyond the map (-1 when it leaves the lanes there: past the end of the
+    mapped road there are none to keep).
     stop_step: first step slower than 0.2 m/s. yaw_changes: yaw-rate sign changes per 10 s.
     ade / fde: {horizon s: (C,) m}, NaN where the log ends before the horizon (``motion``).
     """
@@ -76,6 +78,7 @@ def vehicle_outcomes(rollout: Rollout) -> VehicleOutcomes:
     offroad = first_step(offroad_steps(rollout, agents), rollout.future, rollout.sim.num_steps)
     lane = np.full(len(agents), -1, dtype=np.int64)
     lane[moving] = lane_leave_steps(rollout, agents[moving])
+    lane = np.where((beyond >= 0) & (lane >= beyond), -1, lane)  # beyond the map there is no lane to keep
     errors = {h: displacement_errors(rollout, agents, h) for h in HORIZONS_S}
     out = VehicleOutcomes(
         agents=agents,

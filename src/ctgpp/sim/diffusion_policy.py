@@ -191,7 +191,7 @@ class DiffusionPolicy:
                 traj = every_vehicle(action_trajectories(normalizer.denormalize_actions(x), moving, cfg.dt_s))
                 if isinstance(loss_fn, GuardedLoss):  # the rule's and the guards' apart: the guards win
                     return loss_fn.parts(traj, data_batch)
-                if isinstance(loss_fn, RealismGuards):  # the guards alone: their steps are cut to need
+                if isinstance(loss_fn, RealismGuards):  # the guards alone: they take their own step
                     return traj.new_zeros(()), loss_fn(traj, data_batch)
                 return loss_fn(traj, data_batch)
 
