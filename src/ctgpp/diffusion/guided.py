@@ -62,10 +62,11 @@ class GuidanceConfig:
     denoising steps, where the plans are mostly noise and overlap everywhere in a dense queue, every
     vehicle with the least share in an overlap braked by the whole radius (NGSIM Peachtree's guarded
     traffic stopped 30 % of its moving vehicles, the log none). Cutting that step to the cost's need
-    kept its direction, the signs of the gradient (BENCHMARKS.md, Guard steps along their gradient);
-    the gradient's own direction moves the actions that make the cost. A rule's or query's own loss
-    keeps Adam's step (with every loss cut to need, the paper's no-collision rule let more vehicles
-    collide: BENCHMARKS.md, Guard steps cut to need).
+    kept its direction, the signs of the gradient; the gradient's own direction moves the actions
+    that make the cost (BENCHMARKS.md, Guard steps along their gradient, and the road going on where
+    the map stops). A rule's or query's own loss keeps Adam's step (with every loss cut to need, the
+    paper's no-collision rule let more vehicles collide: BENCHMARKS.md, Guards that steer, look
+    ahead, and take the step their cost needs).
 
     compose: for a loss that couples vehicles, filtration composes the plan vehicle by vehicle from
     the N samples (:func:`ctgpp.diffusion.filtration.compose`; the default: with the fast sampler,
