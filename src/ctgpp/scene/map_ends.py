@@ -5,11 +5,13 @@ few metres inside the raster, where the road in fact goes on. A *map end* is the
 with no successor beyond which the raster, though it covers the ground, is not drivable
 (:func:`map_end_points`; a lane that ends inside the road — a merge, a gap in the lane graph — is
 not one). The metrics report a vehicle that drives off one as beyond the map, not off the road
-(:mod:`ctgpp.metrics.offroad`). Guidance must agree: a road edge drawn across the lanes where the
-crop cut them stops every vehicle that nears it, and with it the queue behind (measured: Peachtree's
-northbound queue, guarded, slowed from 8.6 to 1.2 m/s short of the cut while the model alone drove on
-at 11 m/s). :func:`open_drivable` is the drivable area with a lane-wide strip continued straight on
-from every map end to the raster's edge; the guidance's signed distance field is built from it.
+(:mod:`ctgpp.metrics.offroad`). Guidance must agree: to the road-edge guard, an edge drawn across
+the lanes where the crop cut them is a wall, and every plan that runs past it costs, so a vehicle
+nearing it is held back for nothing that is there (with the guards' own step, 30 % of Peachtree's
+moving vehicles drive off its arms within 10 s, as the log's leave the recorded area: BENCHMARKS.md,
+Guard steps along their gradient, and the road going on where the map stops). :func:`open_drivable`
+is the drivable area with a lane-wide strip continued straight on from every map end to the
+raster's edge; the guidance's signed distance field is built from it.
 """
 
 from __future__ import annotations
