@@ -110,6 +110,10 @@ def test_near_boxes_do_not_collide():
     assert not boxes_overlap(np.zeros(2), 0.0, ext, np.array([0.0, 2.05]), 0.0, ext)  # 5 cm gap aside
     assert not boxes_overlap(np.zeros(2), 0.0, ext, np.array([4.0, 0.0]), 0.0, ext)  # touching only
     assert boxes_overlap(np.zeros(2), 0.0, ext, np.array([3.95, 0.0]), 0.0, ext)
+    # with a gap of 0.1 m, boxes 5 cm apart count as touching, 15 cm apart not
+    assert boxes_overlap(np.zeros(2), 0.0, ext, np.array([4.05, 0.0]), 0.0, ext, gap_m=0.1)
+    assert boxes_overlap(np.zeros(2), 0.0, ext, np.array([0.0, 2.05]), 0.0, ext, gap_m=0.1)
+    assert not boxes_overlap(np.zeros(2), 0.0, ext, np.array([0.0, 2.15]), 0.0, ext, gap_m=0.1)
 
 
 def test_diamond_whose_circle_overlaps_but_box_does_not():

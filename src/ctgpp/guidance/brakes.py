@@ -21,6 +21,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -29,6 +30,7 @@ from ctgpp.dynamics.unicycle import ACC_MIN_MPS2, bound_yaw_rate
 from ctgpp.guidance.context import GuidanceBatch
 from ctgpp.guidance.rules_common import world_states
 from ctgpp.guidance.scope import Pair
+from ctgpp.metrics.boxes import boxes_overlap
 
 BRAKE_HORIZON_S = 2.0  # contacts this far ahead in the plan count
 BRAKE_BUFFER_M = 0.1  # boxes nearer than this touch
@@ -123,20 +125,12 @@ def _first_ahead(touch: Tensor, ahead: Tensor) -> Tensor:
 
 def _touch(pa: Tensor, ya: Tensor, ea: Tensor, pb: Tensor, yb: Tensor, eb: Tensor) -> tuple[Tensor, Tensor]:
     """Whether boxes a (centres pa (..., 2), yaws ya (...), extents ea (..., 2) length, width; all
-    broadcast) touch boxes b (within ``BRAKE_BUFFER_M``: no separating axis among the four sides'
-    normals), and whether b's centre lies ahead of a's along a's heading: two (...) bool."""
-    fa = torch.stack([torch.cos(ya), torch.sin(ya)], dim=-1)
-    fb = torch.stack([torch.cos(yb), torch.sin(yb)], dim=-1)
-    la, lb = torch.stack([-fa[..., 1], fa[..., 0]], -1), torch.stack([-fb[..., 1], fb[..., 0]], -1)
-    d = pb - pa
-    half_a, half_b = ea / 2, eb / 2
-    shape = torch.broadcast_shapes(d.shape[:-1], fb.shape[:-1])
-    apart = torch.zeros(shape, dtype=torch.bool, device=d.device)
-    for axis in (fa, la, fb, lb):
-        reach_a = half_a[..., 0] * (axis * fa).sum(-1).abs() + half_a[..., 1] * (axis * la).sum(-1).abs()
-        reach_b = half_b[..., 0] * (axis * fb).sum(-1).abs() + half_b[..., 1] * (axis * lb).sum(-1).abs()
-        apart |= (axis * d).sum(-1).abs() > reach_a + reach_b + BRAKE_BUFFER_M
-    return ~apart, (d * fa).sum(-1) > 0
+    broadcast) touch boxes b (within ``BRAKE_BUFFER_M``: :func:`~ctgpp.metrics.boxes.boxes_overlap`),
+    and whether b's centre lies ahead of a's along a's heading: two (...) bool."""
+    xa, yaw_a, ext_a, xb, yaw_b, ext_b = (t.detach().cpu().double().numpy() for t in (pa, ya, ea, pb, yb, eb))
+    touch = np.asarray(boxes_overlap(xa, yaw_a, ext_a, xb, yaw_b, ext_b, gap_m=BRAKE_BUFFER_M))
+    heading = torch.stack([torch.cos(ya), torch.sin(ya)], dim=-1)
+    return torch.from_numpy(touch).to(pa.device), ((pb - pa) * heading).sum(-1) > 0
 
 
 __all__ = ["BRAKE_HORIZON_S", "brake_for_contacts", "braked"]

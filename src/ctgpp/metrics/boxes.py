@@ -41,13 +41,15 @@ def boxes_overlap(
     xy_b: np.ndarray,
     yaw_b: np.ndarray,
     extent_b: np.ndarray,
+    gap_m: float = 0.0,
 ) -> np.ndarray:
     """Whether oriented boxes A and B overlap, by the separating axis theorem.
 
     xy (..., 2) m, yaw (...) rad, extent (..., 2) m for each box; shapes broadcast -> (...) bool.
     Two rectangles are disjoint exactly when one of the four edge normals (the two axes of each box)
     separates their projections. Boxes that only touch (projections meeting at one point) do not
-    overlap.
+    overlap. With ``gap_m`` > 0, projections must lie more than ``gap_m`` apart to separate: boxes
+    nearer than that along every axis count as overlapping.
 
     With Δ = yaw_a − yaw_b the projections of the axes of one box on those of the other are |cos Δ|
     and |sin Δ|, so every projected half-size is a sum of two terms.
@@ -61,11 +63,11 @@ def boxes_overlap(
     lb, wb = extent_b[..., 0] / 2, extent_b[..., 1] / 2
 
     # Axis u_a (A's heading): A projects to la, B to lb|cos Δ| + wb|sin Δ|.
-    sep = np.abs(d[..., 0] * ca + d[..., 1] * sa) >= la + lb * abs_cos + wb * abs_sin
+    sep = np.abs(d[..., 0] * ca + d[..., 1] * sa) >= la + lb * abs_cos + wb * abs_sin + gap_m
     # Axis v_a (A's left): A projects to wa, B to lb|sin Δ| + wb|cos Δ|.
-    sep |= np.abs(-d[..., 0] * sa + d[..., 1] * ca) >= wa + lb * abs_sin + wb * abs_cos
+    sep |= np.abs(-d[..., 0] * sa + d[..., 1] * ca) >= wa + lb * abs_sin + wb * abs_cos + gap_m
     # Axis u_b (B's heading).
-    sep |= np.abs(d[..., 0] * cb + d[..., 1] * sb) >= lb + la * abs_cos + wa * abs_sin
+    sep |= np.abs(d[..., 0] * cb + d[..., 1] * sb) >= lb + la * abs_cos + wa * abs_sin + gap_m
     # Axis v_b (B's left).
-    sep |= np.abs(-d[..., 0] * sb + d[..., 1] * cb) >= wb + la * abs_sin + wa * abs_cos
+    sep |= np.abs(-d[..., 0] * sb + d[..., 1] * cb) >= wb + la * abs_sin + wa * abs_cos + gap_m
     return ~sep
