@@ -23,6 +23,7 @@ from ctgpp.guidance.brakes import brake_for_contacts
 from ctgpp.guidance.caps import cap_speeds, speed_caps
 from ctgpp.guidance.context import build_guidance_batch
 from ctgpp.guidance.guards import GuardedLoss, RealismGuards, braking_exemptions
+from ctgpp.guidance.route_steering import route_lines, steer_along
 from ctgpp.interfaces import Observation, Plan
 from ctgpp.model.checkpoint import load_checkpoint
 from ctgpp.model.denoiser import Denoiser
@@ -200,6 +201,9 @@ class DiffusionPolicy:
         caps = speed_caps(self.guidance.rule, v) if isinstance(self.guidance, GuardedLoss) else None
         if caps is not None:  # a query's speed limit holds exactly, not only as far as guidance bends
             actions = cap_speeds(actions, current[:, 2], caps, cfg.dt_s)
+        lines = route_lines(self.guidance.rule, data_batch) if isinstance(self.guidance, GuardedLoss) else {}
+        if lines:  # a query's turn follows its lane path, not only as far as guidance bends
+            actions = steer_along(actions, current, lines, data_batch)
         traj = action_trajectories(actions, current, cfg.dt_s)  # (V, N, F, 6)
         if objective is None:
             return PlanSamples(actions, current, traj, None, torch.zeros(v, dtype=torch.long))
