@@ -148,6 +148,33 @@ def test_turn_sets_a_stopped_vehicle_going(batch: GuidanceBatch) -> None:
     assert float(actions.grad[0, 0, :, 0].max()) < 0  # descent accelerates every step
 
 
+def test_turn_asks_to_keep_going_now_more_than_later(batch: GuidanceBatch) -> None:
+    """Two plans of a standing vehicle over 2 s: standing for 0.8 s and then at 4 m/s falls short of
+    2 m/s by less on average (0.88 m/s) than 1 m/s throughout (1.01 m/s), so a plain mean preferred
+    it; weighted toward the near term (0.95**t, normalized; computed here by hand) it costs more."""
+    stopped = replace(batch, speed=torch.zeros(batch.num_vehicles), memo={})
+    rule = make_loss("turn_at_next_intersection", vehicle=0, direction="right", min_speed_mps=2.0)
+    current = torch.zeros(batch.num_vehicles, 4)
+
+    def shortfall(acc: torch.Tensor) -> float:
+        actions = torch.zeros(1, batch.num_vehicles, 20, 2)
+        actions[0, 0, :, 0] = acc
+        return float(rule.speed_shortfall(action_trajectories(actions, current, 0.1)[0], stopped, 0)[0])
+
+    steady = torch.zeros(20)
+    steady[:2] = torch.tensor([8.0, 2.0])  # 0.8, then 1 m/s from the second step
+    late = torch.zeros(20)
+    late[8:13] = 8.0  # standing for 0.8 s, then 0.8, 1.6, ..., 4 m/s
+    w = 0.95 ** torch.arange(20.0)
+    w = w / w.sum()
+    v_steady = torch.tensor([0.8] + [1.0] * 19)
+    v_late = torch.tensor([0.0] * 8 + [0.8, 1.6, 2.4, 3.2] + [4.0] * 8)
+    assert shortfall(steady) == pytest.approx(float((w * (2.0 - v_steady)).sum()), abs=1e-4)
+    assert shortfall(late) == pytest.approx(float((w * (2.0 - v_late).clamp_min(0.0)).sum()), abs=1e-4)
+    assert float((2.0 - v_late).clamp_min(0.0).mean()) < float((2.0 - v_steady).mean())  # a plain mean
+    assert shortfall(late) > shortfall(steady) + 0.1  # the plain mean preferred standing first
+
+
 def test_arc_length_and_point_at_by_hand() -> None:
     line = torch.tensor([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0]])  # east 10 m, then north 10 m
     points = torch.tensor([[5.0, 1.0], [12.0, 5.0], [-3.0, 0.5], [10.0, 14.0]], requires_grad=True)
