@@ -9,7 +9,7 @@ from ctgpp.dynamics import rollout
 from ctgpp.dynamics.unicycle import ACC_MIN_MPS2
 from ctgpp.guidance import GuidanceBatch, build_guidance_batch
 from ctgpp.guidance.brakes import BRAKE_HORIZON_S, brake_for_contacts, braked
-from tests.test_guidance_helpers import boxes_scene, real_observation
+from tests.test_guidance_helpers import boxes_scene, off_path, real_observation
 
 F = 52  # plan steps of 0.1 s
 
@@ -85,14 +85,7 @@ def test_braking_keeps_the_planned_path() -> None:
     out = braked(actions, current, torch.tensor([0.5]), 20, 0.1)
     planned, slowed = rollout(current, actions, 0.1)[0, :, :2], rollout(current, out, 0.1)[0, :, :2]
     line = torch.cat([torch.zeros(1, 2), planned])  # from the car's place
-    assert float(_off_path(slowed, line).max()) < 0.1
+    assert float(off_path(slowed, line).max()) < 0.1
     plain = rollout(current, torch.stack([out[..., 0], actions[..., 1]], -1), 0.1)[0, :, :2]
-    assert float(_off_path(plain, line).max()) > 0.3
+    assert float(off_path(plain, line).max()) > 0.3
     assert float(slowed[-1].norm()) < float(planned[19].norm())  # stops short of where the plan was at 2 s
-
-
-def _off_path(points: torch.Tensor, line: torch.Tensor) -> torch.Tensor:
-    """(P,) m from each of points (P, 2) to the polyline ``line`` (L, 2)."""
-    a, b = line[:-1], line[1:]
-    along = (((points[:, None] - a) * (b - a)).sum(-1) / ((b - a) ** 2).sum(-1)).clamp(0, 1)
-    return (points[:, None] - (a + along[..., None] * (b - a))).norm(dim=-1).amin(1)

@@ -55,6 +55,13 @@ def boxes_scene(
     )
 
 
+def off_path(points: torch.Tensor, line: torch.Tensor) -> torch.Tensor:
+    """(P,) m from each of points (P, 2) to the polyline ``line`` (L, 2)."""
+    a, b = line[:-1], line[1:]
+    along = (((points[:, None] - a) * (b - a)).sum(-1) / ((b - a) ** 2).sum(-1)).clamp(0, 1)
+    return (points[:, None] - (a + along[..., None] * (b - a))).norm(dim=-1).amin(1)
+
+
 def real_observation(scene_id: str = "scene-0103", step: int = STEP) -> Observation:
     """A scene at a step as the simulator shows it: controlled vehicles valid up to the step."""
     scene = Catalog.open().load(scene_id)

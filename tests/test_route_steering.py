@@ -15,7 +15,7 @@ from ctgpp.guidance import CompositeLoss, GuidanceBatch, build_guidance_batch, m
 from ctgpp.guidance.lane_paths import turn_path
 from ctgpp.guidance.route_steering import CURVE_LAT_ACC_MPS2, curve_speeds, route_lines, steer_along
 from ctgpp.scene.lanes import nearest_lane
-from tests.test_guidance_helpers import real_observation
+from tests.test_guidance_helpers import off_path, real_observation
 
 F = 52  # plan steps of 0.1 s
 
@@ -42,13 +42,6 @@ def _to_local(own: torch.Tensor, batch: GuidanceBatch, row: int) -> torch.Tensor
     return torch.stack([x0 + own[:, 0] * c - own[:, 1] * s, y0 + own[:, 0] * s + own[:, 1] * c], -1)
 
 
-def _off_path(points: torch.Tensor, line: torch.Tensor) -> torch.Tensor:
-    """(P,) m from each of points (P, 2) to the polyline ``line`` (L, 2)."""
-    a, b = line[:-1], line[1:]
-    along = (((points[:, None] - a) * (b - a)).sum(-1) / ((b - a) ** 2).sum(-1)).clamp(0, 1)
-    return (points[:, None] - (a + along[..., None] * (b - a))).norm(dim=-1).amin(1)
-
-
 def test_curve_speeds_on_a_circle_and_a_straight() -> None:
     """On a quarter circle of 15 m the bend allows √(3 · 15) = 6.7 m/s; on the straight before it
     nearly any speed, except at the vertices next to the bend."""
@@ -72,7 +65,7 @@ def test_a_car_at_speed_is_steered_round_a_bend_it_would_drive_straight_past(bat
     actions = torch.zeros(2, batch.num_vehicles, F, 2)
     out = steer_along(actions, current, {0: _to_local(own, batch, 0)}, batch)
     states = rollout(current[0].expand(2, 4), out[:, 0], 0.1)  # (N, F, 4) in vehicle 0's frame
-    assert float(_off_path(states[0, :, :2], own).max()) < 0.5
+    assert float(off_path(states[0, :, :2], own).max()) < 0.5
     on_arc = (states[0, :, 0] > 11.0) & (states[0, :, 1] < 14.0)
     assert float(states[0, on_arc, 2].max()) < math.sqrt(CURVE_LAT_ACC_MPS2 * 15.0) + 0.5
     assert abs(math.degrees(float(states[0, -1, 3])) - 90.0) < 5.0
@@ -122,5 +115,5 @@ def test_the_left_turn_of_scene_0103_follows_its_lane_path() -> None:
     points = np.concatenate([scene.lanes.lane(k) for k in path.lanes])
     line = torch.from_numpy(points[np.r_[True, np.linalg.norm(np.diff(points, axis=0), axis=1) > 1e-6]])
     driven = torch.from_numpy(arrays["xy"][agent, step + 1 :])
-    assert float(_off_path(driven, line).max()) < 1.0
+    assert float(off_path(driven, line).max()) < 1.0
     assert float(arrays["speed"][agent, -1]) < float(arrays["speed"][agent, step]) - 3.0
