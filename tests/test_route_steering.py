@@ -13,9 +13,16 @@ import ctgpp
 from ctgpp.dynamics import rollout
 from ctgpp.guidance import CompositeLoss, GuidanceBatch, build_guidance_batch, make_loss
 from ctgpp.guidance.lane_paths import turn_path
-from ctgpp.guidance.route_steering import CURVE_LAT_ACC_MPS2, curve_speeds, route_lines, steer_along
+from ctgpp.guidance.route_steering import (
+    CURVE_LAT_ACC_MPS2,
+    KEEP_MPS,
+    curve_speeds,
+    route_lines,
+    steer_along,
+    way_clear,
+)
 from ctgpp.scene.lanes import nearest_lane
-from tests.test_guidance_helpers import off_path, real_observation
+from tests.test_guidance_helpers import boxes_scene, off_path, real_observation
 
 F = 52  # plan steps of 0.1 s
 
@@ -85,6 +92,37 @@ def test_a_path_in_the_next_lane_is_joined_over_a_lane_changes_length(batch: Gui
     assert float(states[9, 1]) < 0.6
     assert float(states[:, 3].abs().max()) < math.radians(15.0)
     assert abs(float(states[39, 1]) - 3.0) < 0.3
+
+
+STRAIGHT = torch.stack([torch.arange(-5.0, 80.0, 0.5), torch.zeros(170)], -1)  # along +x from behind
+
+
+def test_a_crawling_car_is_kept_going_on_a_clear_way(batch: GuidanceBatch) -> None:
+    """One car at 3 m/s heading +x on a straight path, its plan slowing at 1 m/s² to a crawl: on a
+    clear way it speeds up at the 2 m/s² allowed to 5 m/s (after 1 s) and holds it; with a pedestrian
+    standing on the path 20 m ahead, or at 0.5 m/s (the plan stopping it), its plan is kept."""
+    plan = torch.zeros(1, 1, F, 2)
+    plan[..., 0] = -1.0
+    clear = boxes_scene(batch, [(0.0, 0.0, 0.0)], [3.0])
+    assert way_clear(STRAIGHT, clear, 0, F)
+    current = torch.tensor([[0.0, 0.0, 3.0, 0.0]])
+    out = steer_along(plan, current, {0: STRAIGHT}, clear)
+    speed = rollout(current, out[:, 0], 0.1)[0, :, 2]
+    torch.testing.assert_close(speed[9], torch.tensor(5.0))
+    torch.testing.assert_close(speed[10:], torch.full((F - 10,), KEEP_MPS))
+    blocked = boxes_scene(batch, [(0.0, 0.0, 0.0)], [3.0], obstacle_xy=(20.0, 0.5))
+    assert not way_clear(STRAIGHT, blocked, 0, F)
+    torch.testing.assert_close(steer_along(plan, current, {0: STRAIGHT}, blocked)[..., 0], plan[..., 0])
+    slow = torch.tensor([[0.0, 0.0, 0.5, 0.0]])
+    torch.testing.assert_close(steer_along(plan, slow, {0: STRAIGHT}, clear)[..., 0], plan[..., 0])
+
+
+def test_a_way_is_clear_of_agents_beside_it_or_behind(batch: GuidanceBatch) -> None:
+    """A 1 × 1 m agent 4 m beside the path (more than 2 m beyond both half widths) or 10 m behind the
+    car leaves its way clear; 3 m beside it does not."""
+    for xy, clear in (((20.0, 4.0), True), ((-10.0, 0.0), True), ((20.0, 3.0), False)):
+        scene = boxes_scene(batch, [(0.0, 0.0, 0.0)], [3.0], obstacle_xy=xy)
+        assert way_clear(STRAIGHT, scene, 0, F) == clear
 
 
 def test_route_lines_reads_the_turns_of_an_and(batch: GuidanceBatch) -> None:

@@ -17,13 +17,18 @@ path before they are ranked and executed, as a query's speed limit is held exact
   the vehicle's foot on it — at least ``LOOK_AHEAD_MIN_M``, and ``MERGE_M_PER_M`` metres per metre the
   vehicle lies beside the path, so that a path starting in the lane beside is joined over a lane
   change's length, not at once;
-- each acceleration is lowered, never raised, where the speed after the step would be more than the
-  path's bends within braking reach allow: ``CURVE_LAT_ACC_MPS2`` of lateral acceleration on the bend,
-  braked for at ``CURVE_BRAKE_MPS2``.
+- each acceleration is lowered where the speed after the step would be more than the path's bends
+  within braking reach allow: ``CURVE_LAT_ACC_MPS2`` of lateral acceleration on the bend, braked for
+  at ``CURVE_BRAKE_MPS2``;
+- and raised, at most to ``KEEP_ACC_MPS2``, where a vehicle that moves (``KEEP_FROM_MPS`` or more)
+  is slower than ``KEEP_MPS`` or than its bend allows, if that is less — while no replayed agent
+  (a pedestrian, a cyclist, a logged vehicle) comes within ``CLEAR_M`` of the path ahead over the plan.
+  Steered but not kept going, vehicle 20 of the failure case crawled through its turn at 1–3 m/s
+  (the model's plans there start slow), and vehicle 21 behind it never finished its own in 15 s.
 
-How fast the vehicle goes otherwise, and whether it stops (for a pedestrian on the crossing, the car
-ahead), stays the model's, the guards' and the brakes' (:mod:`ctgpp.guidance.brakes`, which keep the
-path as they brake).
+Whether a vehicle stops (for a pedestrian on the crossing, the car ahead) stays the model's, the
+guards' and the brakes' (:mod:`ctgpp.guidance.brakes`, which keep the path as they brake): a vehicle
+the plan slows under ``KEEP_FROM_MPS`` is not kept going, nor one whose way is not clear.
 """
 
 from __future__ import annotations
@@ -47,6 +52,10 @@ MERGE_M_PER_M = 8.0  # and this many metres per metre the vehicle lies beside th
 CURVE_LAT_ACC_MPS2 = 3.0  # a bend is taken no faster than this lateral acceleration allows
 CURVE_BRAKE_MPS2 = 4.0  # a bend ahead is braked for at this rate
 CURVE_SAMPLES = 8  # points at which the bends within braking reach are read
+KEEP_MPS = 5.0  # a moving vehicle on a clear way is kept going at least this fast (or its bend's speed)
+KEEP_ACC_MPS2 = 2.0  # by accelerating at most this much
+KEEP_FROM_MPS = 1.0  # a vehicle slower than this is not kept going: the plan stops it
+CLEAR_M = 2.0  # a way is clear where no replayed agent comes this near the path (beside both halves)
 
 
 def route_lines(loss: GuidanceLoss, data_batch: GuidanceBatch) -> dict[int, Tensor]:
@@ -91,13 +100,34 @@ def steer_along(
 ) -> Tensor:
     """``actions`` (N, V, F, 2) (acceleration m/s², yaw rate rad/s; each vehicle in its own frame from
     its current state ``current`` (V, 4), (0, 0, v, 0)) with the yaw rates of every vehicle in
-    ``lines`` (row -> polyline (M, 2), local world frame) replaced by pure pursuit along its line and
-    its accelerations lowered where the line's bends ahead ask for less speed (module docstring)."""
+    ``lines`` (row -> polyline (M, 2), local world frame) replaced by pure pursuit along its line, its
+    accelerations lowered where the line's bends ahead ask for less speed and raised where it crawls on
+    a clear way (module docstring)."""
     out = actions.clone()
     for row, line in lines.items():
-        out[:, row] = _steered(out[:, row], current[row], _in_own_frame(line.to(out), data_batch, row),
-                               data_batch.dt_s)
+        local = line.to(out)
+        clear = way_clear(local, data_batch, row, out.shape[2])
+        out[:, row] = _steered(out[:, row], current[row], _in_own_frame(local, data_batch, row),
+                               data_batch.dt_s, clear)
     return out
+
+
+def way_clear(line: Tensor, data_batch: GuidanceBatch, row: int, steps: int) -> bool:
+    """Whether no replayed agent comes within ``CLEAR_M`` (beyond half its width and half vehicle
+    ``row``'s) of ``line`` (M, 2), local world frame, at any of the next ``steps`` steps, ahead of the
+    vehicle and within what it covers over them at its speed or ``KEEP_MPS``."""
+    if not data_batch.num_obstacles:
+        return True
+    xy = data_batch.obstacles_xy[:, :steps].to(line)  # (O, T, 2)
+    valid = data_batch.obstacles_valid[:, :steps].to(line.device)
+    s_now = float(arc_length(data_batch.pose[row, :2].to(line), line))
+    reach = max(float(data_batch.speed[row]), KEEP_MPS) * steps * data_batch.dt_s
+    foot, _ = project_onto_polyline(xy, line)
+    beside = (xy - foot).norm(dim=-1)  # (O, T) m
+    along = arc_length(xy, line)
+    near = (float(data_batch.extent[row, 1]) + data_batch.obstacles_extent[:, 1, None].to(line)) / 2 + CLEAR_M
+    on_way = valid & (beside <= near) & (along > s_now) & (along <= s_now + reach)
+    return not bool(on_way.any())
 
 
 def _in_own_frame(line: Tensor, data_batch: GuidanceBatch, row: int) -> Tensor:
@@ -109,9 +139,9 @@ def _in_own_frame(line: Tensor, data_batch: GuidanceBatch, row: int) -> Tensor:
     return torch.stack([rel[:, 0] * c + rel[:, 1] * s, -rel[:, 0] * s + rel[:, 1] * c], dim=-1)
 
 
-def _steered(actions: Tensor, current: Tensor, line: Tensor, dt_s: float) -> Tensor:
+def _steered(actions: Tensor, current: Tensor, line: Tensor, dt_s: float, clear: bool) -> Tensor:
     """One vehicle's actions (N, F, 2) from its state ``current`` (4,), both in its frame, steered along
-    ``line`` (M, 2), same frame, step by step with the unicycle's own step."""
+    ``line`` (M, 2), same frame, step by step with the unicycle's own step; kept going where ``clear``."""
     out = actions.clone()
     cum, allowed = curve_speeds(line)
     reach = torch.linspace(0.0, 1.0, CURVE_SAMPLES).to(out)  # shares of the braking distance
@@ -123,6 +153,9 @@ def _steered(actions: Tensor, current: Tensor, line: Tensor, dt_s: float) -> Ten
         room = allowed[k] ** 2 + 2 * CURVE_BRAKE_MPS2 * (ahead - s_now[:, None])  # (N, K) (m/s)²
         limit = room.clamp_min(0.0).sqrt().amin(1)  # (N,) the most speed every bend ahead allows now
         acc = torch.minimum(out[:, t, 0], ((limit - speed) / dt_s).clamp_min(ACC_MIN_MPS2))
+        if clear:  # a moving vehicle on a clear way does not crawl through its turn
+            least = ((limit.clamp(max=KEEP_MPS) - speed) / dt_s).clamp(max=KEEP_ACC_MPS2)
+            acc = torch.where(speed >= KEEP_FROM_MPS, torch.maximum(acc, least), acc)
         moved = (speed + acc * dt_s).clamp_min(0.0)
         foot, _ = project_onto_polyline(state[:, :2], line)
         beside = (state[:, :2] - foot).norm(dim=-1)  # (N,) m
@@ -136,4 +169,4 @@ def _steered(actions: Tensor, current: Tensor, line: Tensor, dt_s: float) -> Ten
     return out
 
 
-__all__ = ["CURVE_LAT_ACC_MPS2", "curve_speeds", "route_lines", "steer_along"]
+__all__ = ["CURVE_LAT_ACC_MPS2", "KEEP_MPS", "curve_speeds", "route_lines", "steer_along", "way_clear"]
