@@ -28,7 +28,9 @@ path before they are ranked and executed, as a query's speed limit is held exact
 
 Whether a vehicle stops (for a pedestrian on the crossing, the car ahead) stays the model's, the
 guards' and the brakes' (:mod:`ctgpp.guidance.brakes`, which keep the path as they brake): a vehicle
-the plan slows under ``KEEP_FROM_MPS`` is not kept going, nor one whose way is not clear.
+the plan slows under ``KEEP_FROM_MPS`` is not kept going, nor one whose way is not clear. Simulated
+vehicles on the way (one turning ahead of it, cars held standing) do not count against a clear way:
+a vehicle kept going brakes for them when its plan would touch one within the brakes' horizon (2 s).
 """
 
 from __future__ import annotations
