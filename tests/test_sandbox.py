@@ -303,3 +303,15 @@ def test_an_import_of_a_helper_that_does_not_exist_lists_the_helpers_closest_fir
     assert set(listed) == set(HELPER_MODULES["ctgpp.guidance.helpers"])
     with pytest.raises(SandboxError, match="the helper modules: ctgpp.guidance, "):
         check_source(loss_program(RETURN, head="from ctgpp.guide import select_agent_ind"))
+
+
+def test_an_import_from_the_wrong_helper_module_names_the_right_one() -> None:
+    """What the 1.5B model sent in all six rounds of "vehicle 3 should take a left at the next
+    intersection": a lane helper imported from ctgpp.guidance.helpers. The refusal says where it is."""
+    program = loss_program(RETURN, head="from ctgpp.guidance.helpers import get_turn_lane_projection")
+    with pytest.raises(SandboxError) as refused:
+        check_source(program)
+    assert ("it is in ctgpp.guidance.lane_helpers: write `from ctgpp.guidance.lane_helpers import "
+            "get_turn_lane_projection`") in str(refused.value)
+    right = "from ctgpp.guidance.lane_helpers import get_turn_lane_projection"
+    assert check_source(loss_program(RETURN, head=right))

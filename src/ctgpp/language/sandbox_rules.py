@@ -408,8 +408,14 @@ def _module_path(node: ast.AST) -> str | None:
 
 
 def _unknown_helper(module: str, name: str, allowed: Collection[str]) -> str:
-    """The refusal of ``from module import name`` where ``module`` has no helper ``name``: what it has,
-    the closest first (a small model otherwise sends the same import again)."""
+    """The refusal of ``from module import name`` where ``module`` has no helper ``name``: the module
+    that has it, where one does (the local 1.5B model imported ``get_turn_lane_projection`` from
+    ``ctgpp.guidance.helpers`` in all six rounds of the left turn, told only what that module has);
+    else what ``module`` has, the closest first (a small model otherwise sends the same import again)."""
+    elsewhere = sorted(m for m, names in HELPER_MODULES.items() if name in names and m != module)
+    if elsewhere:
+        return (f"from {module} import {name} is not allowed: {module} has no helper {name}; it is in "
+                f"{elsewhere[0]}: write `from {elsewhere[0]} import {name}`.")
     close = difflib.get_close_matches(name, sorted(allowed), n=3, cutoff=0.0)
     rest = sorted(set(allowed) - set(close))
     return (f"from {module} import {name} is not allowed: {module} has no helper {name}. Its helpers, the "
