@@ -351,27 +351,18 @@ def _foot(points: Tensor, start: Tensor, vec: Tensor, k: Tensor) -> tuple[Tensor
     return a + t[..., None] * v, torch.atan2(v[..., 1], v[..., 0])
 
 
-def project_onto_polyline(points: Tensor, line: Tensor) -> tuple[Tensor, Tensor]:
-    """Closest points on a polyline: points (..., 2), line (M, 2) (M >= 2) -> foot points (..., 2)
-    and the polyline heading there (...) in rad. Differentiable w.r.t. ``points`` (the foot point
-    moves with the point along its segment; the choice of segment is not differentiated)."""
+def _locate(points: Tensor, line: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """points (..., 2) flattened to (1, Q, 2), the segments' starts and vectors (1, S, 2) of polyline
+    ``line`` (M, 2) and the index (1, Q) of each point's closest segment."""
     flat = points.reshape(1, -1, 2)  # (..., 2) -> (1, Q, 2)
     start, vec = line[None, :-1], (line[1:] - line[:-1])[None]  # (1, S, 2)
     valid = torch.ones(start.shape[:2], dtype=torch.bool, device=line.device)
-    k = _closest_segment(flat, start, vec, valid)
-    foot, heading = _foot(flat, start, vec, k)
-    return foot.reshape(points.shape), heading.reshape(points.shape[:-1])
+    return flat, start, vec, _closest_segment(flat, start, vec, valid)
 
 
-def arc_length(points: Tensor, line: Tensor) -> Tensor:
-    """Arc length (...) m along a polyline (M, 2) (M >= 2) of the foot points of points (..., 2);
-    beyond the polyline's ends the end segments continue straight (negative before its start).
-    Differentiable w.r.t. ``points`` (the foot moves along its segment; the choice of segment is not
-    differentiated)."""
-    flat = points.reshape(1, -1, 2)  # (..., 2) -> (1, Q, 2)
-    start, vec = line[None, :-1], (line[1:] - line[:-1])[None]  # (1, S, 2)
-    valid = torch.ones(start.shape[:2], dtype=torch.bool, device=line.device)
-    k = _closest_segment(flat, start, vec, valid)  # (1, Q)
+def _arc(flat: Tensor, start: Tensor, vec: Tensor, k: Tensor) -> Tensor:
+    """Arc length (1, Q) m of points flat (1, Q, 2) on their segments k (1, Q) of start, vec (1, S, 2),
+    the end segments continued straight."""
     seg = vec.norm(dim=-1).clamp_min(1e-9)  # (1, S) m
     before = torch.cumsum(seg, dim=-1) - seg  # (1, S) arc length at each segment's start
     a = torch.gather(start, 1, k[..., None].expand(*k.shape, 2))  # (1, Q, 2)
@@ -381,8 +372,33 @@ def arc_length(points: Tensor, line: Tensor) -> Tensor:
     last = seg.shape[1] - 1
     lo = torch.where(k == 0, torch.full_like(along, -math.inf), torch.zeros_like(along))
     hi = torch.where(k == last, torch.full_like(along, math.inf), length)
-    s = torch.gather(before, 1, k) + torch.maximum(torch.minimum(along, hi), lo)
-    return s.reshape(points.shape[:-1])
+    return torch.gather(before, 1, k) + torch.maximum(torch.minimum(along, hi), lo)
+
+
+def project_onto_polyline(points: Tensor, line: Tensor) -> tuple[Tensor, Tensor]:
+    """Closest points on a polyline: points (..., 2), line (M, 2) (M >= 2) -> foot points (..., 2)
+    and the polyline heading there (...) in rad. Differentiable w.r.t. ``points`` (the foot point
+    moves with the point along its segment; the choice of segment is not differentiated)."""
+    flat, start, vec, k = _locate(points, line)
+    foot, heading = _foot(flat, start, vec, k)
+    return foot.reshape(points.shape), heading.reshape(points.shape[:-1])
+
+
+def arc_length(points: Tensor, line: Tensor) -> Tensor:
+    """Arc length (...) m along a polyline (M, 2) (M >= 2) of the foot points of points (..., 2);
+    beyond the polyline's ends the end segments continue straight (negative before its start).
+    Differentiable w.r.t. ``points`` (the foot moves along its segment; the choice of segment is not
+    differentiated)."""
+    flat, start, vec, k = _locate(points, line)
+    return _arc(flat, start, vec, k).reshape(points.shape[:-1])
+
+
+def foot_and_arc_length(points: Tensor, line: Tensor) -> tuple[Tensor, Tensor]:
+    """:func:`project_onto_polyline`'s foot points (..., 2) and :func:`arc_length`'s arc lengths (...)
+    of points (..., 2) on ``line`` (M, 2), from one search of their closest segments."""
+    flat, start, vec, k = _locate(points, line)
+    foot, _ = _foot(flat, start, vec, k)
+    return foot.reshape(points.shape), _arc(flat, start, vec, k).reshape(points.shape[:-1])
 
 
 def point_at(line: Tensor, s_m: Tensor) -> tuple[Tensor, Tensor]:

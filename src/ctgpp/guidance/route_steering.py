@@ -45,7 +45,7 @@ from ctgpp.geometry import wrap_angle
 from ctgpp.guidance.base import GuidanceLoss
 from ctgpp.guidance.composite import CompositeLoss
 from ctgpp.guidance.context import GuidanceBatch
-from ctgpp.guidance.lane_paths import arc_length, point_at, project_onto_polyline
+from ctgpp.guidance.lane_paths import arc_length, foot_and_arc_length, point_at
 from ctgpp.guidance.rules_map import TurnAtNextIntersection
 
 LOOK_AHEAD_S = 0.8  # the pursued point lies this much driving ahead along the path
@@ -124,9 +124,8 @@ def way_clear(line: Tensor, data_batch: GuidanceBatch, row: int, steps: int) -> 
     valid = data_batch.obstacles_valid[:, :steps].to(line.device)
     s_now = float(arc_length(data_batch.pose[row, :2].to(line), line))
     reach = max(float(data_batch.speed[row]), KEEP_MPS) * steps * data_batch.dt_s
-    foot, _ = project_onto_polyline(xy, line)
+    foot, along = foot_and_arc_length(xy, line)  # (O, T, 2), (O, T) m
     beside = (xy - foot).norm(dim=-1)  # (O, T) m
-    along = arc_length(xy, line)
     near = (float(data_batch.extent[row, 1]) + data_batch.obstacles_extent[:, 1, None].to(line)) / 2 + CLEAR_M
     on_way = valid & (beside <= near) & (along > s_now) & (along <= s_now + reach)
     return not bool(on_way.any())
@@ -149,7 +148,8 @@ def _steered(actions: Tensor, current: Tensor, line: Tensor, dt_s: float, clear:
     reach = torch.linspace(0.0, 1.0, CURVE_SAMPLES).to(out)  # shares of the braking distance
     state = current.to(out).expand(out.shape[0], 4).clone()  # (N, 4) x, y, v, yaw
     for t in range(out.shape[1]):
-        speed, s_now = state[:, 2], arc_length(state[:, :2], line)  # (N,) m/s, m
+        speed = state[:, 2]  # (N,) m/s
+        foot, s_now = foot_and_arc_length(state[:, :2], line)  # (N, 2), (N,) m
         ahead = s_now[:, None] + reach * (speed**2 / (2 * CURVE_BRAKE_MPS2))[:, None]  # (N, K) m
         k = torch.searchsorted(cum, ahead.clamp_min(0.0).contiguous()).clamp(0, len(cum) - 1)
         room = allowed[k] ** 2 + 2 * CURVE_BRAKE_MPS2 * (ahead - s_now[:, None])  # (N, K) (m/s)²
@@ -159,7 +159,6 @@ def _steered(actions: Tensor, current: Tensor, line: Tensor, dt_s: float, clear:
             least = ((limit.clamp(max=KEEP_MPS) - speed) / dt_s).clamp(max=KEEP_ACC_MPS2)
             acc = torch.where(speed >= KEEP_FROM_MPS, torch.maximum(acc, least), acc)
         moved = (speed + acc * dt_s).clamp_min(0.0)
-        foot, _ = project_onto_polyline(state[:, :2], line)
         beside = (state[:, :2] - foot).norm(dim=-1)  # (N,) m
         look = torch.maximum(moved * LOOK_AHEAD_S, MERGE_M_PER_M * beside).clamp_min(LOOK_AHEAD_MIN_M)
         target = torch.stack([point_at(line, s)[0] for s in s_now + look])  # (N, 2)
