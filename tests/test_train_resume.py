@@ -71,3 +71,18 @@ def test_train_killed_and_resumed_reproduces_the_uninterrupted_run(tmp_path: Pat
     history = [json.loads((d / "config.json").read_text())["extra"]["history"] for d in (whole, resumed)]
     assert history[0] == history[1] and [h["step"] for h in history[0]] == [2, 4]
     assert not [p.name for p in resumed.iterdir() if ".tmp" in p.name]
+
+
+def test_a_run_removes_the_temporary_files_a_killed_write_left(tmp_path: Path) -> None:
+    """A kill while a state was written leaves its temporary file: ours (``io.atomic``) or safetensors'
+    own (``save_file`` writes ".tmp" and 6 random characters beside the file, then renames it — what
+    the killed run of the test above left once in CI). The next run removes both kinds, and only those."""
+    out = tmp_path / "run"
+    out.mkdir()
+    left = [out / ".train_state.k2x9q1.tmp.safetensors", out / ".tmpV7LVGR"]
+    for path in left:
+        path.write_bytes(b"half written")
+    (out / "notes.tmp").write_text("a user's file")
+    _run(out)
+    assert not [path.name for path in left if path.exists()]
+    assert (out / "notes.tmp").read_text() == "a user's file"

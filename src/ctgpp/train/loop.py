@@ -34,6 +34,10 @@ from ctgpp.scene.types import Scene
 from ctgpp.train.plot import plot_curve
 from ctgpp.train.state import has_train_state, load_train_state, read_train_scalars, save_train_state
 
+# ours (ctgpp.io.atomic: ".model.<random>.tmp.safetensors"), and safetensors' own: save_file writes
+# ".tmp" and 6 random characters beside the file and renames it (a kill in between leaves it)
+STALE_TEMPORARY = (".*.tmp*", ".tmp??????")
+
 log = logging.getLogger(__name__)
 
 
@@ -141,8 +145,10 @@ def train(
     optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
     schedule = kind.schedule(model_config)
     state: dict[str, Any] = {"step": 0, "history": [], "wall_s": 0.0, "smooth_s": config.smooth_s}
-    for stale in out.glob(".*.tmp*"):  # a temporary file of a write that a kill interrupted
-        stale.unlink()
+    for pattern in STALE_TEMPORARY:  # temporary files of writes that a kill interrupted
+        for stale in out.glob(pattern):
+            if stale.is_file():
+                stale.unlink()
     if has_train_state(out):
         state = load_train_state(out, model, ema, optimizer)
         log.info("resuming from step %d in %s", state["step"], out)
