@@ -21,9 +21,9 @@ from ctgpp.diffusion.guided import GuidanceConfig
 from ctgpp.guidance.context import build_guidance_batch
 from ctgpp.guidance.guards import GuardConfig, RealismGuards
 from ctgpp.model.checkpoint import load_checkpoint
+from ctgpp.policies.diffusion import DiffusionPolicy, SamplingConfig
+from ctgpp.policies.factory import default_checkpoint
 from ctgpp.sim.closed_loop import held_numbers, initial_observation
-from ctgpp.sim.diffusion_policy import DiffusionPolicy, SamplingConfig
-from ctgpp.sim.factory import default_checkpoint
 
 
 def main() -> None:

@@ -7,7 +7,7 @@ The same 10-s guided episodes (the default ``fast`` sampler, realism guards off 
 query's loss steers) are simulated four ways, interleaved episode by episode (the order rotating
 with the seed) so that the host's drift falls on all alike: unguided; the offline compiler's loss
 for the query; the language model's program loaded in the main process (what ctgpp did before
-issue 16, no limits); and the same program as :class:`ctgpp.language.remote.RemoteLoss`, every call
+issue 16, no limits); and the same program as :class:`ctgpp.language.llm.remote.RemoteLoss`, every call
 made in the limited worker process (what ``ctgpp simulate`` does now). Programs are written the
 paper's way (../shared/docs/LLM-API.md). Prints a markdown table: wall seconds per episode (median,
 mean), CPU seconds per episode (the main process and, for the worker's way, the worker process: the
@@ -38,15 +38,15 @@ from ctgpp.data.catalog import Catalog
 from ctgpp.guidance.base import GuidanceLoss
 from ctgpp.guidance.context import GuidanceBatch, build_guidance_batch
 from ctgpp.guidance.guards import GuardConfig
-from ctgpp.language.checks import LossChecker
-from ctgpp.language.compiler import compile_query
+from ctgpp.language.compiler.compile import compile_query
+from ctgpp.language.llm.remote import RemoteLoss
 from ctgpp.language.query import probe_x
-from ctgpp.language.remote import RemoteLoss
-from ctgpp.language.sandbox import load_loss_class
+from ctgpp.language.sandbox.checks import LossChecker
+from ctgpp.language.sandbox.program import load_loss_class
+from ctgpp.policies.factory import make_policy
+from ctgpp.policies.presets import preset
 from ctgpp.scene.types import Scene
 from ctgpp.sim.closed_loop import episode_bounds, initial_observation, simulate
-from ctgpp.sim.factory import make_policy
-from ctgpp.sim.presets import preset
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the checkout's tests/, for the programs
 from tests import model_programs  # noqa: E402

@@ -13,7 +13,7 @@ import argparse
 import time
 
 import ctgpp
-from ctgpp.sim.presets import preset
+from ctgpp.policies.presets import preset
 
 
 def main() -> None:

@@ -1,5 +1,5 @@
 """Shared fixtures: real scenes from ../shared/data and the embedded default data; a local
-OpenAI-compatible model (``llm_env``, with tests/llm_server.py)."""
+OpenAI-compatible model (``llm_env``, with tests/support/llm_server.py)."""
 
 from __future__ import annotations
 
@@ -10,13 +10,10 @@ from typing import TYPE_CHECKING
 import pytest
 
 from ctgpp.scene.types import Scene
+from tests.support.data import NUSCENES, SHARED_DATA
 
 if TYPE_CHECKING:
-    from tests.test_llm_client import CannedServer
-
-SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-NUSCENES = SHARED_DATA / "nuscenes-mini"
-NGSIM = SHARED_DATA / "commonroad-ngsim"
+    from tests.support.llm_server import CannedServer
 
 
 @pytest.fixture(scope="session")
@@ -40,7 +37,7 @@ def scene_0103(shared_data: Path) -> Scene:
 def llm_env(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> Iterator[CannedServer]:
     """A local OpenAI-compatible server (its ``replies`` are the model's answers), an empty program
     cache, no proxy between them and no model configured in the environment."""
-    from tests.test_llm_client import CannedServer
+    from tests.support.llm_server import CannedServer
 
     for name in ("HTTP_PROXY", "HTTPS_PROXY", "ALL_PROXY", "http_proxy", "https_proxy", "all_proxy",
                  "CTGPP_LLM_MODEL", "OPENAI_BASE_URL"):

@@ -22,8 +22,7 @@ from ctgpp.api.episode import default_scene_id
 from ctgpp.cli.main import COMMANDS, build_parser, main
 from ctgpp.data.catalog import Catalog
 from ctgpp.sim.closed_loop import EpisodeError, episode_config
-
-from .conftest import NGSIM
+from tests.support.data import NGSIM
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 SHORT, LONGER = "USA_Peach-1_1_T-1", "USA_Peach-4_1_T-1"  # 3.0 s and 7.0 s of real NGSIM log
@@ -42,6 +41,8 @@ def ngsim_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 # --- item 1: the Python API ---------------------------------------------------------------------
 
 
+@pytest.mark.model
+@pytest.mark.slow
 def test_simulate_gives_the_rollout_and_metrics_of_the_cli(tmp_path: Path) -> None:
     """Same scene, policy, rule, start, duration and seed: the CLI's files are the API's result."""
     args = ["--scene", "0103", "--policy", "ctgpp", "--seed", "5", "--start", "4", "--duration", "2"]
@@ -84,6 +85,8 @@ def test_user_mistakes_are_one_line_value_errors() -> None:
         ctgpp.load_scene("scene-9999")
 
 
+@pytest.mark.model
+@pytest.mark.slow
 def test_evaluate_and_evaluate_queries_run_the_episodes_of_simulate(tmp_path: Path) -> None:
     """``ctgpp evaluate-queries`` with its defaults simulates each case as ``ctgpp.simulate`` does with
     its own (the real model, guards on): the guided row is the API's episode for the same case and
@@ -91,7 +94,7 @@ def test_evaluate_and_evaluate_queries_run_the_episodes_of_simulate(tmp_path: Pa
     ``ctgpp evaluate``'s row under a rule is the API's episode with that rule."""
     from ctgpp.eval.episode import Episode, episode_rule, run_episode
     from ctgpp.eval.records import metric_cell
-    from ctgpp.sim.factory import PolicyFactory
+    from ctgpp.policies.factory import PolicyFactory
 
     query, start, seconds = "vehicle 1 should collide with vehicle 2", 3.0, 2.0
     cases = tmp_path / "cases.json"
@@ -122,11 +125,14 @@ def test_evaluate_and_evaluate_queries_run_the_episodes_of_simulate(tmp_path: Pa
     spec = episode_rule(scene, start, "speed_limit", episode_config(scene, seconds))
     assert spec is not None and spec.measure is not None
     limit = f"speed_limit:limit_mps={spec.measure.params['limit_mps']!r}"  # the rule as text
-    api = ctgpp.simulate(scene, rules=[limit], seed=0, start_s=start, duration_s=seconds, guards="off")
+    api = ctgpp.simulate(scene, rules=[limit], seed=0, start_s=start, duration_s=seconds, guards="off",
+                         stages="off")  # the paper's protocol: no guard and no stage beyond the paper
     assert evaluated.row["real"] == metric_cell(api.metrics["real"]) != ""
     assert evaluated.row["rule_violation"] == metric_cell(api.rules[limit]["violation"])
 
 
+@pytest.mark.model
+@pytest.mark.slow
 def test_a_parked_vehicle_the_query_steers_is_driven_by_the_model() -> None:
     """The infeasible held-out "same direction" case names vehicle 5 of scene-0916, parked at the
     start: with the query the model plans it and it moves; without, the simulator holds it where it
@@ -155,7 +161,7 @@ def test_a_parked_vehicle_the_query_steers_is_driven_by_the_model() -> None:
 
 
 def test_simulate_takes_a_policy_factory_and_no_settings_beside_it() -> None:
-    from ctgpp.sim.factory import PolicyFactory
+    from ctgpp.policies.factory import PolicyFactory
 
     factory = PolicyFactory()
     result = ctgpp.simulate("0103", policy="constvel", start_s=4.0, duration_s=1.0, policies=factory)
@@ -164,6 +170,8 @@ def test_simulate_takes_a_policy_factory_and_no_settings_beside_it() -> None:
         ctgpp.simulate("0103", policy="constvel", guards="off", checkpoint="x", policies=factory)
 
 
+@pytest.mark.model
+@pytest.mark.slow
 def test_readme_python_example_runs(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """The README's Python section, run as written."""
     text = README.read_text(encoding="utf-8")
@@ -302,7 +310,7 @@ def test_evaluate_queries_fits_its_episodes_to_short_scenes(
     from ctgpp.guidance.base import GuidanceLoss
     from ctgpp.guidance.scope import LossScope
     from ctgpp.interfaces import Policy
-    from ctgpp.sim.factory import PolicyFactory
+    from ctgpp.policies.factory import PolicyFactory
 
     calls: list[str] = []
 

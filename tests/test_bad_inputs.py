@@ -28,10 +28,9 @@ from ctgpp.data.scenarionet import load_scenarionet
 from ctgpp.data.store import save_scene
 from ctgpp.data.timebase import resample_tracks
 from ctgpp.io.strict_json import dumps_strict
+from ctgpp.policies.factory import default_checkpoint
 from ctgpp.scene.types import AgentTracks, AgentType, Scene
-from ctgpp.sim.factory import default_checkpoint
-
-from .conftest import NUSCENES
+from tests.support.data import NUSCENES
 
 PICKLE = NUSCENES / "scenarionet" / "sd_nuscenes_v1.0-mini_scene-0103.pkl"
 SIM = ["simulate", "--policy", "replay", "--animation", "none"]

@@ -17,11 +17,8 @@ from torch import Tensor
 from ctgpp.baselines import (
     BITSConfig,
     BITSModel,
-    BITSPlanConfig,
-    BITSPolicy,
     CTGConfig,
     CTGDenoiser,
-    CTGPolicy,
     checkpoint_kind,
     load_model,
     rank_candidates,
@@ -36,10 +33,12 @@ from ctgpp.guidance import GuidanceLoss, build_guidance_batch, make_loss
 from ctgpp.model.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from ctgpp.model.config import ModelConfig
 from ctgpp.model.denoiser import Denoiser
+from ctgpp.policies.bits import BITSPlanConfig, BITSPolicy
+from ctgpp.policies.ctg import CTGPolicy
+from ctgpp.policies.diffusion import SamplingConfig
+from ctgpp.policies.factory import PolicyFactory
 from ctgpp.scene.types import Scene
 from ctgpp.sim.closed_loop import SimConfig, initial_observation, simulate
-from ctgpp.sim.diffusion_policy import SamplingConfig
-from ctgpp.sim.factory import PolicyFactory
 from ctgpp.train.loop import TrainConfig, train
 
 TINY_CTG = CTGConfig(unet_width=8, cond_dim=16, map_channels=8, raster_pixels=32)

@@ -18,11 +18,10 @@ from ctgpp.data.batch import collate
 from ctgpp.data.windows import build_window
 from ctgpp.diffusion.guided import GuidanceConfig
 from ctgpp.model import Denoiser, ModelConfig
+from ctgpp.policies.diffusion import SamplingConfig
+from ctgpp.policies.presets import preset
 from ctgpp.scene.types import Scene
-from ctgpp.scene.vehicles import controlled_vehicles
-from ctgpp.sim.closed_loop import STATIONARY_SPEED_MPS
-from ctgpp.sim.diffusion_policy import SamplingConfig
-from ctgpp.sim.presets import preset
+from ctgpp.scene.vehicles import MOVING_SPEED_MPS, controlled_vehicles
 
 TINY = ModelConfig(d_model=32, heads=2, blocks=1, edge_dim=8, lane_hidden=16)
 
@@ -30,7 +29,7 @@ TINY = ModelConfig(d_model=32, heads=2, blocks=1, edge_dim=8, lane_hidden=16)
 def test_tiled_copies_beyond_the_social_radius_predict_like_the_original(scene_0103: Scene) -> None:
     step = 40
     controlled = controlled_vehicles(scene_0103, step)
-    still = scene_0103.agents.speed[controlled, step] < STATIONARY_SPEED_MPS
+    still = scene_0103.agents.speed[controlled, step] < MOVING_SPEED_MPS
     spec = TINY.window_config(max_agents=64, with_future=False)
     window = build_window(scene_0103, step, spec, controlled[~still], controlled[still])
     a, c = window.num_agents, window.context.num_agents
@@ -50,6 +49,8 @@ def test_tiled_copies_beyond_the_social_radius_predict_like_the_original(scene_0
     torch.testing.assert_close(copies[:, a : 2 * a], alone, rtol=1e-4, atol=1e-5)
 
 
+@pytest.mark.model
+@pytest.mark.slow
 def test_bench_times_a_guided_scenario_and_the_curves(tmp_path: Path) -> None:
     out = tmp_path / "bench"
     argv = ["bench", "--presets", "fast,ddim2-n1", "--episodes", "1", "--seeds", "0,3"]

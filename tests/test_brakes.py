@@ -8,8 +8,10 @@ import torch
 from ctgpp.dynamics import rollout
 from ctgpp.dynamics.unicycle import ACC_MIN_MPS2
 from ctgpp.guidance import GuidanceBatch, build_guidance_batch
-from ctgpp.guidance.brakes import BRAKE_HORIZON_S, brake_for_contacts, braked
-from tests.test_guidance_helpers import boxes_scene, off_path, real_observation
+from ctgpp.policies.stages.brakes import brake_for_contacts, braked
+from ctgpp.policies.stages.config import BrakeConfig
+from tests.support.observations import boxes_scene, real_observation
+from tests.support.paths import off_path
 
 F = 52  # plan steps of 0.1 s
 
@@ -42,7 +44,7 @@ def test_a_car_brakes_for_the_one_standing_ahead_just_enough(batch: GuidanceBatc
     scene, current = _scene(batch, [(0.0, 0.0, 0.0), (15.0, 0.0, 0.0)], [10.0, 0.0])
     actions = torch.zeros(2, F, 2)
     out = brake_for_contacts(actions, current, scene)
-    h = round(BRAKE_HORIZON_S / 0.1)
+    h = round(BrakeConfig().horizon_s / 0.1)
     assert bool((out[:, :, 0] <= actions[:, :, 0]).all()) and torch.equal(out[1], actions[1])
     gap = 15.0 - 4.0 - float(_travel(out, current, h)[0])  # bumper gap at the horizon's end
     assert 0.1 <= gap < 0.3  # stopped short of the buffer, not far short of it

@@ -5,6 +5,7 @@ scene-0103."""
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -15,10 +16,16 @@ from ctgpp.behaviours.tracks import earliest_speed_step
 from ctgpp.dynamics import rollout
 from ctgpp.dynamics.unicycle import ACC_MIN_MPS2
 from ctgpp.guidance import CompositeLoss, make_loss
-from ctgpp.guidance.caps import cap_speeds, speed_caps
-from ctgpp.guidance.rules_relative import ForVehicles
-from ctgpp.guidance.timing import During
-from ctgpp.language.compiler import compile_query
+from ctgpp.guidance.rules.relative import ForVehicles
+from ctgpp.guidance.rules.timing import During
+from ctgpp.language.compiler.compile import compile_query
+from ctgpp.policies.stages.caps import cap_speeds
+
+
+def speed_caps(loss: torch.nn.Module, num_vehicles: int) -> torch.Tensor | None:
+    """The caps (V,) a loss asks of the plan through the contract (None: it caps no speed)."""
+    constraints = loss.constraints(SimpleNamespace(num_vehicles=num_vehicles))
+    return constraints.cap_tensor(num_vehicles) if constraints.speed_caps else None
 
 
 def test_caps_read_limits_through_and_and_for_vehicles() -> None:
@@ -73,6 +80,8 @@ def test_capped_speeds_never_exceed_the_cap_once_under_it() -> None:
     torch.testing.assert_close(capped[:, 2], acts[:, 2])  # no cap: unchanged
 
 
+@pytest.mark.model
+@pytest.mark.slow
 def test_a_query_speed_limit_holds_from_the_first_step_it_can() -> None:
     """The mini_val case whose cars drive 9–10 m/s: every vehicle under 8 m/s from the step it could
     be, braking at the action bound (guidance alone braked at about 4 m/s²)."""

@@ -14,8 +14,7 @@ from PIL import Image
 
 from ctgpp.cli.main import main
 from ctgpp.data.catalog import default_data_dir
-
-from .conftest import NGSIM, NUSCENES
+from tests.support.data import NGSIM, NUSCENES
 
 
 def test_scenes_lists_the_embedded_data(capsys: pytest.CaptureFixture[str]) -> None:

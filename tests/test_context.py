@@ -13,10 +13,10 @@ from ctgpp.data.batch import collate
 from ctgpp.data.context import ContextConfig, Role, select_context, standing_vehicles, training_roles
 from ctgpp.data.windows import build_window
 from ctgpp.model import Denoiser, ModelConfig
+from ctgpp.policies.diffusion import DiffusionPolicy, SamplingConfig
 from ctgpp.scene.types import AgentTracks, AgentType, Scene
 from ctgpp.scene.vehicles import controlled_vehicles
 from ctgpp.sim.closed_loop import SimConfig, initial_observation, simulate
-from ctgpp.sim.diffusion_policy import DiffusionPolicy, SamplingConfig
 
 TINY = ModelConfig(d_model=32, heads=2, blocks=1, edge_dim=8, lane_hidden=16)
 STEP = 60
@@ -158,7 +158,7 @@ def test_in_closed_loop_parked_replayed_vehicles_are_held_as_in_training(
     """Training never replays a vehicle at rest: it is held (or sampled). In closed loop, a vehicle the
     simulator replays standing still (a parked car the log sees later) is given the held role, and a
     replayed vehicle that moves keeps the replayed role."""
-    import ctgpp.sim.diffusion_policy as diffusion_policy
+    import ctgpp.policies.stages.sampling as sampling
 
     policy = DiffusionPolicy(Denoiser(TINY), SamplingConfig.evenly("ddim", 2, 2))
     obs = initial_observation(scene_0103, 3.0)
@@ -173,7 +173,7 @@ def test_in_closed_loop_parked_replayed_vehicles_are_held_as_in_training(
         windows.append(build_window(*args, **kwargs))
         return windows[-1]
 
-    monkeypatch.setattr(diffusion_policy, "build_window", build_and_keep)
+    monkeypatch.setattr(sampling, "build_window", build_and_keep)
     policy.sample_plans(obs)
     role = dict(zip(windows[0].context.index.tolist(), windows[0].context.role.tolist(), strict=True))
     shown = [v for v in parked.tolist() if v in role]

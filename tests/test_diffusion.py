@@ -145,7 +145,7 @@ class TestDDIM(SamplerContract):
             assert torch.allclose(m1, m2, atol=1e-6) and torch.allclose(s1, s2, atol=1e-6)
 
     def test_the_policy_config_passes_eta_to_the_sampler(self) -> None:
-        from ctgpp.sim.diffusion_policy import SamplingConfig
+        from ctgpp.policies.diffusion import SamplingConfig
 
         made = SamplingConfig.evenly("ddim", 20, 2, eta=1.0).make(CosineSchedule())
         assert isinstance(made, DDIMSampler) and made.eta == 1.0 and len(made.timesteps) == 20

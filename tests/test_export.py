@@ -25,11 +25,10 @@ from ctgpp.geometry import wrap_angle
 from ctgpp.io.commonroad_export import DECIMALS, commonroad_ids
 from ctgpp.io.export import MissingDependencyError, check_export_kind, export, export_name
 from ctgpp.io.lane_bounds import lane_bounds, lane_widths_m
+from ctgpp.policies.factory import make_policy
 from ctgpp.scene.types import AgentTracks, AgentType, Scene
 from ctgpp.sim.closed_loop import SimConfig, episode_bounds, simulate
-from ctgpp.sim.factory import make_policy
-
-from .conftest import NGSIM
+from tests.support.data import NGSIM
 
 SHORT = SimConfig(history_steps=11, duration_steps=30)
 PEACHTREE = NGSIM / "Peachtree" / "USA_Peach-4_2_T-1.xml"

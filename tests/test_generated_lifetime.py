@@ -26,15 +26,14 @@ from torch import Tensor
 
 from ctgpp.guidance import CompositeLoss, GuidanceBatch, build_guidance_batch
 from ctgpp.guidance.base import GuidanceLoss
-from ctgpp.language.cache import LossCache
-from ctgpp.language.checks import GRACE_S, LossChecker, LossCheckError
-from ctgpp.language.generate import generate_loss
-from ctgpp.language.remote import GeneratedLossError, RemoteLoss
-from ctgpp.language.trial import REPEATS, SAMPLE_COUNTS
-from tests.llm_server import model_argv
-from tests.test_guidance_helpers import logged_x, real_observation
-from tests.test_llm_client import GOOD as COLLISION
-from tests.test_llm_client import MODEL, CannedServer, reply
+from ctgpp.language.llm.cache import LossCache
+from ctgpp.language.llm.generate import generate_loss
+from ctgpp.language.llm.remote import GeneratedLossError, RemoteLoss
+from ctgpp.language.sandbox.checks import GRACE_S, LossChecker, LossCheckError
+from ctgpp.language.sandbox.trial import REPEATS, SAMPLE_COUNTS
+from tests.support.llm_server import GOOD as COLLISION
+from tests.support.llm_server import MODEL, CannedServer, model_argv, reply
+from tests.support.observations import logged_x, real_observation
 
 LATE = 30  # a call number beyond the trial's (one instance sees about 22 calls there)
 CALL_LIMIT_S = 0.5
@@ -328,6 +327,7 @@ def simulate_argv(query: str, server: CannedServer, out: Path) -> list[str]:
                       str(SIX), "--animation", "none", "--guards", "off")
 
 
+@pytest.mark.model
 def test_simulate_stops_with_one_line_and_writes_nothing(llm_env: CannedServer, tmp_path: Path,
                                                          capsys: pytest.CaptureFixture[str]) -> None:
     from ctgpp.cli.main import main
@@ -345,6 +345,8 @@ def test_simulate_stops_with_one_line_and_writes_nothing(llm_env: CannedServer, 
     assert LossCache(tmp_path / "cache").get(query, MODEL) is None  # evicted
 
 
+@pytest.mark.model
+@pytest.mark.slow
 def test_simulate_falls_back_to_the_compiler(llm_env: CannedServer, tmp_path: Path,
                                              capsys: pytest.CaptureFixture[str]) -> None:
     from ctgpp.cli.main import main
@@ -360,6 +362,8 @@ def test_simulate_falls_back_to_the_compiler(llm_env: CannedServer, tmp_path: Pa
     assert LossCache(tmp_path / "cache").get(query, MODEL) is None
 
 
+@pytest.mark.model
+@pytest.mark.slow
 def test_evaluate_queries_falls_back_to_the_compiler(llm_env: CannedServer, tmp_path: Path) -> None:
     """The query benchmark's guided episode is ``ctgpp simulate``'s: a program stopped during sampling
     is replaced by the compiler's loss, the episode simulated again, and the row says so."""

@@ -25,13 +25,13 @@ from ctgpp.guidance.guards import (
 )
 from ctgpp.guidance.helpers import transform_coord_agents_to_world, transform_coord_world_to_agent_i
 from ctgpp.guidance.scope import LossScope
-from ctgpp.language.compiler import compile_query
+from ctgpp.language.compiler.compile import compile_query
 from ctgpp.model.checkpoint import load_checkpoint
+from ctgpp.policies.diffusion import DiffusionPolicy, SamplingConfig
+from ctgpp.policies.factory import default_checkpoint
 from ctgpp.sim.closed_loop import held_numbers
-from ctgpp.sim.diffusion_policy import DiffusionPolicy, SamplingConfig
-from ctgpp.sim.factory import default_checkpoint
-from tests.test_guidance_helpers import logged_x, real_observation
-from tests.test_guidance_losses import _active_params
+from tests.support.observations import logged_x, real_observation
+from tests.support.rule_activation import active_params
 
 COLLIDE = make_loss("collision", vehicle_a=1, vehicle_b=2)
 
@@ -59,7 +59,7 @@ class Opaque(GuidanceLoss):
 
 @pytest.mark.parametrize("name", sorted(registered_losses()))
 def test_every_rule_says_which_vehicles_it_addresses(name: str, batch: GuidanceBatch) -> None:
-    scope = make_loss(name, **_active_params(batch)[name]).scope()
+    scope = make_loss(name, **active_params(batch)[name]).scope()
     assert not scope.opaque
     assert scope.leave_lane is not None and scope.collide is not None
     if scope.vehicles is not None:  # a rule on some vehicles leaves only those out of their lanes
@@ -193,6 +193,7 @@ def test_with_guards_composes_the_rule_and_the_guards(batch: GuidanceBatch, logg
     torch.testing.assert_close(both.ranking(logged, batch), rule.sum(0) + GUARDS_FIRST * guards)
 
 
+@pytest.mark.model
 def test_the_guarded_plan_costs_the_guards_less() -> None:
     """The shipped model on scene-0103 at 3 s, one re-plan of the default sampler from the same seed,
     three seeds: the plan the guarded policy executes (a sample per vehicle, chosen by the guards)
@@ -244,6 +245,7 @@ def test_an_unknown_guard_is_refused() -> None:
     assert main(["simulate", "--guards", "offroad,speed"]) != 0
 
 
+@pytest.mark.model
 @pytest.mark.parametrize("guards", ["on", "off"])
 def test_metrics_record_the_guards(guards: str, tmp_path: Path) -> None:
     from ctgpp.cli.main import main

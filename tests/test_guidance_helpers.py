@@ -3,14 +3,12 @@
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 
 import numpy as np
 import pytest
 import torch
 
-from ctgpp.data.catalog import Catalog
-from ctgpp.data.windows import SceneWindow, WindowConfig, build_window
+from ctgpp.data.windows import SceneWindow
 from ctgpp.guidance.context import GuidanceBatch, build_guidance_batch
 from ctgpp.guidance.helpers import (
     get_current_lane_projection,
@@ -28,56 +26,8 @@ from ctgpp.guidance.lane_helpers import (
     get_turn_lane_projection,
     next_intersection_distance,
 )
-from ctgpp.scene.vehicles import controlled_vehicles
-from ctgpp.sim.closed_loop import SimConfig, _padded
-from ctgpp.sim.policy import Observation
-
-STEP = 30
-
-
-def boxes_scene(
-    batch: GuidanceBatch, poses: list[tuple[float, float, float]], speeds: list[float],
-    obstacle_xy: tuple[float, float] | None = None,
-) -> GuidanceBatch:
-    """``batch`` with its vehicles replaced by 4 × 2 m boxes at ``poses`` (x, y, yaw; local world frame)
-    driving at ``speeds``; with ``obstacle_xy``, the first replayed agent (1 × 1 m, heading +x) stands
-    there and every other replayed agent is left out."""
-    valid = torch.zeros_like(batch.obstacles_valid)
-    xy = batch.obstacles_xy.clone()
-    if obstacle_xy is not None:
-        valid[0] = True
-        xy[0] = torch.tensor(obstacle_xy)
-    return replace(
-        batch, pose=torch.tensor(poses), speed=torch.tensor(speeds),
-        extent=torch.tensor([[4.0, 2.0]] * len(poses)), obstacles_valid=valid, obstacles_xy=xy,
-        obstacles_extent=torch.ones_like(batch.obstacles_extent),
-        obstacles_yaw=torch.zeros_like(batch.obstacles_yaw), memo={},
-    )
-
-
-def off_path(points: torch.Tensor, line: torch.Tensor) -> torch.Tensor:
-    """(P,) m from each of points (P, 2) to the polyline ``line`` (L, 2)."""
-    a, b = line[:-1], line[1:]
-    along = (((points[:, None] - a) * (b - a)).sum(-1) / ((b - a) ** 2).sum(-1)).clamp(0, 1)
-    return (points[:, None] - (a + along[..., None] * (b - a))).norm(dim=-1).amin(1)
-
-
-def real_observation(scene_id: str = "scene-0103", step: int = STEP) -> Observation:
-    """A scene at a step as the simulator shows it: controlled vehicles valid up to the step."""
-    scene = Catalog.open().load(scene_id)
-    controlled = controlled_vehicles(scene, step)
-    tracks = _padded(scene.agents, step + 1 + SimConfig().horizon_steps)
-    tracks.valid[controlled, step + 1 :] = False
-    return Observation(scene, tracks, step, controlled, SimConfig().horizon_steps, np.random.default_rng(0))
-
-
-def logged_x(obs: Observation, num_samples: int = 3, noise: float = 0.05) -> tuple[torch.Tensor, SceneWindow]:
-    """x (B, N, T, 6) from the logged future of every controlled vehicle plus a little noise."""
-    window = build_window(obs.scene, obs.step, WindowConfig(max_agents=len(obs.controlled)), obs.controlled)
-    x = torch.from_numpy(np.concatenate([window.fut, window.fut_actions], axis=-1))  # (B, T, 6)
-    x = x[:, None].repeat(1, num_samples, 1, 1)  # (B, N, T, 6)
-    gen = torch.Generator().manual_seed(0)
-    return x + noise * torch.randn(x.shape, generator=gen), window
+from ctgpp.interfaces import Observation
+from tests.support.observations import STEP, logged_x, real_observation
 
 
 @pytest.fixture(scope="module")

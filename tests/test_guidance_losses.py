@@ -13,8 +13,9 @@ from ctgpp.eval.rule_setup import setup_rule
 from ctgpp.guidance import CompositeLoss, GuidanceBatch, build_guidance_batch, describe_rules, make_loss
 from ctgpp.guidance.base import registered_losses
 from ctgpp.guidance.rules import TargetSpeed
-from ctgpp.guidance.rules_interaction import ClearAhead
-from tests.test_guidance_helpers import boxes_scene, logged_x, real_observation
+from ctgpp.guidance.rules.interaction import ClearAhead
+from tests.support.observations import boxes_scene, logged_x, real_observation
+from tests.support.rule_activation import active_params
 
 
 @pytest.fixture(scope="module")
@@ -27,40 +28,8 @@ def x() -> torch.Tensor:
     return logged_x(real_observation())[0]
 
 
-def _active_params(batch: GuidanceBatch) -> dict[str, dict]:
-    """Parameters that make each rule active (non-zero cost) on scene-0103 at step 30."""
-    far = batch.to_world(batch.pose[0, :2].numpy() + np.array([200.0, 50.0]))
-    ahead = batch.to_world(batch.pose[1, :2].numpy())  # vehicle 1 starts inside, still moving
-    return {
-        "speed_limit": {"limit_mps": 1.0},
-        "target_speed": {"speed_mps": 0.0},
-        "stop": {},
-        "reach_speed": {"speed_mps": 20.0, "bound": "above"},
-        "acceleration_limit": {"max_mps2": 0.05},
-        "no_offroad": {"margin_m": 20.0},
-        "goal_waypoint": {"vehicle": 0, "x": far[0], "y": far[1], "target_speed_mps": 3.0},
-        "reach_point": {"vehicle": 0, "x": far[0], "y": far[1], "target_speed_mps": 3.0},
-        "stop_region": {"vehicle": 1, "x": ahead[0], "y": ahead[1], "radius_m": 2.0},
-        "no_collision": {"buffer_m": 20.0},
-        "keep_distance": {"follower": 0, "leader": 1, "min_m": 100.0, "max_m": 200.0},
-        "collision": {"vehicle_a": 0, "vehicle_b": 1},
-        "lane_change": {"vehicle": 2, "side": "left"},  # on scene-0553 (:data:`ON_0553`)
-        "move_to_rightmost_lane": {"vehicle": 0},
-        "turn_at_next_intersection": {"vehicle": 0, "direction": "right"},
-        "follow_lane": {"vehicle": None},
-        "keep_lane": {"vehicle": None, "tolerance_m": 0.0},
-        "cut_in": {"vehicle": 2, "ahead_of": 0},
-        "stay_side_of": {"vehicle": 2, "other": 0, "side": "right"},
-        "same_direction": {"vehicle": 3, "other": 1},
-        "stay_away": {"vehicle": 1, "other": 2, "min_m": 100.0},
-        "collide_from_behind": {"vehicle": 1, "target": 0},
-        "faster_than": {"vehicle": 0, "other": 1, "margin_mps": 20.0},
-        "reach_ahead": {"vehicle": 2, "distance_m": 120.0},
-    }
-
-
 def test_every_rule_is_covered(batch: GuidanceBatch) -> None:
-    assert set(_active_params(batch)) == set(registered_losses())
+    assert set(active_params(batch)) == set(registered_losses())
     assert {info.name for info in describe_rules()} == set(registered_losses())
 
 
@@ -69,7 +38,7 @@ ON_0553 = {"lane_change"}  # scene-0103 has no same-direction neighbour lane to 
 
 @pytest.mark.parametrize("name", sorted(registered_losses()))
 def test_contract_shape_and_gradients(name: str, batch: GuidanceBatch, x: torch.Tensor) -> None:
-    loss = make_loss(name, **_active_params(batch)[name])
+    loss = make_loss(name, **active_params(batch)[name])
     if name in ON_0553:
         obs = real_observation("scene-0553", 30)
         batch, x = build_guidance_batch(obs), logged_x(obs)[0]
@@ -183,7 +152,7 @@ def test_make_loss_errors() -> None:
 def _dense_no_collision(x: torch.Tensor, batch: GuidanceBatch, buffer_m: float, decay: float) -> torch.Tensor:
     """The no-collision cost by its definition, over every outline disc pair (the capsule's discs and
     the corners) of every vehicle pair and every vehicle–replayed pair at every sample and step: (N,)."""
-    from ctgpp.guidance.rules_common import outline_layout, outline_points, time_weights, world_states
+    from ctgpp.guidance.rules.common import outline_layout, outline_points, time_weights, world_states
 
     def hinge(a, ra, b, rb):  # discs (..., P, 2), radii (..., P) -> the largest hinged overlap (...)
         d = torch.sqrt(((a[..., :, None, :] - b[..., None, :, :]) ** 2).sum(-1) + 1e-6)  # (..., P, P)
@@ -231,7 +200,7 @@ def test_no_collision_keeps_the_replayed_discs_of_one_batch_only(
 ) -> None:
     """The replayed agents' discs are kept across the calls on one batch, never reused for another
     (the other batch moves the replayed agents so that the first sits on vehicle 0's start)."""
-    from ctgpp.guidance.rules_common import world_states
+    from ctgpp.guidance.rules.common import world_states
 
     loss = make_loss("no_collision")
     pos, _ = world_states(x, batch)  # (B, N, T, 2)
@@ -247,7 +216,7 @@ def test_no_collision_keeps_the_replayed_discs_of_one_batch_only(
 def test_closest_overlap_is_the_deepest_disc_pair_overlap() -> None:
     """By hand: discs 1.5 m apart with radii 1 and 1 and a 0.2 m buffer overlap by 0.7 m; and on random
     disc sets the hinge at the closest pair equals the largest hinge over all pairs, gradients too."""
-    from ctgpp.guidance.rules_interaction import _closest_overlap
+    from ctgpp.guidance.rules.interaction import _closest_overlap
 
     a = torch.tensor([[[0.0, 0.0], [10.0, 0.0]]])  # (1, 2 discs, 2)
     b = torch.tensor([[[1.5, 0.0], [30.0, 0.0]]])
@@ -265,7 +234,7 @@ def test_closest_overlap_is_the_deepest_disc_pair_overlap() -> None:
 
 
 def test_outlines_are_the_capsule_and_the_corners_by_hand() -> None:
-    from ctgpp.guidance.rules_common import NUM_DISCS, outline_layout, outline_points, outline_reach
+    from ctgpp.guidance.rules.common import NUM_DISCS, outline_layout, outline_points, outline_reach
 
     offsets, radii = outline_layout(torch.tensor([[4.0, 2.0]]))  # a 4 x 2 m box
     assert offsets.shape == (1, NUM_DISCS + 4, 2) and radii.shape == (1, NUM_DISCS + 4)
@@ -280,7 +249,7 @@ def test_outlines_are_the_capsule_and_the_corners_by_hand() -> None:
 def test_a_corner_jutting_past_the_capsules_rounding_is_a_contact(batch: GuidanceBatch) -> None:
     """Vehicle 1 (4 x 2 m) turned 45° with its corner 0.05 m beside vehicle 0's side: the capsules
     stay 0.3 m apart (no overlap even with the 0.2 m buffer), the corner is inside the buffer."""
-    from ctgpp.guidance.rules_common import disc_layout, outline_layout, outline_points
+    from ctgpp.guidance.rules.common import disc_layout, outline_layout, outline_points
 
     two = replace(batch, origin=batch.origin + 1e4, pose=torch.zeros(2, 3), speed=torch.zeros(2),
                   extent=torch.tensor([[4.0, 2.0]] * 2), memo={},
@@ -301,7 +270,7 @@ def test_a_corner_jutting_past_the_capsules_rounding_is_a_contact(batch: Guidanc
 
 
 def test_across_heading_keeps_the_value_and_only_the_gradient_across() -> None:
-    from ctgpp.guidance.rules_common import across_heading
+    from ctgpp.guidance.rules.common import across_heading
 
     pos = torch.tensor([[1.0, 2.0], [3.0, -1.0]], requires_grad=True)
     yaw = torch.tensor([0.0, math.pi / 2])
@@ -313,7 +282,7 @@ def test_across_heading_keeps_the_value_and_only_the_gradient_across() -> None:
 
 
 def test_steered_path_keeps_positions_and_moves_only_headings() -> None:
-    from ctgpp.guidance.rules_common import steered_path
+    from ctgpp.guidance.rules.common import steered_path
 
     x = torch.randn(2, 3, 5, 6, requires_grad=True)
     moved = steered_path(x, 0.1)

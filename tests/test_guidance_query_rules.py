@@ -14,13 +14,13 @@ from ctgpp.diffusion.guided import action_trajectories
 from ctgpp.guidance import GuidanceBatch, build_guidance_batch, make_loss
 from ctgpp.guidance.lane_helpers import get_route_to_point, signed_offset
 from ctgpp.guidance.lane_paths import arc_length, point_at, vehicle_lane
-from ctgpp.guidance.rules_common import world_states
-from ctgpp.guidance.rules_map import TurnAtNextIntersection, free_speed
-from ctgpp.guidance.rules_relative import along_path
+from ctgpp.guidance.rules.common import world_states
+from ctgpp.guidance.rules.lanes import TurnAtNextIntersection, free_speed
+from ctgpp.guidance.rules.relative import along_path
+from ctgpp.policies.diffusion import DiffusionPolicy, SamplingConfig
 from ctgpp.scene.types import Scene
-from ctgpp.sim.diffusion_policy import DiffusionPolicy, SamplingConfig
-from tests.test_guidance_helpers import real_observation
-from tests.test_guided import PriorDenoiser, losses, make_model
+from tests.support.denoisers import PriorDenoiser, losses, make_model
+from tests.support.observations import real_observation
 
 GOAL = np.array([640.6, 1617.5])  # on vehicle 2's lane, 45 m ahead through the intersection (scene-0103)
 

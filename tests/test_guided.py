@@ -12,7 +12,7 @@ import pytest
 import torch
 from torch import Tensor
 
-from ctgpp.diffusion import CosineSchedule, DDIMSampler, DDPMSampler, sample
+from ctgpp.diffusion import DDIMSampler, DDPMSampler, sample
 from ctgpp.diffusion.guided import (
     GuidanceConfig,
     action_trajectories,
@@ -25,29 +25,11 @@ from ctgpp.diffusion.guided import (
 from ctgpp.dynamics import KAPPA_MAX_PER_M
 from ctgpp.eval.rule_setup import select_pair
 from ctgpp.guidance import GuidanceLoss, build_guidance_batch, make_loss
-from ctgpp.model.config import ModelConfig
 from ctgpp.model.denoiser import Denoiser
+from ctgpp.policies.diffusion import DiffusionPolicy, SamplingConfig
 from ctgpp.scene.types import Scene
 from ctgpp.scene.vehicles import controlled_vehicles
-from ctgpp.sim.diffusion_policy import DiffusionPolicy, SamplingConfig
-from ctgpp.sim.policy import Observation
-
-TINY = ModelConfig(d_model=32, heads=2, blocks=1, edge_dim=16, lane_hidden=32)
-STEP = 30  # 3 s into scene-0103: 12 vehicles
-SCHEDULE = CosineSchedule()
-
-
-class PriorDenoiser(Denoiser):
-    """The exact denoiser of a standard normal prior over normalized actions: E[x_0 | x_k] = sqrt(ᾱ_k)·x_k.
-
-    Unlike an untrained network, it keeps what guidance adds to x_k, as a trained model does, so the
-    effect of guidance on the final samples is measurable without training.
-    """
-
-    def forward(self, noisy: Tensor, k: Tensor | int, batch: Any, context: Any = None) -> Tensor:
-        abar = self.normalizer.action_mean.new_tensor(SCHEDULE.alphas_cumprod.numpy())
-        k_t = torch.as_tensor(k).long().reshape(-1)  # (S,)
-        return abar[k_t].sqrt().reshape(-1, 1, 1, 1) * noisy
+from tests.support.denoisers import SCHEDULE, STEP, TINY, PriorDenoiser, losses, make_model, observation
 
 
 class TargetSpeedOnX(GuidanceLoss):
@@ -59,23 +41,6 @@ class TargetSpeedOnX(GuidanceLoss):
 
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         return ((x[..., 2] - self.speed_mps) ** 2).mean(-1)
-
-
-def observation(scene: Scene, seed: int = 0) -> Observation:
-    ctrl = controlled_vehicles(scene, STEP)
-    return Observation(scene, scene.agents, STEP, ctrl, 52, np.random.default_rng(seed))
-
-
-def make_model(cls: type[Denoiser] = Denoiser) -> Denoiser:
-    torch.manual_seed(0)
-    return cls(TINY).eval()
-
-
-def losses(policy: DiffusionPolicy, loss: GuidanceLoss, scene: Scene) -> Tensor:
-    """The loss of every sample of one re-plan (the same seed whatever the policy)."""
-    obs = observation(scene)
-    samples = policy.sample_plans(obs)
-    return loss(samples.trajectories, build_guidance_batch(obs, 52))
 
 
 def test_without_guidance_the_sampler_is_the_plain_one() -> None:
@@ -317,6 +282,7 @@ def test_action_trajectories_yawvel_is_the_yaw_rate_turned_at() -> None:
     assert (x[..., 5].abs() <= KAPPA_MAX_PER_M * x[..., 2] + 1e-12).all()
 
 
+@pytest.mark.slow
 def test_guided_plans_on_the_untrained_model(scene_0103: Scene) -> None:
     model, sampling = make_model(), SamplingConfig.evenly("ddim", 5, 3)
     loss = TargetSpeedOnX(2.0)
@@ -419,7 +385,7 @@ def rule_params(scene: Scene, name: str) -> dict[str, Any]:
         ("goal_waypoint", SamplingConfig.evenly("ddpm", 10, 2)),
         ("keep_distance", SamplingConfig.evenly("ddpm", 10, 2)),
         ("collision", SamplingConfig.evenly("ddpm", 10, 2)),
-        ("no_collision", SamplingConfig.evenly("ddpm", 10, 2)),
+        pytest.param("no_collision", SamplingConfig.evenly("ddpm", 10, 2), marks=pytest.mark.slow),
         ("stop_region", SamplingConfig.evenly("ddpm", 10, 2)),
         ("acceleration_limit", SamplingConfig.evenly("ddim", 10, 2)),
     ],

@@ -5,29 +5,23 @@ from __future__ import annotations
 
 import json
 import socket
-import threading
-import time
-from collections.abc import Iterator
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from typing import Any
 
 import pytest
-import torch
 
-from ctgpp.guidance import GuidanceBatch, build_guidance_batch
-from ctgpp.language.cache import CACHE_FILE, LossCache
-from ctgpp.language.checks import LossChecker
-from ctgpp.language.client import LLMClient, LLMConfig, LLMError
-from ctgpp.language.extract import ExtractionError, extract_code, loss_class_name
-from ctgpp.language.generate import GenerationFailed, generate_loss
-from ctgpp.language.prompt import PROMPT_VERSION, build_messages, examples, helper_descriptions
-from ctgpp.language.vocabulary import BATCH_ATTRIBUTES, HELPER_NAMES
-from tests.test_guidance_helpers import logged_x, real_observation
+from ctgpp.language.llm.cache import CACHE_FILE, LossCache
+from ctgpp.language.llm.client import LLMClient, LLMConfig, LLMError
+from ctgpp.language.llm.extract import ExtractionError, extract_code, loss_class_name
+from ctgpp.language.llm.generate import GenerationFailed, generate_loss
+from ctgpp.language.llm.prompt import PROMPT_VERSION, build_messages, examples, helper_descriptions
+from ctgpp.language.sandbox.checks import LossChecker
+from ctgpp.language.sandbox.vocabulary import BATCH_ATTRIBUTES, HELPER_NAMES
+from tests.support.llm_server import GOOD, MODEL, QUERY, CannedServer, no_proxy, reply, server
+from tests.support.loss_checks import checker, scene
 
-MODEL = "canned-model"
-QUERY = "vehicle 1 should collide with vehicle 2"
-GOOD = examples()[0].code  # the collision example
+__all__ = ["checker", "no_proxy", "scene", "server"]  # fixtures from tests/support
+
 WRONG_SHAPE = GOOD.replace("return (gap * weights).sum(-1) / weights.sum()  # (N,)", "return gap.sum()")
 SYNTAX_ERROR = GOOD.replace("def forward(self, x, data_batch, agt_mask=None):", "def forward(self, x,:")
 HOSTILE = [
@@ -38,87 +32,6 @@ HOSTILE = [
     "class L(GuidanceLoss):\n    def forward(self, x, data_batch, agt_mask=None):\n"
     "        torch.save(x, '/tmp/x.pt')\n        return x.sum((2, 3))\n",
 ]
-
-
-def reply(code: str) -> str:
-    return f"Here is the loss.\n\n```python\n{code}```\n\nIt pulls the two vehicles together."
-
-
-class CannedServer:
-    """POST /v1/chat/completions answers the queued replies in order (text, or (status, message)),
-    each after ``delay_s`` seconds."""
-
-    def __init__(self) -> None:
-        self.replies: list[Any] = []
-        self.requests: list[dict[str, Any]] = []
-        self.delay_s = 0.0
-        server = self
-
-        class Handler(BaseHTTPRequestHandler):
-            def do_POST(self) -> None:  # noqa: N802
-                body = json.loads(self.rfile.read(int(self.headers["Content-Length"])))
-                server.requests.append(body)
-                time.sleep(server.delay_s)
-                item = server.replies.pop(0) if server.replies else (500, "no canned reply left")
-                if isinstance(item, tuple):
-                    error = {"message": item[1], "type": "invalid_request_error"}
-                    status, payload = item[0], {"error": error}
-                else:
-                    status, payload = 200, {
-                        "id": f"chatcmpl-{len(server.requests)}", "object": "chat.completion", "created": 0,
-                        "model": body["model"],
-                        "choices": [{"index": 0, "finish_reason": "stop",
-                                     "message": {"role": "assistant", "content": item}}],
-                        "usage": {"prompt_tokens": 1, "completion_tokens": 1, "total_tokens": 2},
-                    }
-                data = json.dumps(payload).encode()
-                self.send_response(status)
-                self.send_header("Content-Type", "application/json")
-                self.send_header("Content-Length", str(len(data)))
-                self.end_headers()
-                self.wfile.write(data)
-
-            def log_message(self, *args: Any) -> None:
-                pass
-
-        self.httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-        self.url = f"http://127.0.0.1:{self.httpd.server_address[1]}/v1"
-        self.thread = threading.Thread(target=self.httpd.serve_forever, daemon=True)
-        self.thread.start()
-
-    def client(self) -> LLMClient:
-        return LLMClient(LLMConfig(base_url=self.url, model=MODEL, api_key="test-key", timeout_s=20,
-                                   max_retries=0))
-
-    def close(self) -> None:
-        self.httpd.shutdown()
-        self.httpd.server_close()
-
-
-@pytest.fixture(autouse=True)
-def no_proxy(monkeypatch: pytest.MonkeyPatch) -> None:
-    for name in ("HTTP_PROXY", "HTTPS_PROXY", "ALL_PROXY", "http_proxy", "https_proxy", "all_proxy"):
-        monkeypatch.delenv(name, raising=False)
-    monkeypatch.setenv("NO_PROXY", "127.0.0.1,localhost")
-
-
-@pytest.fixture()
-def server() -> Iterator[CannedServer]:
-    canned = CannedServer()
-    yield canned
-    canned.close()
-
-
-@pytest.fixture(scope="module")
-def checker() -> Iterator[LossChecker]:
-    with LossChecker() as worker:
-        yield worker
-
-
-@pytest.fixture(scope="module")
-def scene() -> tuple[GuidanceBatch, torch.Tensor]:
-    obs = real_observation()
-    return build_guidance_batch(obs), logged_x(obs)[0]
 
 
 def test_good_program_accepted_in_round_1(server: CannedServer, checker: LossChecker, scene: Any) -> None:

@@ -9,12 +9,13 @@ from typing import Any
 
 import pytest
 
-from ctgpp.language.client import DEFAULT_MAX_TOKENS, DEFAULT_TIMEOUT_S, LLMClient, LLMConfig, LLMError
-from ctgpp.language.generate import GenerationFailed, generate_loss
-from ctgpp.language.prompt import build_messages, repair_hint
-from tests.test_llm_client import GOOD, MODEL, QUERY, CannedServer, checker, no_proxy, reply, scene, server
+from ctgpp.language.llm.client import DEFAULT_MAX_TOKENS, DEFAULT_TIMEOUT_S, LLMClient, LLMConfig, LLMError
+from ctgpp.language.llm.generate import GenerationFailed, generate_loss
+from ctgpp.language.llm.prompt import build_messages, repair_hint
+from tests.support.llm_server import GOOD, MODEL, QUERY, CannedServer, no_proxy, reply, server
+from tests.support.loss_checks import checker, scene
 
-__all__ = ["checker", "no_proxy", "scene", "server"]  # fixtures shared with test_llm_client
+__all__ = ["checker", "no_proxy", "scene", "server"]  # fixtures from tests/support
 
 # The collision example scaled to 0: a zero gradient for every probe.
 FLAT = GOOD.replace("return (gap * weights).sum(-1) / weights.sum()  # (N,)",
@@ -104,6 +105,8 @@ def test_repair_hints_cover_the_checks_refusals() -> None:
     assert repair_hint("import os is not allowed (only `import torch`, `import math`)") is None
 
 
+@pytest.mark.model
+@pytest.mark.slow
 def test_the_result_states_the_fallback_and_keeps_the_rounds(llm_env: CannedServer) -> None:
     server = llm_env  # an empty program cache
     from ctgpp.api import simulate
@@ -124,7 +127,7 @@ def test_evaluate_queries_measures_a_language_model(llm_env: CannedServer, tmp_p
     repair here), the row keeps the path, rounds and seconds, and the table says so."""
     from ctgpp.data.catalog import Catalog
     from ctgpp.eval.queries import QueryCase, markdown_table, run_query_cases
-    from ctgpp.sim.factory import PolicyFactory
+    from ctgpp.policies.factory import PolicyFactory
 
     server = llm_env  # an empty program cache
     server.replies = [reply(FLAT), reply(GOOD)]

@@ -21,9 +21,10 @@ import pyarrow.parquet as pq
 import pytest
 
 from ctgpp.cli.main import main
-from tests.llm_server import simulate_with_model
-from tests.model_programs import RIGHT_LANE, SCENE, STAY_BEHIND
-from tests.test_llm_client import MODEL, CannedServer, reply
+from tests.support.llm_server import MODEL, CannedServer, reply, simulate_with_model
+from tests.support.model_programs import RIGHT_LANE, SCENE, STAY_BEHIND
+
+pytestmark = [pytest.mark.model, pytest.mark.slow]  # every test simulates with the shipped model
 
 EPISODE = ["--scene", SCENE, "--seed", "0", "--guards", "off", "--animation", "none"]
 

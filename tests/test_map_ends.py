@@ -10,7 +10,7 @@ import torch
 from ctgpp.guidance.context import build_guidance_batch
 from ctgpp.guidance.lane_helpers import get_lane_paths, lane_path_distance
 from ctgpp.guidance.lane_paths import get_current_lane
-from ctgpp.guidance.rules_common import sample_sdf
+from ctgpp.guidance.rules.common import sample_sdf
 from ctgpp.interfaces import Observation
 from ctgpp.scene.map_ends import OPEN_HALF_WIDTH_M, map_end_points, open_drivable
 from ctgpp.scene.types import AgentTracks, AgentType, DrivableArea, LaneGraph, Scene
@@ -76,7 +76,8 @@ def test_a_map_without_map_ends_is_left_as_it_is() -> None:
 
 
 def observation(scene: Scene) -> Observation:
-    return Observation(scene, scene.agents, STEP, np.array([0]), 52, np.random.default_rng(0))
+    rng = np.random.default_rng(0)
+    return Observation(scene, scene.agents, STEP, np.array([0]), 52, rng, start_step=STEP)
 
 
 def test_guidance_finds_road_past_the_map_end_and_the_lane_going_on() -> None:

@@ -10,15 +10,9 @@ import numpy as np
 import pytest
 
 from ctgpp.data.catalog import Catalog
-from ctgpp.data.map_inputs import (
-    LaneSlots,
-    MapConfig,
-    SlotKind,
-    agent_lane_slots,
-    agent_lanes,
-    drivable_grid,
-    grid_points,
-)
+from ctgpp.data.drivable_grid import drivable_grid, grid_points
+from ctgpp.data.lane_slots import LaneSlots, SlotKind, agent_lane_slots, agent_lanes
+from ctgpp.data.map_config import MapConfig
 from ctgpp.geometry import local_to_world, rotate
 from ctgpp.scene.types import DrivableArea, LaneGraph, Scene
 

@@ -11,12 +11,13 @@ import torch
 from torch import Tensor
 
 from ctgpp.guidance.context import GuidanceBatch
-from ctgpp.language.compiler import compile_query
-from ctgpp.language.generate import GenerationFailed, generate_loss
-from ctgpp.language.meaning import MIN_AGREEMENT, PROBES, agreement, judge_meaning, probe_plans
-from tests.test_llm_client import CannedServer, checker, no_proxy, reply, scene, server
+from ctgpp.language.compiler.compile import compile_query
+from ctgpp.language.llm.generate import GenerationFailed, generate_loss
+from ctgpp.language.llm.meaning import MIN_AGREEMENT, PROBES, agreement, judge_meaning, probe_plans
+from tests.support.llm_server import CannedServer, no_proxy, reply, server
+from tests.support.loss_checks import checker, scene
 
-__all__ = ["checker", "no_proxy", "scene", "server"]  # fixtures shared with test_llm_client
+__all__ = ["checker", "no_proxy", "scene", "server"]  # fixtures from tests/support
 
 WITHIN = "vehicle 2 must remain within 20 m of vehicle 0"
 

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from shapely.geometry import Polygon
 
+from ctgpp.geometry import box_corners, boxes_overlap
+from ctgpp.interfaces import Rollout
 from ctgpp.metrics import (
-    box_corners,
-    boxes_overlap,
     collision_steps,
     compute_metrics,
     evaluate_metrics,
@@ -21,7 +21,6 @@ from ctgpp.metrics import (
 )
 from ctgpp.metrics.realism import histogram, wasserstein_1d
 from ctgpp.scene.types import AgentTracks, AgentType, DrivableArea, LaneGraph, Scene
-from ctgpp.sim.rollout import Rollout
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 DT = 0.1

@@ -195,6 +195,7 @@ def test_config_round_trip_and_unknown_keys() -> None:
         ModelConfig(d_model=30, heads=4)
 
 
+@pytest.mark.slow
 def test_a_few_adam_steps_lower_the_training_loss(batch: SceneBatch) -> None:
     fields = (*AGENT_AXIS_FIELDS, *MAP_FIELDS)
     batch = dataclasses.replace(batch, **{n: getattr(batch, n)[:, :8] for n in fields})  # 8 agents: fast

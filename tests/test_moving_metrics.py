@@ -16,6 +16,7 @@ from ctgpp.bench.scenarios import EpisodeTiming, PresetResult
 from ctgpp.cli.main import main
 from ctgpp.data.catalog import Catalog
 from ctgpp.eval.table import moving_table, summarize
+from ctgpp.interfaces import Rollout
 from ctgpp.metrics import (
     MOVING_METRICS,
     compute_metrics,
@@ -25,12 +26,11 @@ from ctgpp.metrics import (
     vehicle_outcomes,
 )
 from ctgpp.metrics.motion import yaw_sign_changes
+from ctgpp.policies.simple import ConstantVelocityPolicy, ReplayPolicy
 from ctgpp.scene.lanes import centerline_distance
 from ctgpp.scene.map_ends import map_end_points
 from ctgpp.scene.types import AgentTracks, AgentType, DrivableArea, LaneGraph, Scene
 from ctgpp.sim.closed_loop import episode_starts, simulate
-from ctgpp.sim.policy import ConstantVelocityPolicy, ReplayPolicy
-from ctgpp.sim.rollout import Rollout
 from ctgpp.viz.events import rollout_events
 
 DT = 0.1

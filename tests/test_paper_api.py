@@ -22,13 +22,13 @@ from ctgpp.guidance.helpers import (
     transform_coord_world_to_agent_i,
 )
 from ctgpp.guidance.lane_helpers import get_adjacent_lane, get_current_lane
-from ctgpp.language.checks import LossChecker
-from ctgpp.language.extract import loss_class_name
-from ctgpp.language.generate import generate_loss
-from ctgpp.language.prompt import Message, examples
-from ctgpp.language.sandbox import SandboxError, load_loss_class
-from tests import model_programs
-from tests.test_guidance_helpers import logged_x, real_observation
+from ctgpp.language.llm.extract import loss_class_name
+from ctgpp.language.llm.generate import generate_loss
+from ctgpp.language.llm.prompt import Message, examples
+from ctgpp.language.sandbox.checks import LossChecker
+from ctgpp.language.sandbox.program import SandboxError, load_loss_class
+from tests.support import model_programs
+from tests.support.observations import logged_x, real_observation
 
 TIME_LIMIT_S = 60.0  # generous: the trial's speed is not what these tests are about
 LANES_SCENE = model_programs.SCENE  # scene-0103 at step 30 has no lane beside anyone's; this has both

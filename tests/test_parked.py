@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 
 from ctgpp.metrics.collision import collision_steps
+from ctgpp.policies.factory import make_policy
 from ctgpp.scene.parked import fill_parked, parked_agents
 from ctgpp.scene.types import AgentTracks, AgentType, Scene
 from ctgpp.sim.closed_loop import initial_observation, simulate
-from ctgpp.sim.factory import make_policy
 
 CAR = np.array([4.0, 2.0])
 

@@ -21,9 +21,9 @@ from ctgpp.eval.queries import (
 )
 from ctgpp.guidance.base import GuidanceLoss
 from ctgpp.guidance.scope import LossScope
+from ctgpp.interfaces import Policy
+from ctgpp.policies.factory import PolicyFactory
 from ctgpp.sim.closed_loop import initial_observation
-from ctgpp.sim.factory import PolicyFactory
-from ctgpp.sim.policy import Policy
 
 ISSUE_FAMILIES = {
     "collision", "collide from behind", "keep distance (range)", "keep within", "stay away", "same direction",

@@ -13,16 +13,14 @@ import ctgpp
 from ctgpp.dynamics import rollout
 from ctgpp.guidance import CompositeLoss, GuidanceBatch, build_guidance_batch, make_loss
 from ctgpp.guidance.lane_paths import turn_path
-from ctgpp.guidance.route_steering import (
-    CURVE_LAT_ACC_MPS2,
-    KEEP_MPS,
-    curve_speeds,
-    route_lines,
-    steer_along,
-    way_clear,
-)
+from ctgpp.policies.stages.config import SteeringConfig
+from ctgpp.policies.stages.steering import curve_speeds, steer_along, way_clear
 from ctgpp.scene.lanes import nearest_lane
-from tests.test_guidance_helpers import boxes_scene, off_path, real_observation
+from tests.support.observations import boxes_scene, real_observation
+from tests.support.paths import off_path
+
+CURVE_LAT_ACC_MPS2 = SteeringConfig().curve_lat_acc_mps2
+KEEP_MPS = SteeringConfig().keep_mps
 
 F = 52  # plan steps of 0.1 s
 
@@ -53,7 +51,7 @@ def test_curve_speeds_on_a_circle_and_a_straight() -> None:
     """On a quarter circle of 15 m the bend allows √(3 · 15) = 6.7 m/s; on the straight before it
     nearly any speed, except at the vertices next to the bend."""
     line = _turn_line(10.0, 15.0)
-    cum, allowed = curve_speeds(line)
+    cum, allowed = curve_speeds(line, CURVE_LAT_ACC_MPS2)
     on_arc = (cum > 12.0) & (cum < 30.0)
     circle = torch.full_like(allowed[on_arc], math.sqrt(CURVE_LAT_ACC_MPS2 * 15.0))
     torch.testing.assert_close(allowed[on_arc], circle, rtol=0.01, atol=0.0)
@@ -125,6 +123,10 @@ def test_a_way_is_clear_of_agents_beside_it_or_behind(batch: GuidanceBatch) -> N
         assert way_clear(STRAIGHT, scene, 0, F) == clear
 
 
+def route_lines(loss: torch.nn.Module, batch: GuidanceBatch) -> dict[int, torch.Tensor]:
+    return dict(loss.constraints(batch).routes)
+
+
 def test_route_lines_reads_the_turns_of_an_and(batch: GuidanceBatch) -> None:
     """The committed line of "vehicle 3 takes a left" (its turn path, 1 m ahead), read through an "and"
     with a speed limit; nothing from a part weighed zero or from a loss without a turn."""
@@ -137,6 +139,7 @@ def test_route_lines_reads_the_turns_of_an_and(batch: GuidanceBatch) -> None:
     assert route_lines(make_loss("speed_limit", limit_mps=8.0), batch) == {}
 
 
+@pytest.mark.model
 def test_the_left_turn_of_scene_0103_follows_its_lane_path() -> None:
     """Closed loop: "vehicle 3 should take a left at the next intersection" (10 m/s, the turn 1 m
     ahead): over the first 2 s vehicle 3 drives on the lane path that turns left, within 1 m of it

@@ -10,49 +10,16 @@ import numpy as np
 import pytest
 
 from ctgpp.behaviours import RuleMeasure, rule_violation
+from ctgpp.behaviours.rule_spec import custom_rule
 from ctgpp.cli.main import main
 from ctgpp.cli.rules_cmd import parse_rule_arg
-from ctgpp.eval.rule_setup import custom_rule, evaluation_rules, select_pair, setup_rule
+from ctgpp.eval.rule_setup import evaluation_rules, select_pair, setup_rule
 from ctgpp.metrics.rules import fail_excluding
-from ctgpp.scene.types import AgentTracks, DrivableArea, LaneGraph, Scene
+from ctgpp.policies.simple import ConstantVelocityPolicy
+from ctgpp.scene.types import Scene
 from ctgpp.scene.vehicles import controlled_vehicles
 from ctgpp.sim.closed_loop import simulate
-from ctgpp.sim.policy import ConstantVelocityPolicy
-from ctgpp.sim.rollout import Rollout
-
-DT = 0.1
-CAR = (4.0, 2.0)
-T = 21  # current index 0, 20 future steps (2 s)
-
-
-def no_lanes() -> LaneGraph:
-    edges = np.zeros((0, 2), dtype=np.int64)
-    empty = np.zeros(0, dtype=np.int64)
-    offsets = np.zeros(1, dtype=np.int64)
-    return LaneGraph(np.array([], dtype=str), np.zeros((0, 2)), offsets, edges, edges, empty, empty)
-
-
-def hand_rollout(xy: np.ndarray, speed: np.ndarray, road_x_max: float = 1e9) -> Rollout:
-    """Cars (A, T, 2) heading +x, all controlled (vehicle i = agent i), drivable where x < road_x_max."""
-    n_a, n_t = speed.shape
-    tracks = AgentTracks(
-        ids=np.array([f"v{i}" for i in range(n_a)]),
-        types=np.zeros(n_a, dtype=np.int8),
-        xy=xy,
-        yaw=np.zeros((n_a, n_t)),
-        speed=speed,
-        extent=np.array([CAR] * n_a),
-        valid=np.ones((n_a, n_t), dtype=bool),
-    )
-    cols = np.arange(400) * 0.5 - 100.0
-    mask = np.broadcast_to(cols[None, :] < road_x_max, (400, 400)).copy()
-    area = DrivableArea(mask=mask, origin_xy=np.array([-100.0, -100.0]), resolution_m=0.5)
-    scene = Scene("hand", "none", "hand", DT, tracks, no_lanes(), area)
-    return Rollout(scene, 0, 0, tracks, np.ones(n_a, dtype=bool), np.arange(n_a), "hand")
-
-
-def straight(x0: float, y: float, speed_mps: float) -> np.ndarray:
-    return np.stack([x0 + speed_mps * DT * np.arange(T), np.full(T, y)], axis=-1)  # (T, 2)
+from tests.support.rollouts import DT, T, hand_rollout, straight
 
 
 def test_keep_distance_and_collision_by_hand() -> None:

@@ -11,11 +11,11 @@ import torch
 
 from ctgpp.guidance import GuidanceBatch, build_guidance_batch
 from ctgpp.guidance.rules import SpeedLimit
-from ctgpp.language.checks import LossChecker, LossCheckError
-from ctgpp.language.prompt import examples
-from ctgpp.language.sandbox import SandboxError, check_source, load_loss_class
-from ctgpp.language.vocabulary import HELPER_MODULES, safe_builtins
-from tests.test_guidance_helpers import logged_x, real_observation
+from ctgpp.language.llm.prompt import examples
+from ctgpp.language.sandbox.checks import LossChecker, LossCheckError
+from ctgpp.language.sandbox.program import SandboxError, check_source, load_loss_class
+from ctgpp.language.sandbox.vocabulary import HELPER_MODULES, safe_builtins
+from tests.support.observations import logged_x, real_observation
 
 
 def loss_program(body: str, head: str = "", init: str = "") -> str:

@@ -26,8 +26,7 @@ from typing import Any
 import pytest
 
 from ctgpp.cli.main import main
-
-from .conftest import NGSIM
+from tests.support.data import NGSIM
 
 CHROMIUM = Path("/usr/bin/chromium")
 CHROMEDRIVER = Path("/usr/bin/chromedriver")

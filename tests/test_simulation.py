@@ -6,11 +6,12 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
+from ctgpp.interfaces import Observation, Plan
+from ctgpp.io.rollout_table import write_rollout
 from ctgpp.metrics import compute_metrics
+from ctgpp.policies.simple import ConstantVelocityPolicy, ReplayPolicy
 from ctgpp.scene.types import Scene
 from ctgpp.sim.closed_loop import EpisodeError, episode_starts, simulate
-from ctgpp.sim.export import write_rollout
-from ctgpp.sim.policy import ConstantVelocityPolicy, Observation, Plan, ReplayPolicy
 
 
 def test_replay_reproduces_the_log_exactly(scene_0103: Scene) -> None:

@@ -14,12 +14,12 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
+from ctgpp.interfaces import Observation
 from ctgpp.model.checkpoint import load_checkpoint
 from ctgpp.model.config import ModelConfig
+from ctgpp.policies.diffusion import DiffusionPolicy, SamplingConfig
 from ctgpp.scene.types import Scene
 from ctgpp.sim.closed_loop import simulate
-from ctgpp.sim.diffusion_policy import DiffusionPolicy, SamplingConfig
-from ctgpp.sim.policy import Observation
 from ctgpp.train.loop import TrainConfig, train
 
 TINY = ModelConfig(d_model=32, heads=2, blocks=1, edge_dim=16, lane_hidden=32)
@@ -33,6 +33,7 @@ def trained(scene_0103: Scene, tmp_path_factory: pytest.TempPathFactory) -> tupl
     return out, record
 
 
+@pytest.mark.slow
 def test_training_lowers_the_loss_and_writes_a_record(trained: tuple[Path, dict]) -> None:
     out, record = trained
     history = record["history"]
@@ -44,6 +45,7 @@ def test_training_lowers_the_loss_and_writes_a_record(trained: tuple[Path, dict]
     assert extra["steps"] == 40 and extra["final_val_loss"] == pytest.approx(history[-1]["val_loss"])
 
 
+@pytest.mark.slow
 def test_training_resumes_where_it_stopped(
     scene_0103: Scene, trained: tuple[Path, dict], tmp_path: Path
 ) -> None:
@@ -67,6 +69,7 @@ def test_training_resumes_where_it_stopped(
         assert torch.equal(tensor, got[name]), name
 
 
+@pytest.mark.slow
 def test_loaded_checkpoint_samples_the_same_plans(scene_0103: Scene, trained: tuple[Path, dict]) -> None:
     out, _ = trained
     sampling = SamplingConfig.evenly("ddim", 5, 3)
@@ -94,7 +97,7 @@ def test_policy_never_sees_the_logged_future(scene_0103: Scene, trained: tuple[P
     def obs(scene: Scene) -> Observation:
         tracks = replace(scene.agents, valid=scene.agents.valid.copy())
         tracks.valid[controlled, step + 1 :] = False
-        return Observation(scene, tracks, step, controlled, 52, np.random.default_rng(0))
+        return Observation(scene, tracks, step, controlled, 52, np.random.default_rng(0), start_step=step)
 
     plan = policy.plan(obs(scene_0103)).states
     np.testing.assert_array_equal(plan, policy.plan(obs(scrambled_log(controlled))).states)
@@ -118,11 +121,12 @@ def test_torchrun_two_process_training(tmp_path: Path) -> None:
     assert record["steps"] == 4 and [h["step"] for h in record["history"]] == [2, 4]
 
 
+@pytest.mark.model
 def test_the_shipped_checkpoint_loads_and_plans() -> None:
     """The default policy of `ctgpp simulate`: the checkpoint inside the package, one re-plan."""
     from ctgpp.data.catalog import Catalog
+    from ctgpp.policies.factory import default_checkpoint, make_policy
     from ctgpp.sim.closed_loop import initial_observation
-    from ctgpp.sim.factory import default_checkpoint, make_policy
 
     model, config, record = load_checkpoint(default_checkpoint())
     assert record["steps"] >= 1000 and record["final_val_loss"] < 1.5

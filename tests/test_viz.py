@@ -12,10 +12,10 @@ from matplotlib.lines import Line2D
 from PIL import Image
 
 from ctgpp.data.scenarionet import load_scenarionet
+from ctgpp.interfaces import Rollout
 from ctgpp.metrics import vehicle_events
 from ctgpp.scene.types import AgentTracks, AgentType, Scene
 from ctgpp.scene.vehicles import controlled_vehicles
-from ctgpp.sim.rollout import Rollout
 from ctgpp.viz import (
     Event,
     QueryCaption,

@@ -13,13 +13,13 @@ import torch
 from ctgpp.behaviours import get_behaviour
 from ctgpp.behaviours.timing import TimeWindow, windowed
 from ctgpp.guidance import build_guidance_batch, make_loss
-from ctgpp.guidance.timing import During
-from ctgpp.language.compiler import compile_query
+from ctgpp.guidance.rules.timing import During
+from ctgpp.interfaces import Rollout
+from ctgpp.language.compiler.compile import compile_query
 from ctgpp.language.satisfaction import check_satisfied
 from ctgpp.scene.lanes import point_ahead
-from ctgpp.sim.rollout import Rollout
-from tests.test_guidance_helpers import logged_x, real_observation
-from tests.test_rule_metrics import T, hand_rollout, straight
+from tests.support.observations import logged_x, real_observation
+from tests.support.rollouts import T, hand_rollout, straight
 
 # --- faster than -------------------------------------------------------------------------------------
 
@@ -60,8 +60,8 @@ def test_faster_than_verdict_by_hand() -> None:
 # --- time windows ------------------------------------------------------------------------------------
 
 
-def _batch(step: int) -> SimpleNamespace:
-    return SimpleNamespace(scene=SimpleNamespace(id="hand"), step=step, dt_s=0.1)
+def _batch(step: int, start: int = 30) -> SimpleNamespace:
+    return SimpleNamespace(scene=SimpleNamespace(id="hand"), step=step, start_step=start, dt_s=0.1)
 
 
 def test_during_hands_the_loss_the_columns_of_its_window() -> None:
@@ -76,7 +76,7 @@ def test_during_hands_the_loss_the_columns_of_its_window() -> None:
     gone = x.clone().requires_grad_(True)
     cost = timed(gone, _batch(60))  # 3 s in: the window has passed
     assert float(cost.abs().sum()) == 0.0 and cost.requires_grad
-    assert timed.columns(30, _batch(10)) == slice(9, 20)  # an earlier step: another episode
+    assert timed.columns(30, _batch(10, start=10)) == slice(9, 20)  # another episode's first re-plan
 
 
 def _one(speed: np.ndarray) -> Rollout:

@@ -1,10 +1,9 @@
 """The types every layer shares: what a policy observes and plans (:class:`Observation`,
 :class:`Plan`), the :class:`Policy` protocol, and the :class:`Rollout` of an episode.
 
-They live here, apart from the simulator (:mod:`ctgpp.sim`), so that guidance, language, baselines,
-metrics and pictures can name them without importing the simulator; ``ctgpp.sim.policy`` and
-``ctgpp.sim.rollout`` re-export them under their old paths. Only NumPy and the scene types are
-imported.
+They live here, apart from the simulator (:mod:`ctgpp.sim`), so that guidance, language, policies,
+metrics and pictures can name them without importing the simulator; every module imports them from
+here. Only NumPy and the scene types are imported.
 """
 
 from __future__ import annotations
@@ -16,7 +15,7 @@ import numpy as np
 
 from ctgpp.scene.types import AgentTracks, Scene
 
-__all__ = ["Observation", "Plan", "Policy", "Rollout"]
+__all__ = ["Observation", "Plan", "Policy", "Rollout", "StageChange"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -28,7 +27,9 @@ class Observation:
     displayed order. horizon_steps: how many future steps to plan. held: the controlled vehicles the
     simulator keeps still whatever is planned for them (stationary at the start, with a policy that
     ``hold_stationary``), agent indices: a policy may plan them as standing still and spend nothing on
-    them.
+    them. start_step: the episode's first simulated step (the step of its first re-plan; ``step`` at
+    that re-plan), keyword only: what a rule fixes at the start of the episode ("within 5 s", "the
+    point 20 m ahead of it", the lane it changes to) is read at this step of ``tracks``.
     """
 
     scene: Scene
@@ -38,6 +39,23 @@ class Observation:
     horizon_steps: int
     rng: np.random.Generator
     held: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    start_step: int = field(kw_only=True)
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.start_step <= self.step:
+            raise ValueError(f"start_step must lie in [0, step = {self.step}], got {self.start_step}")
+
+
+@dataclass(frozen=True)
+class StageChange:
+    """What one plan stage changed at one re-plan: the ``vehicles`` (displayed numbers) whose plans
+    it changed, the largest change of a planned speed (``speed_mps``) and of a planned position
+    (``shift_m``) it made among them, over the plan's samples and horizon."""
+
+    stage: str
+    vehicles: tuple[int, ...]
+    speed_mps: float
+    shift_m: float
 
 
 @dataclass(frozen=True, eq=False)
@@ -45,11 +63,13 @@ class Plan:
     """Planned world states of the controlled vehicles for the next ``horizon_steps`` steps.
 
     states: (V, F, 4) x m, y m, speed m/s, yaw rad. valid: (V, F) bool — an invalid step removes the
-    vehicle from the scene at that step (used by log replay when a track ends).
+    vehicle from the scene at that step (used by log replay when a track ends). changes: what each
+    plan stage changed to make it (:mod:`ctgpp.policies.stages`; empty for a policy without stages).
     """
 
     states: np.ndarray
     valid: np.ndarray
+    changes: tuple[StageChange, ...] = ()
 
 
 class Policy(Protocol):
@@ -70,6 +90,8 @@ class Rollout:
     history, later ones the simulated future. ``sim`` holds every agent of the scene over the window
     (controlled vehicles simulated, the others replayed from the log). ``controlled``: (A,) bool.
     ``number``: (A,) int, the displayed vehicle number of controlled agents, -1 for the others.
+    ``stage_changes``: what the policy's plan stages changed, as (episode time s of the re-plan,
+    change) in order (empty for a policy without stages).
     """
 
     scene: Scene
@@ -79,6 +101,7 @@ class Rollout:
     controlled: np.ndarray
     number: np.ndarray
     policy: str
+    stage_changes: tuple[tuple[float, StageChange], ...] = ()
 
     @property
     def log(self) -> AgentTracks:

@@ -19,20 +19,24 @@ import numpy as np
 
 from ctgpp.api.result import Result
 from ctgpp.api.rule_text import parse_rule_arg
+from ctgpp.behaviours.rule_spec import RuleSpec, custom_rule
 from ctgpp.data.catalog import Catalog, default_data_dir
 from ctgpp.diffusion.guided import GuidanceConfig
-from ctgpp.eval.rule_setup import RuleSpec, custom_rule
 from ctgpp.guidance import CompositeLoss
 from ctgpp.guidance.base import GuidanceLoss
 from ctgpp.guidance.guards import GuardConfig, guard_report
 from ctgpp.guidance.scope import LossScope
 from ctgpp.interfaces import Policy, Rollout
-from ctgpp.language.client import LLMConfig
+from ctgpp.language.llm.client import LLMConfig
+from ctgpp.language.llm.remote import GeneratedLossError
 from ctgpp.language.query import QueryLoss, fall_back, resolve_query
-from ctgpp.language.remote import GeneratedLossError
 from ctgpp.language.satisfaction import check_satisfied
 from ctgpp.metrics import compute_metrics, moving_counts, vehicle_events
 from ctgpp.metrics.rules import fail_excluding
+from ctgpp.policies.diffusion import DiffusionPolicy, SamplingConfig
+from ctgpp.policies.factory import GUARDED_POLICIES, POLICY_NAMES, UNGUIDED_POLICIES, PolicyFactory
+from ctgpp.policies.stages import StageConfig
+from ctgpp.policies.stages.report import stage_report
 from ctgpp.scene.types import Scene
 from ctgpp.scene.vehicles import controlled_vehicles
 from ctgpp.sim.closed_loop import (
@@ -46,8 +50,6 @@ from ctgpp.sim.closed_loop import (
     start_step,
 )
 from ctgpp.sim.closed_loop import simulate as run_closed_loop
-from ctgpp.sim.diffusion_policy import SamplingConfig
-from ctgpp.sim.factory import GUARDED_POLICIES, POLICY_NAMES, UNGUIDED_POLICIES, PolicyFactory
 
 log = logging.getLogger(__name__)
 
@@ -95,6 +97,7 @@ def simulate(
     sampling: SamplingConfig | None = None,
     guidance: GuidanceConfig | None = None,
     guards: str | GuardConfig | None = None,
+    stages: str | StageConfig | None = None,
     policies: PolicyFactory | None = None,
     llm: LLMConfig | None = None,
     progress: bool = False,
@@ -107,7 +110,7 @@ def simulate(
     query: a sentence, e.g. ``"vehicle 1 should collide with vehicle 2"`` (vehicles are the numbers of
     ``ctgpp show``): compiled offline, or by the language model ``llm`` when given. rules: rules as
     ``ctgpp simulate --rule`` writes them, e.g. ``"speed_limit:limit_mps=3"``, or already made for
-    the episode (a :class:`~ctgpp.eval.rule_setup.RuleSpec`, e.g. an evaluation rule of
+    the episode (a :class:`~ctgpp.behaviours.rule_spec.RuleSpec`, e.g. an evaluation rule of
     :func:`~ctgpp.eval.rule_setup.setup_rule`); all must hold (see ``ctgpp rules``). policy: one of
     ``POLICY_NAMES`` (``ctgpp``, ``replay``, ``constvel``, the ablations and baselines); ``replay``,
     ``constvel`` and ``ctgpp-unguided`` are not guided, the rules and the query are only measured.
@@ -116,12 +119,15 @@ def simulate(
     history_s: logged seconds before the start (default 3 s, less down to 1 s where the scene is
     short). checkpoint: the model directory (default: the shipped model). sampling, guidance: the
     sampler and Algorithm 2's settings (default: the ``fast`` preset). guards: the realism guards,
-    ``"on"`` (default), ``"off"`` or a comma-separated subset of ``offroad,collision,lane``.
-    policies: the :class:`~ctgpp.sim.factory.PolicyFactory` that makes the policy, for many episodes
-    (its models load once; ``ctgpp evaluate`` and ``evaluate-queries`` pass theirs); it holds the
-    checkpoints, the sampler, Algorithm 2's settings and the guards, so ``checkpoint``, ``sampling``,
-    ``guidance`` and ``guards`` are then not given (ValueError). Default: a factory of those. progress: a
-    progress bar over the re-plans. echo: called with each line worth telling (the query's loss).
+    ``"on"`` (default), ``"off"`` or a comma-separated subset of ``offroad,collision,lane``. stages:
+    the plan stages beyond the paper, ``"on"`` (default), ``"off"`` or a subset of ``steer,cap,brake``
+    (:mod:`ctgpp.policies.stages`), whatever the guards.
+    policies: the :class:`~ctgpp.policies.factory.PolicyFactory` that makes the policy, for many
+    episodes (its models load once; ``ctgpp evaluate`` and ``evaluate-queries`` pass theirs); it holds
+    the checkpoints, the sampler, Algorithm 2's settings, the guards and the stages, so ``checkpoint``,
+    ``sampling``, ``guidance``, ``guards`` and ``stages`` are then not given (ValueError). Default: a
+    factory of those. progress: a progress bar over the re-plans. echo: called with each line worth
+    telling (the query's loss).
     on_replan: called as ``on_replan(done, total)`` after each re-plan (what ``ctgpp serve`` shows;
     an exception it raises stops the episode).
 
@@ -141,7 +147,7 @@ def simulate(
     controlled = controlled_vehicles(scene, step0)
     if len(controlled) == 0:
         raise ValueError(f"scene {scene.id} has no vehicle at {start:g} s: nothing to simulate")
-    factory = _factory(policy, policies, checkpoint, sampling, guidance, guards)
+    factory = _factory(policy, policies, checkpoint, sampling, guidance, guards, stages)
     specs = [rule if isinstance(rule, RuleSpec) else _rule(rule, scene, step0, controlled) for rule in rules]
     query_loss = None
     if query:
@@ -184,6 +190,7 @@ def simulate(
         fail_excluding_rule_pairs=_fail_excluding(specs, rollout),
         query=None if query_loss is None or query is None else _query_report(query, query_loss, rollout),
         guards=_guards_record(policy, used, factory.guards, scope, scene, step0),
+        stages=_stages_record(used, rollout),
     )
 
 
@@ -194,15 +201,17 @@ def _factory(
     sampling: SamplingConfig | None,
     guidance: GuidanceConfig | None,
     guards: str | GuardConfig | None,
+    stages: str | StageConfig | None,
 ) -> PolicyFactory:
     """``policies``, or the factory of ``policy`` with these settings when it is None."""
     if policies is not None:
         given = [name for name, value in (("checkpoint", checkpoint), ("sampling", sampling),
-                                          ("guidance", guidance), ("guards", guards)) if value is not None]
+                                          ("guidance", guidance), ("guards", guards), ("stages", stages))
+                 if value is not None]
         if given:
             raise ValueError(f"simulate: give {', '.join(given)} to the PolicyFactory passed as policies")
         return policies
-    return policy_factory(policy, checkpoint, sampling, guidance, guards)
+    return policy_factory(policy, checkpoint, sampling, guidance, guards, stages)
 
 
 def policy_factory(
@@ -211,17 +220,21 @@ def policy_factory(
     sampling: SamplingConfig | None = None,
     guidance: GuidanceConfig | None = None,
     guards: str | GuardConfig | None = None,
+    stages: str | StageConfig | None = None,
 ) -> PolicyFactory:
     """The factory :func:`simulate` makes for ``policy`` with these settings (same defaults), to pass
     as its ``policies`` to several episodes that should load the model once."""
     if not isinstance(guards, GuardConfig):
         guards = _parse_guards("on" if guards is None else guards)
+    if not isinstance(stages, StageConfig):
+        stages = parse_stages("on" if stages is None else stages)
     return PolicyFactory.of(
         policy,
         None if checkpoint is None else Path(checkpoint),
         SamplingConfig() if sampling is None else sampling,
         GuidanceConfig() if guidance is None else guidance,
         guards,
+        stages,
     )
 
 
@@ -230,6 +243,14 @@ def _parse_guards(text: str) -> GuardConfig:
         return GuardConfig.parse(text)
     except ValueError as err:
         raise ValueError(f"--guards {text}: {err}") from None
+
+
+def parse_stages(text: str) -> StageConfig:
+    """``--stages`` as a :class:`StageConfig` (ValueError naming the stages for an unknown one)."""
+    try:
+        return StageConfig.parse(text)
+    except ValueError as err:
+        raise ValueError(f"--stages {text}: {err}") from None
 
 
 def _combined(losses: list[GuidanceLoss]) -> GuidanceLoss | None:
@@ -314,3 +335,10 @@ def _guards_record(
     controlled = controlled_vehicles(scene, step)
     held = held_numbers(scene.agents, step, controlled, policy.hold_stationary, scope.moves)
     return guard_report(guards, scope, len(controlled), [int(v) for v in held])
+
+
+def _stages_record(policy: Policy, rollout: Rollout) -> dict[str, Any]:
+    """The plan stages of the episode's policy and what each changed (:func:`stage_report`)."""
+    if not isinstance(policy, DiffusionPolicy):
+        return {"ran": [], "note": f"policy {policy.name} has no plan stages"}
+    return stage_report([stage.name for stage in policy.stages], policy.stage_config, rollout.stage_changes)

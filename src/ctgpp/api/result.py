@@ -28,7 +28,9 @@ class Result:
     partner, off-road, lane leave, stop: :func:`ctgpp.metrics.vehicle_events`). rules: rule text ->
     its measured violation. fail_excluding_rule_pairs: ``fail`` without the pairs a collision rule
     asks to crash (None without such a rule). query: the query's report (``satisfied``, its parts
-    with what was measured; None without a query). guards: the realism guards that ran.
+    with what was measured; None without a query). guards: the realism guards that ran. stages: the
+    plan stages that ran and what each changed (which vehicles, how much, when:
+    :func:`ctgpp.policies.stages.report.stage_report`).
     """
 
     scene: Scene
@@ -41,6 +43,7 @@ class Result:
     fail_excluding_rule_pairs: float | None
     query: dict[str, Any] | None
     guards: dict[str, Any]
+    stages: dict[str, Any]
 
     @property
     def policy(self) -> str:
@@ -83,6 +86,7 @@ class Result:
         if self.query is not None:
             record["query"] = self.query
         record["guards"] = self.guards
+        record["stages"] = self.stages
         return json_safe(record)
 
     # --- the rollout as data -------------------------------------------------------------------
@@ -91,7 +95,7 @@ class Result:
         """One row per agent per valid step: time_s (0 at the start, negative for history), agent
         (displayed number, -1 for agents not controlled), track_id, type, controlled, x, y (m), yaw
         (rad), speed (m/s), length, width (m). The table ``ctgpp simulate`` writes."""
-        from ctgpp.sim.export import rollout_table
+        from ctgpp.io.rollout_table import rollout_table
 
         return rollout_table(self.rollout)
 
@@ -123,7 +127,7 @@ class Result:
 
     def write(self, path: str | Path) -> Path:
         """Write the rollout table to ``path`` (.parquet or .csv), atomically."""
-        from ctgpp.sim.export import write_rollout
+        from ctgpp.io.rollout_table import write_rollout
 
         return write_rollout(self.rollout, Path(path))
 

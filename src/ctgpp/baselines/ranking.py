@@ -17,10 +17,11 @@ import torch
 from torch import Tensor
 
 from ctgpp.diffusion.guided import action_trajectories
+from ctgpp.geometry import DISC_CLEARANCE_M
 from ctgpp.guidance.base import GuidanceLoss
 from ctgpp.guidance.context import GuidanceBatch
-from ctgpp.guidance.rules_common import disc_centres, disc_layout, world_states
-from ctgpp.guidance.rules_motion import NoOffroad
+from ctgpp.guidance.rules.common import disc_centres, disc_layout, world_states
+from ctgpp.guidance.rules.motion import NoOffroad
 from ctgpp.model.normalization import Normalizer
 
 _NEAR_M = 10.0  # obstacles farther than this from every candidate centre are skipped
@@ -42,7 +43,7 @@ def _overlap(a: Tensor, ra: Tensor, b: Tensor, rb: Tensor, buffer_m: float) -> T
 
 
 @torch.no_grad()
-def collision_cost(traj: Tensor, data_batch: GuidanceBatch, buffer_m: float = 0.2) -> Tensor:
+def collision_cost(traj: Tensor, data_batch: GuidanceBatch, buffer_m: float = DISC_CLEARANCE_M) -> Tensor:
     """Per-candidate collision cost (V, M) of traj (V, M, T, 6): the mean over time of the overlap
     (m) with every other vehicle's reference plan (candidate 0) and every replayed agent."""
     n_v, n_m, n_t, _ = traj.shape

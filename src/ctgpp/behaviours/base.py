@@ -27,9 +27,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ctgpp.behaviours.timing import TimeWindow, windowed
+from ctgpp.interfaces import Rollout
 from ctgpp.rule_params import ParamInfo, resolve_params, rule_params
 from ctgpp.scene.types import LaneGraph
-from ctgpp.sim.rollout import Rollout
 
 if TYPE_CHECKING:
     from ctgpp.guidance import GuidanceLoss

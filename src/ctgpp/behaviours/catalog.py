@@ -6,11 +6,13 @@ compiler turns into it. Points in phrasings are scene world metres.
 
 There is one factory per kind of behaviour, reading that kind's module: :func:`motion_rule` (one
 vehicle's speed, acceleration, the road, points: :mod:`~ctgpp.behaviours.motion`), :func:`pair_rule`
-(two vehicles: :mod:`~ctgpp.behaviours.pairs`) and :func:`lane_rule` (the lane graph:
-:mod:`~ctgpp.behaviours.lanes`). ``measures`` names the pair ``<measures>_violation`` /
-``<measures>_check`` of the module (the behaviour's name when not given); ``deadline`` how "within N s"
-reads (:data:`~ctgpp.behaviours.base.HOLDS`: from N s on; :data:`~ctgpp.behaviours.base.HAPPENS`: by
-N s), by kind unless given.
+(two vehicles: :mod:`~ctgpp.behaviours.pairs`) and, for the lane graph, :func:`lane_keeping_rule`
+(:mod:`~ctgpp.behaviours.lane_keeping`), :func:`lane_change_rule` (lane changes, the rightmost lane,
+cut-ins: :mod:`~ctgpp.behaviours.lane_changes`) and :func:`turn_rule` (:mod:`~ctgpp.behaviours.turns`).
+``measures`` names the pair ``<measures>_violation`` / ``<measures>_check`` of the module (the
+behaviour's name when not given); ``deadline`` how "within N s" reads
+(:data:`~ctgpp.behaviours.base.HOLDS`: from N s on; :data:`~ctgpp.behaviours.base.HAPPENS`: by N s),
+by kind unless given.
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from types import ModuleType
 
-from ctgpp.behaviours import lanes, motion, pairs
+from ctgpp.behaviours import lane_changes, lane_keeping, motion, pairs, turns
 from ctgpp.behaviours.base import HAPPENS, HOLDS, Behaviour, register
 
 Factory = Callable[..., Behaviour]
@@ -41,7 +43,9 @@ def _kind(module: ModuleType, default_window: str, default_deadline: str) -> Fac
 
 motion_rule = _kind(motion, motion.EVERY_STEP, HOLDS)
 pair_rule = _kind(pairs, pairs.EVERY_STEP, HOLDS)
-lane_rule = _kind(lanes, lanes.END, HAPPENS)
+lane_keeping_rule = _kind(lane_keeping, lane_keeping.EVERY_STEP, HAPPENS)
+lane_change_rule = _kind(lane_changes, lane_changes.END, HAPPENS)
+turn_rule = _kind(turns, turns.MOVING_STEPS, HAPPENS)
 
 # --- two vehicles ------------------------------------------------------------------------------------
 
@@ -174,34 +178,32 @@ motion_rule(
 
 # --- lanes -------------------------------------------------------------------------------------------
 
-lane_rule(
+lane_keeping_rule(
     "follow_lane", "A vehicle (or every moving vehicle) follows the lane it starts on: under 1.5 m from "
     "its centerline at every step.",
     "m", "mean lateral offset from the lane's centerline",
     ("vehicle 5 should follow its lane", "everyone stays in their lane"),
-    window=lanes.EVERY_STEP,
 )
-lane_rule(
+lane_keeping_rule(
     "keep_lane", "A vehicle (or every vehicle) keeps to the lanes it may follow without changing lanes, "
     "turns included: within tolerance_m (or its distance at the start, when more) of them.",
     "m", "mean distance beyond the allowance from its lanes",
     ("vehicle 5 should keep its lane", "vehicle 2 must not change lanes"),
-    window=lanes.EVERY_STEP,
 )
-lane_rule(
+lane_change_rule(
     "lane_change", "A vehicle changes to the same-direction lane on its left or right (never the oncoming "
     "lane) and ends inside it.",
     "m", "distance of the end from the target lane's centerline",
     ("vehicle 2 should change to the left lane", "vehicle 2 should change to the right lane",
      "vehicle 3 should move one lane over to the right"),
 )
-lane_rule(
+lane_change_rule(
     "move_to_rightmost_lane", "A vehicle ends on a lane with no same-direction lane to its right.",
     "lanes", "same-direction lanes to the right of the lane it ends on",
     ("vehicle 5 should move to the rightmost lane",),
     measures="rightmost",
 )
-lane_rule(
+turn_rule(
     "turn_at_next_intersection", "A vehicle turns left or right (or goes straight) at the next "
     "intersection: its heading change while moving is within 15° of that way's through the intersection "
     "(from its lane, or from the lane beside it that has that way).",
@@ -209,9 +211,9 @@ lane_rule(
     ("vehicle 5 should turn right at the next intersection",
      "vehicle 5 should turn left at the next intersection",
      "vehicle 1 goes straight at the next intersection"),
-    measures="turn", window="t = 0 to the end, steps at which the vehicle moves",
+    measures="turn",
 )
-lane_rule(
+lane_change_rule(
     "cut_in", "A vehicle cuts in ahead of another: it starts outside the other's lane and ends inside it, "
     "ahead with a bumper gap in (0, gap_m], while the other keeps moving (at least half its start speed).",
     "m", "lateral distance beyond half a lane plus the gap outside (0, gap_m] at the end",

@@ -17,12 +17,12 @@ import numpy as np
 
 from ctgpp.behaviours.base import Vehicles, Verdict, vehicle_list
 from ctgpp.behaviours.tracks import Track, earliest_speed_step, held_from, hold_steps, track, tracks
+from ctgpp.interfaces import Rollout
 from ctgpp.metrics import rules as paper
 from ctgpp.metrics.offroad import offroad_steps
 from ctgpp.scene.lanes import point_ahead
-from ctgpp.sim.rollout import Rollout
+from ctgpp.scene.vehicles import MOVING_SPEED_MPS  # stopped: slower than this, not moving
 
-STOP_SPEED_MPS = 0.5  # slower than this is stopped
 TARGET_TOL_MPS = 1.0  # "drive at v": within this of v
 GOAL_REACH_M = 2.0  # evaluation rule 7's goal counts as reached this close (its loss aims at 0 m)
 
@@ -152,7 +152,7 @@ def stop_check(rollout: Rollout, p: Params, vehicles: Vehicles) -> Verdict:
     """Every vehicle comes to a stop (under 0.5 m/s) and stays stopped to the end (at least 1 s)."""
     words, ok_all = [], True
     for t in tracks(rollout, vehicles):
-        ok_t, said = _reach_and_stay(t, t.speed < STOP_SPEED_MPS, f"stopped (< {STOP_SPEED_MPS:g} m/s)")
+        ok_t, said = _reach_and_stay(t, t.speed < MOVING_SPEED_MPS, f"stopped (< {MOVING_SPEED_MPS:g} m/s)")
         ok_all &= ok_t
         words.append(said)
     return Verdict(ok_all, "; ".join(words), REACH_WINDOW)
@@ -263,7 +263,7 @@ def stop_region_check(rollout: Rollout, p: Params, vehicles: Vehicles) -> Verdic
             words.append(f"vehicle {v} never inside; closest {closest:.1f} m from the centre")
             continue
         low = float(t.speed[inside].min())
-        ok_all &= low < STOP_SPEED_MPS
+        ok_all &= low < MOVING_SPEED_MPS
         words.append(f"vehicle {v}: lowest speed inside {low:.2f} m/s")
     return Verdict(ok_all, "; ".join(words), "the steps inside the region")
 

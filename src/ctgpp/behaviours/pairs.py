@@ -16,10 +16,10 @@ import numpy as np
 
 from ctgpp.behaviours.base import Vehicles, Verdict
 from ctgpp.behaviours.tracks import Track, both_valid, track, tracks, wrapped_deg
+from ctgpp.geometry import boxes_overlap
+from ctgpp.interfaces import Rollout
 from ctgpp.metrics import rules as paper
-from ctgpp.metrics.boxes import boxes_overlap
 from ctgpp.metrics.collision import collision_steps
-from ctgpp.sim.rollout import Rollout
 
 SAME_DIRECTION_DEG = 30.0
 TURN_ROUND_DEG = 150.0  # two vehicles this far apart in heading at t = 0 face opposite ways

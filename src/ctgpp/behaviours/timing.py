@@ -15,8 +15,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
+from ctgpp.interfaces import Rollout
 from ctgpp.scene.types import AgentTracks
-from ctgpp.sim.rollout import Rollout
 
 
 @dataclass(frozen=True)
@@ -68,4 +68,4 @@ def windowed(rollout: Rollout, window: TimeWindow | None) -> Rollout:
         rollout.current + round(window.end_s / dt) + 1, rollout.sim.num_steps)
     sim = _cut(rollout.sim, max(stop, current + 1))
     return WindowedRollout(rollout.scene, rollout.first_step, current, sim, rollout.controlled,
-                           rollout.number, rollout.policy, shift, window.hold)
+                           rollout.number, rollout.policy, shift_steps=shift, hold=window.hold)

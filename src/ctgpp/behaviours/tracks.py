@@ -15,8 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ctgpp.behaviours.base import MissingVehicle, Vehicles
+from ctgpp.interfaces import Rollout
 from ctgpp.metrics.collision import controlled_vehicle_indices
-from ctgpp.sim.rollout import Rollout
 
 HOLD_S = 1.0  # "reach and stay": the condition must hold at least this long before the end
 

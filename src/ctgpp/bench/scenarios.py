@@ -27,11 +27,12 @@ from tqdm import tqdm
 from ctgpp.data.catalog import Catalog
 from ctgpp.eval.runner import episode_rule
 from ctgpp.metrics import MOVING_METRICS, compute_metrics, moving_counts
+from ctgpp.policies.diffusion import DiffusionPolicy
+from ctgpp.policies.factory import PolicyFactory
+from ctgpp.policies.presets import preset
 from ctgpp.scene.types import Scene
-from ctgpp.sim.closed_loop import STATIONARY_SPEED_MPS, simulate
-from ctgpp.sim.diffusion_policy import DiffusionPolicy
-from ctgpp.sim.factory import PolicyFactory
-from ctgpp.sim.presets import preset
+from ctgpp.scene.vehicles import MOVING_SPEED_MPS
+from ctgpp.sim.closed_loop import simulate
 
 
 @dataclass(frozen=True)
@@ -119,7 +120,7 @@ class _Worker:
         fail = metrics["fail"] if spec is None else spec.fail(rollout)
         violation = math.nan if spec is None else spec.violation(rollout)
         controlled = rollout.controlled.nonzero()[0]
-        moving = int((rollout.sim.speed[controlled, rollout.current] >= STATIONARY_SPEED_MPS).sum())
+        moving = int((rollout.sim.speed[controlled, rollout.current] >= MOVING_SPEED_MPS).sum())
         return EpisodeTiming(
             scene_id, start_s, seed, len(controlled), moving, seconds, policy.denoiser_calls, fail,
             violation, metrics["real"], metrics["rel_real"],

@@ -25,10 +25,10 @@ from ctgpp.diffusion import CosineSchedule
 from ctgpp.eval.rule_setup import evaluation_rules
 from ctgpp.eval.runner import NO_RULE, Episode, plan_episodes
 from ctgpp.model.config import ModelConfig
-from ctgpp.scene.vehicles import controlled_vehicles
-from ctgpp.sim.closed_loop import STATIONARY_SPEED_MPS, episode_starts, start_step
-from ctgpp.sim.factory import PolicyFactory
-from ctgpp.sim.presets import PRESETS, SPELLING, preset
+from ctgpp.policies.factory import PolicyFactory
+from ctgpp.policies.presets import PRESETS, SPELLING, preset
+from ctgpp.scene.vehicles import MOVING_SPEED_MPS, controlled_vehicles
+from ctgpp.sim.closed_loop import episode_starts, start_step
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
@@ -158,7 +158,7 @@ def _busiest_windows(catalog: Catalog, split: str, config: ModelConfig) -> list[
             continue
         step = start_step(scene, starts[0])
         controlled = controlled_vehicles(scene, step)
-        still = scene.agents.speed[controlled, step] < STATIONARY_SPEED_MPS
+        still = scene.agents.speed[controlled, step] < MOVING_SPEED_MPS
         moving, held = controlled[~still], controlled[still]
         if not len(moving):
             continue

@@ -16,8 +16,9 @@ from ctgpp.data.catalog import Catalog
 if TYPE_CHECKING:
     from ctgpp.diffusion.guided import GuidanceConfig
     from ctgpp.guidance.guards import GuardConfig
-    from ctgpp.language.client import LLMConfig
-    from ctgpp.sim.diffusion_policy import SamplingConfig
+    from ctgpp.language.llm.client import LLMConfig
+    from ctgpp.policies.diffusion import SamplingConfig
+    from ctgpp.policies.stages import StageConfig
 
 
 def add_data_arg(parser: argparse.ArgumentParser) -> None:
@@ -54,7 +55,7 @@ def add_episode_args(parser: argparse.ArgumentParser, what: str = "") -> None:
 
 def add_model_args(parser: argparse.ArgumentParser) -> None:
     """Checkpoint and sampler options of the ctgpp policy."""
-    from ctgpp.sim.diffusion_policy import SamplingConfig
+    from ctgpp.policies.diffusion import SamplingConfig
 
     parser.add_argument(
         "--checkpoint",
@@ -134,6 +135,28 @@ def add_guard_args(parser: argparse.ArgumentParser, default: str) -> None:
     )
 
 
+def add_stage_args(parser: argparse.ArgumentParser, default: str) -> None:
+    """The plan stages beyond the paper (``--stages``): ``default`` "on" for simulate, "off" for the
+    paper's protocol; independent of ``--guards``."""
+    from ctgpp.policies.stages import SWITCHABLE
+
+    parser.add_argument(
+        "--stages",
+        default=default,
+        metavar="on|off|" + ",".join(SWITCHABLE),
+        help=f"plan stages of the diffusion policies after sampling (default: {default}): a query's turn "
+        "steered along its lane path (steer), its speed limit held exactly (cap), a chosen plan braked for "
+        "what is ahead (brake); a comma-separated subset runs only those. metrics.json lists what each did",
+    )
+
+
+def stage_config(args: argparse.Namespace) -> StageConfig:
+    """The ``--stages`` choice (ValueError naming the stages for an unknown one)."""
+    from ctgpp.api.episode import parse_stages
+
+    return parse_stages(args.stages)
+
+
 def add_llm_args(parser: argparse.ArgumentParser) -> None:
     """The language model that writes the query's loss (``--llm-*``; none: the offline compiler)."""
     parser.add_argument(
@@ -163,7 +186,7 @@ def add_llm_args(parser: argparse.ArgumentParser) -> None:
 
 def llm_config(args: argparse.Namespace) -> LLMConfig | None:
     """The ``--llm-*`` choice over the environment; None: the offline compiler."""
-    from ctgpp.language.client import LLMConfig
+    from ctgpp.language.llm.client import LLMConfig
 
     return LLMConfig.resolve(base_url=args.llm_base_url, model=args.llm_model, timeout_s=args.llm_timeout,
                              max_tokens=args.llm_max_tokens)
@@ -194,7 +217,7 @@ def guidance_config(args: argparse.Namespace) -> GuidanceConfig:
 
 
 def sampling_config(args: argparse.Namespace) -> SamplingConfig:
-    from ctgpp.sim.diffusion_policy import SamplingConfig
+    from ctgpp.policies.diffusion import SamplingConfig
 
     if (args.steps is not None and args.steps < 1) or args.samples < 1:
         raise ValueError("--steps and --samples must be positive")

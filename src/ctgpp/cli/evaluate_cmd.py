@@ -12,18 +12,20 @@ from ctgpp.cli.common import (
     add_guard_args,
     add_guidance_args,
     add_model_args,
+    add_stage_args,
     guard_config,
     guidance_config,
     sampling_config,
     split_spec,
+    stage_config,
 )
 from ctgpp.eval.realism_plot import plot_realism, read_histograms
 from ctgpp.eval.rule_setup import evaluation_rules
 from ctgpp.eval.runner import NO_RULE, EvalSet, plan_sets, run_episodes
 from ctgpp.eval.table import markdown_table, moving_table, summarize
 from ctgpp.io.atomic import write_text_atomic
+from ctgpp.policies.factory import MODEL_NAMES, POLICY_NAMES, PolicyFactory
 from ctgpp.sim.closed_loop import DURATION_S
-from ctgpp.sim.factory import MODEL_NAMES, POLICY_NAMES, PolicyFactory
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
@@ -42,6 +44,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     add_model_args(p)
     add_guidance_args(p)
     add_guard_args(p, "off")  # the paper's protocol: the rule alone
+    add_stage_args(p, "off")  # and no stage beyond the paper
     p.add_argument(
         "--checkpoint-of",
         action="append",
@@ -124,6 +127,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
         guidance_config=guidance_config(args),
         checkpoints=checkpoints_of(args.checkpoint_of, args.checkpoint),
         guards=guard_config(args),
+        stages=stage_config(args),
     )
     factory.check(methods)  # a missing checkpoint fails now, not in the middle of the run
     sets = evaluation_sets(args.split, args.data)

@@ -13,15 +13,17 @@ from ctgpp.cli.common import (
     add_guidance_args,
     add_llm_args,
     add_model_args,
+    add_stage_args,
     guard_config,
     guidance_config,
     llm_config,
     open_catalog,
     sampling_config,
+    stage_config,
 )
 from ctgpp.eval.queries import default_cases, load_cases, markdown_table, run_query_cases
 from ctgpp.io.atomic import write_text_atomic
-from ctgpp.sim.factory import PolicyFactory
+from ctgpp.policies.factory import PolicyFactory
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
@@ -42,6 +44,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
                      "a result's key)")
     add_guidance_args(p)
     add_guard_args(p, "on")
+    add_stage_args(p, "on")
     add_llm_args(p)
     p.add_argument(
         "--out",
@@ -62,7 +65,8 @@ def run_evaluate_queries(args: argparse.Namespace) -> int:
     guards = guard_config(args)
     llm = llm_config(args)
     cases = load_cases(default_cases() if args.cases is None else args.cases)
-    factory = PolicyFactory(args.checkpoint, sampling_config(args), guide, guards=guards)
+    factory = PolicyFactory(args.checkpoint, sampling_config(args), guide, guards=guards,
+                            stages=stage_config(args))
     results = args.out / "queries.csv"
     # with guards, the side without the query is the guards alone (ctgpp simulate with no query)
     methods = ("ctgpp", "ctgpp" if guards.enabled else "ctgpp-unguided")

@@ -58,7 +58,7 @@ def run_serve(args: argparse.Namespace) -> int:
         raise ValueError(f"{SERVE_EXTRA} ({err.name} is missing)") from None
     llm = None
     if args.llm_model or os.environ.get("CTGPP_LLM_MODEL"):  # resolving imports torch: only when named
-        from ctgpp.language.client import LLMError
+        from ctgpp.language.llm.client import LLMError
 
         try:
             llm = llm_config(args)

@@ -17,16 +17,18 @@ from ctgpp.cli.common import (
     add_guidance_args,
     add_llm_args,
     add_model_args,
+    add_stage_args,
     guard_config,
     guidance_config,
     llm_config,
     open_catalog,
     sampling_config,
+    stage_config,
 )
 from ctgpp.io.atomic import check_output_dir, staged_dir, write_text_atomic
 from ctgpp.io.export import EXPORT_KINDS, check_export_kind, export_name
 from ctgpp.io.strict_json import dumps_strict
-from ctgpp.sim.factory import POLICY_NAMES
+from ctgpp.policies.factory import POLICY_NAMES
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> None:
@@ -69,6 +71,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     )
     add_guidance_args(p)
     add_guard_args(p, "on")
+    add_stage_args(p, "on")
     p.add_argument("--seed", type=int, default=0, help="random seed")
     p.add_argument("--out", type=Path, default=Path("ctgpp-out"), metavar="DIR", help="output directory")
     p.add_argument("--format", choices=["parquet", "csv"], default="parquet", help="rollout table format")
@@ -116,6 +119,7 @@ def run_simulate(args: argparse.Namespace) -> int:
         sampling=sampling_config(args),
         guidance=guidance_config(args),
         guards=guard_config(args),
+        stages=stage_config(args),
         llm=llm,
         progress=True,
         echo=print,
@@ -147,6 +151,10 @@ def run_simulate(args: argparse.Namespace) -> int:
     guarded = result.guards
     note = f" ({guarded['note']})" if "note" in guarded else ""
     print(f"  guards: {', '.join(guarded['ran']) or 'none'}{note}")
+    staged = result.stages
+    done = "; ".join(f"{name} {len(item['vehicles'])} vehicle(s) at {item['replans']} re-plan(s)"
+                     for name, item in staged.get("changed", {}).items())
+    print(f"  stages: {' → '.join(staged['ran']) or 'none'}" + (f" (changed: {done})" if done else ""))
     for f in files:
         print(f"wrote {f}")
     return 0

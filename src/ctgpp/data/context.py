@@ -26,9 +26,8 @@ import numpy as np
 
 from ctgpp.geometry import world_to_local, wrap_angle
 from ctgpp.scene.types import AgentType, Scene
-from ctgpp.scene.vehicles import controlled_vehicles
+from ctgpp.scene.vehicles import MOVING_SPEED_MPS, controlled_vehicles
 
-AT_REST_MPS = 0.5  # the simulator holds vehicles slower than this at the start (sim.closed_loop)
 STAYS_WITHIN_M = 1.0  # a training window holds a vehicle at rest only if its log stays this close
 
 
@@ -96,7 +95,7 @@ def training_roles(
     """
     rng = np.random.default_rng([zlib.crc32(scene.id.encode()), step])
     vehicles = controlled_vehicles(scene, step)
-    at_rest = scene.agents.speed[vehicles, step] < AT_REST_MPS
+    at_rest = scene.agents.speed[vehicles, step] < MOVING_SPEED_MPS
     draw = rng.random(len(vehicles))
     held = at_rest & stays_put(scene, vehicles, step, future_steps) & (draw < config.held_prob)
     replayed = ~at_rest & (draw < config.replay_prob)
@@ -124,7 +123,7 @@ def standing_vehicles(scene: Scene, step: int, exclude: np.ndarray, future_steps
     at rest that its log keeps there (:func:`training_roles`), and never to a replayed one."""
     a = scene.agents
     present = np.flatnonzero(a.is_vehicle & a.valid[:, step])
-    candidates = present[~np.isin(present, exclude) & (a.speed[present, step] < AT_REST_MPS)]
+    candidates = present[~np.isin(present, exclude) & (a.speed[present, step] < MOVING_SPEED_MPS)]
     return candidates[stays_put(scene, candidates, step, future_steps)]
 
 

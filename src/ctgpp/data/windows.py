@@ -3,7 +3,7 @@
 A window holds the vehicles it samples (in displayed order), their 3 s history and 5.2 s future,
 each in its own frame (origin at its current position, x along its current heading), the actions
 that reproduce the logged future through the unicycle, each vehicle's map (lanes as resampled
-polylines in its frame, and with a :class:`~ctgpp.data.map_inputs.MapConfig` the drivable area
+polylines in its frame, and with a :class:`~ctgpp.data.map_config.MapConfig` the drivable area
 around it), and the agents it is conditioned on (:mod:`ctgpp.data.context`): held vehicles and
 replayed agents with their known futures.
 """
@@ -16,7 +16,9 @@ import numpy as np
 import torch
 
 from ctgpp.data.context import ContextAgents, ContextConfig, select_context, training_roles
-from ctgpp.data.map_inputs import MapConfig, agent_lanes, drivable_grid
+from ctgpp.data.drivable_grid import drivable_grid
+from ctgpp.data.lane_slots import agent_lanes
+from ctgpp.data.map_config import MapConfig
 from ctgpp.dynamics import inverse
 from ctgpp.geometry import world_to_local, wrap_angle
 from ctgpp.scene.types import Scene
@@ -31,7 +33,7 @@ class WindowConfig:
     must not see anyway, and its inverse dynamics cost time at every re-plan.
     context: which agents condition the window (None: none; every vehicle present is sampled, as the
     models trained before the context existed and the baselines expect). map: the driving map of
-    :mod:`ctgpp.data.map_inputs` (lanes ahead and the drivable grid); None keeps the nearest lanes
+    :mod:`ctgpp.data.map_config` (lanes ahead and the drivable grid); None keeps the nearest lanes
     (``max_lanes`` × ``lane_points`` within ``lane_radius_m``) and no grid.
     """
 

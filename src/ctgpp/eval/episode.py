@@ -13,9 +13,10 @@ from pathlib import Path
 from typing import Any
 
 from ctgpp.api.episode import simulate
+from ctgpp.behaviours.rule_spec import RuleSpec
 from ctgpp.data.catalog import Catalog
 from ctgpp.eval.records import metric_cell
-from ctgpp.eval.rule_setup import RuleSpec, setup_rule
+from ctgpp.eval.rule_setup import setup_rule
 from ctgpp.interfaces import Rollout
 from ctgpp.metrics import MOVING_COUNTS, MOVING_METRICS, moving_counts
 from ctgpp.metrics.realism import (
@@ -25,10 +26,10 @@ from ctgpp.metrics.realism import (
     realism_features,
     relative_realism_features,
 )
+from ctgpp.policies.factory import PolicyFactory
 from ctgpp.scene.types import Scene
 from ctgpp.scene.vehicles import controlled_vehicles
 from ctgpp.sim.closed_loop import DURATION_S, SimConfig, episode_config, start_step
-from ctgpp.sim.factory import PolicyFactory
 
 NO_RULE = "none"
 KEY = ("set", "method", "rule", "scene", "start_s", "seed")

@@ -31,8 +31,8 @@ from ctgpp.eval.episode import (
     run_episode,
     user_error_kind,
 )
+from ctgpp.policies.factory import PolicyFactory
 from ctgpp.scene.types import Scene
-from ctgpp.sim.factory import PolicyFactory
 
 POLL_S = 1.0  # how often a waiting worker checks its parent, and the parent its workers
 

@@ -30,14 +30,14 @@ from ctgpp.api.episode import simulate
 from ctgpp.api.result import Result
 from ctgpp.data.catalog import Catalog
 from ctgpp.eval.records import append_records, metric_cell, read_records, record_key
-from ctgpp.language.client import LLMConfig
-from ctgpp.language.compiler import CompiledQuery
+from ctgpp.language.compiler.compile import CompiledQuery
+from ctgpp.language.llm.client import LLMConfig
 from ctgpp.language.query import resolve_query
 from ctgpp.language.satisfaction import check_satisfied
 from ctgpp.metrics.rules import fail_excluding
+from ctgpp.policies.factory import PolicyFactory
 from ctgpp.scene.types import Scene
 from ctgpp.sim.closed_loop import DURATION_S, SimConfig, episode_config, initial_observation
-from ctgpp.sim.factory import PolicyFactory
 
 KEY = ("family", "query", "scene", "start_s", "seed")
 SIDES = ("guided", "unguided")

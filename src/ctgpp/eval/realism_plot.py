@@ -23,7 +23,7 @@ from ctgpp.eval.episode import KEY, STATISTICS
 from ctgpp.eval.records import read_json_lines
 from ctgpp.io.atomic import atomic_path
 from ctgpp.metrics.realism import FEATURES, NUM_BINS, feature_range
-from ctgpp.sim.factory import POLICY_NAMES
+from ctgpp.policies.factory import POLICY_NAMES
 
 LOG = "log"
 PANELS = tuple((statistic, feature) for statistic in STATISTICS for feature in FEATURES)

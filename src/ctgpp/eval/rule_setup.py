@@ -1,5 +1,6 @@
 """The 8 rules of the evaluation (DESIGN.md, Rules of the evaluation; paper Table 1, appendix E),
-made concrete for one episode from the log at its start, and rules given by name and parameters.
+made concrete for one episode from the log at its start, as :class:`~ctgpp.behaviours.rule_spec.RuleSpec`
+(a rule given by name and parameters is :func:`~ctgpp.behaviours.rule_spec.spec_for`).
 
 Choices the paper leaves open, fixed here:
 
@@ -19,18 +20,14 @@ Choices the paper leaves open, fixed here:
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-
 import numpy as np
-import torch
 
-from ctgpp.behaviours import RuleMeasure, Verdict, get_behaviour, rule_verdict, rule_violation
+from ctgpp.behaviours import RuleMeasure
+from ctgpp.behaviours.rule_spec import RuleSpec, loss_params, spec_for
 from ctgpp.geometry import wrap_angle
-from ctgpp.guidance import CompositeLoss, GuidanceLoss, build_guidance_batch, make_loss
-from ctgpp.metrics.rules import fail_excluding
+from ctgpp.guidance import CompositeLoss, GuidanceLoss, make_loss
 from ctgpp.scene.types import Scene
-from ctgpp.sim.policy import Observation
-from ctgpp.sim.rollout import Rollout
+from ctgpp.scene.vehicles import MOVING_SPEED_MPS
 
 EVALUATION_RULES = (
     "keep_distance",
@@ -46,52 +43,12 @@ PAIR_MIN_SPEED_MPS = 2.0
 PAIR_RANGE_M = (10.0, 30.0)
 PAIR_MAX_HEADING_DEG = {"collision": 108.0, "keep_distance": 36.0}
 PAIR_CHECK_STEPS = 20  # 2 s
-MOVING_MPS = 0.5
 SPEED_QUANTILE = 0.75
 TARGET_FRACTION = 0.5
 GOAL_STEPS = 75  # 7.5 s
 STOP_STEPS = 40  # 4 s
 STOP_RADIUS_M = 3.0
 LOG_WINDOW = (30, 100)  # steps of history and of simulation around the start
-
-
-@dataclass(frozen=True, eq=False)
-class RuleSpec:
-    """A rule of one episode: the guidance ``loss``, how it is measured (``measures``: behaviours of
-    :mod:`ctgpp.behaviours` with their parameters, the first is the rule's violation and verdict), the
-    displayed vehicles left out of the fail rate (``exempt``: the pair a collision rule asks to crash)
-    and a one-line ``description``."""
-
-    name: str
-    loss: GuidanceLoss
-    measures: dict[str, RuleMeasure] = field(default_factory=dict)
-    exempt: tuple[int, ...] = ()
-    description: str = ""
-
-    @property
-    def measure(self) -> RuleMeasure | None:
-        return next(iter(self.measures.values()), None)
-
-    def violation(self, rollout: Rollout) -> float:
-        """The rule's violation on ``rollout`` (NaN when it has no measure)."""
-        return float("nan") if self.measure is None else rule_violation(rollout, self.measure)
-
-    @property
-    def unit(self) -> str:
-        """The unit of :meth:`violation`."""
-        return "" if self.measure is None else get_behaviour(self.measure.name).unit
-
-    def verdict(self, rollout: Rollout) -> Verdict | None:
-        """Whether every measured behaviour holds on ``rollout`` (their checks joined), None without one."""
-        verdicts = [rule_verdict(rollout, m) for m in self.measures.values()]
-        if not verdicts:
-            return None
-        return Verdict(all(v.satisfied for v in verdicts), "; ".join(v.measured for v in verdicts),
-                       "; ".join(dict.fromkeys(v.window for v in verdicts)))
-
-    def fail(self, rollout: Rollout) -> float:
-        """The fail rate without the exempted vehicles."""
-        return fail_excluding(rollout, self.exempt)
 
 
 def evaluation_rules() -> list[str]:
@@ -120,7 +77,7 @@ def setup_rule(name: str, scene: Scene, start_step: int, controlled: np.ndarray)
     if name == "speed_limit":
         lo, hi = start_step - LOG_WINDOW[0], start_step + LOG_WINDOW[1] + 1
         speeds = log.speed[controlled, lo:hi][log.valid[controlled, lo:hi]]
-        moving = speeds[speeds > MOVING_MPS]
+        moving = speeds[speeds > MOVING_SPEED_MPS]
         if moving.size == 0:
             return None
         limit = float(np.quantile(moving, SPEED_QUANTILE))
@@ -176,26 +133,15 @@ def _target_table(scene: Scene, controlled: np.ndarray) -> np.ndarray:
 
 
 def _target_speed(scene: Scene, controlled: np.ndarray) -> GuidanceLoss:
-    return make_loss("target_speed", **_loss_params({"speed_mps": _target_table(scene, controlled),
+    return make_loss("target_speed", **loss_params({"speed_mps": _target_table(scene, controlled),
                                                      "absolute_steps": True}))
-
-
-def _loss_params(params: dict) -> dict:
-    """Measure parameters as the guidance rules take them: tables as float32 tensors, points as lists."""
-    out = {}
-    for key, value in params.items():
-        if isinstance(value, np.ndarray):
-            table = value.ndim == 2
-            value = torch.from_numpy(value.astype(np.float32)) if table else [float(v) for v in value]
-        out[key] = value
-    return out
 
 
 def _goal_rule(scene: Scene, start_step: int, controlled: np.ndarray) -> RuleSpec | None:
     log = scene.agents
     vehicles, goals = [], []
     for v, a in enumerate(controlled):
-        if log.speed[a, start_step] <= MOVING_MPS:
+        if log.speed[a, start_step] <= MOVING_SPEED_MPS:
             continue
         steps = np.arange(start_step + 1, min(start_step + GOAL_STEPS, log.num_steps - 1) + 1)
         valid = steps[log.valid[a, steps]]
@@ -232,42 +178,3 @@ def _stop_rule(scene: Scene, start_step: int, controlled: np.ndarray) -> RuleSpe
     desc = f"{len(vehicles)} vehicles stop within {STOP_RADIUS_M:g} m of their logged position 4 s ahead"
     measures = {"stop_region": RuleMeasure("stop_region", params), "no_offroad": RuleMeasure("no_offroad")}
     return RuleSpec("stop_region", loss, measures, (), desc)
-
-
-def spec_for(name: str, params: dict, description: str = "") -> RuleSpec:
-    """The RuleSpec of behaviour ``name`` with ``params`` (typed): its guidance loss and its measure
-    from the same parameters; the pair a collision asks to crash is exempt from the fail rate."""
-    loss = get_behaviour(name).build(**_loss_params(params))
-    exempt: tuple[int, ...] = ()
-    if name in ("collision", "collide_from_behind"):
-        pair = ("vehicle_a", "vehicle_b", "vehicle", "target")
-        exempt = tuple(int(v) for k, v in params.items() if k in pair)
-    return RuleSpec(name, loss, {name: RuleMeasure(name, dict(params))}, exempt, description or name)
-
-
-def custom_rule(
-    name: str, params: dict[str, str], scene: Scene, start_step: int, controlled: np.ndarray, text: str = ""
-) -> RuleSpec:
-    """A rule given by name and text parameters (``ctgpp simulate --rule``), checked on the episode:
-    unknown rules or parameters, bad values and vehicle numbers the episode does not have raise
-    ValueError naming ``text`` (the rule as the user wrote it)."""
-    label = text or name
-    try:
-        behaviour = get_behaviour(name)
-        typed = behaviour.resolve(params)
-        loss = behaviour.build(**typed)
-    except ValueError as err:
-        raise ValueError(f"--rule {label}: {err}") from None
-    obs = Observation(scene, scene.agents, start_step, controlled, 52, np.random.default_rng(0))
-    x = torch.zeros(len(controlled), 1, 52, 6)
-    x[..., 0] = torch.arange(1, 53, dtype=torch.float32) * 0.5  # 5 m/s straight ahead
-    x[..., 2] = 5.0
-    try:
-        cost = loss(x, build_guidance_batch(obs, 52))
-    except (IndexError, ValueError) as err:
-        raise ValueError(f"--rule {label}: {err}") from None
-    if not torch.isfinite(cost).all():
-        raise ValueError(f"--rule {label}: the rule's loss is not finite on this scene")
-    exempt = tuple(int(typed[k]) for k in ("vehicle_a", "vehicle_b", "vehicle", "target")
-                   if name in ("collision", "collide_from_behind") and k in typed)
-    return RuleSpec(name, loss, {name: RuleMeasure(name, typed)}, exempt, label)

@@ -32,9 +32,9 @@ from ctgpp.eval.episode import (
 from ctgpp.eval.parallel import parallel_results
 from ctgpp.eval.records import append_json_lines, append_records, record_key
 from ctgpp.eval.records import read_records as read_csv_records
+from ctgpp.policies.factory import PolicyFactory
 from ctgpp.scene.types import Scene
 from ctgpp.sim.closed_loop import DURATION_S, EpisodeError, SimConfig, episode_config, episode_starts
-from ctgpp.sim.factory import PolicyFactory
 
 __all__ = [
     "KEY",

@@ -22,7 +22,7 @@ import numpy as np
 from ctgpp.eval.episode import METRICS, NO_RULE
 from ctgpp.eval.rule_setup import evaluation_rules
 from ctgpp.metrics.moving import MOVING_METRICS, POOL_WEIGHT, pooled_mean
-from ctgpp.sim.factory import POLICY_NAMES
+from ctgpp.policies.factory import POLICY_NAMES
 
 # the paper's columns (record column, header): its "rule" is headed "violation" beside the rule's name
 COLUMNS = (("fail", "fail"), ("rule_violation", "violation"), ("real", "real"), ("rel_real", "rel real"))

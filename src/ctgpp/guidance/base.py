@@ -8,7 +8,12 @@ vehicle's own current frame; and returns a differentiable cost of shape (B, N) (
 sampler passes (a :class:`ctgpp.guidance.context.GuidanceBatch`); loss code only hands it on to the
 helpers. ``agt_mask`` (B,) bool, when given, selects the vehicles the loss applies to. ``scope()``
 says which vehicles a loss addresses (:class:`ctgpp.guidance.scope.LossScope`), so that the realism
-guards leave alone what the loss asks for.
+guards leave alone what the loss asks for; ``constraints()`` what it asks of the executed plan beyond
+its gradient (:class:`ctgpp.guidance.constraints.PlanConstraints`: a speed limit held exactly, a turn's
+lane path, the pairs it may ask to collide), which the plan stages read; ``guided_parts()`` and
+``ranking()`` what the guidance step and filtration minimize (the cost itself, unless the loss carries
+the realism guards apart). A loss is pure: the same x and batch give the same cost, whatever it saw
+before (the episode's start is on the batch).
 """
 
 from __future__ import annotations
@@ -18,6 +23,7 @@ from typing import Any, ClassVar
 
 from torch import Tensor, nn
 
+from ctgpp.guidance.constraints import PlanConstraints
 from ctgpp.guidance.scope import LossScope
 
 
@@ -37,6 +43,22 @@ class GuidanceLoss(nn.Module):
         """Which vehicles the loss addresses, which it moves out of their lanes and which pairs it
         asks to collide (for the realism guards). A loss that does not say is opaque."""
         return LossScope.unknown()
+
+    def constraints(self, data_batch: Any) -> PlanConstraints:
+        """What the loss asks of the executed plan beyond its gradient, at the re-plan of
+        ``data_batch``: by default no cap and no route (its limits are left to guidance), and the pairs
+        its scope may ask to collide."""
+        return PlanConstraints.of_scope(self.scope(), int(data_batch.num_vehicles))
+
+    def guided_parts(self, x: Tensor, data_batch: Any) -> Tensor | tuple[Tensor, Tensor]:
+        """What a guidance step minimizes (:func:`ctgpp.diffusion.guided.guide_mean`): the cost, or the
+        pair (the rule's cost, the realism guards' cost) for a loss that carries the guards apart."""
+        return self(x, data_batch)
+
+    def ranking(self, x: Tensor, data_batch: Any) -> Tensor:
+        """What filtration minimizes among the samples: the cost (a loss with the realism guards ranks
+        them first)."""
+        return self(x, data_batch)
 
 
 LossFactory = Callable[..., GuidanceLoss]

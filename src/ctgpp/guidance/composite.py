@@ -15,6 +15,7 @@ from torch import Tensor
 
 import ctgpp.guidance.rules  # noqa: F401  (registers the rules library)
 from ctgpp.guidance.base import GuidanceLoss, LossFactory, registered_losses
+from ctgpp.guidance.constraints import PlanConstraints, collide_pairs
 from ctgpp.guidance.scope import LossScope
 from ctgpp.rule_params import MAX_SPEED_MPS, ParamInfo, RuleParams, check_quantity
 from ctgpp.rule_params import resolve_params as resolve_rule_params
@@ -47,6 +48,13 @@ class CompositeLoss(GuidanceLoss):
         for loss in self.losses:
             out = out.union(loss.scope())
         return out
+
+    def constraints(self, data_batch: Any) -> PlanConstraints:
+        """The constraints of every part with a positive weight (a part weighed 0 or less asks
+        nothing), the pairs of the joined scope."""
+        weighted = zip(self.losses, self.weights, strict=True)
+        parts = [loss.constraints(data_batch) for loss, w in weighted if w > 0]
+        return PlanConstraints().merged(parts, collide_pairs(self.scope(), int(data_batch.num_vehicles)))
 
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         pairs = zip(self.losses, self.weights, strict=True)

@@ -40,6 +40,12 @@ class GuidanceBatch:
     numpy, lane i is ``lane_points[lane_offsets[i]:lane_offsets[i + 1]]``.
     scene, step, origin (2,) float64: for non-differentiable lane-graph lookups (world = local +
     origin). dt_s: step length s. ``memo`` caches per-batch lane choices of the helpers.
+
+    The episode's start, for what a rule fixes then (a time window's t = 0, the lane it changes to,
+    the point ahead it drives to): start_step, the episode's first re-plan step; start_pose (B, 3)
+    numpy float64, the vehicles' world x m, y m, yaw rad at that step (world, not local: the local
+    frame's origin moves from re-plan to re-plan); start_speed (B,) numpy float64 m/s.
+    :meth:`at_start` is the batch of the start step rebuilt from them, as it was at that re-plan.
     """
 
     scene: Scene
@@ -61,6 +67,9 @@ class GuidanceBatch:
     lane_offsets: np.ndarray
     dt_s: float
     future_steps: int
+    start_step: int
+    start_pose: np.ndarray
+    start_speed: np.ndarray
     memo: dict[Any, Any] = field(default_factory=dict, repr=False, compare=False)
 
     @property
@@ -86,6 +95,23 @@ class GuidanceBatch:
         }
         return replace(self, memo={}, **moved)
 
+    def at_start(self) -> GuidanceBatch:
+        """The batch of the episode's start step (itself at that step), bit for bit the one built at
+        the episode's first re-plan: the start poses and speeds in its local frame, the logged
+        futures from then (kept per batch, in ``memo``). What a rule fixes at the start of the episode
+        is computed on it, so that a loss needs no memory of earlier calls."""
+        if self.step == self.start_step:
+            return self
+        start = self.memo.get(_AT_START)
+        if start is None:
+            start = _batch(
+                self.scene, self.start_step, self.agent_index, self.start_pose[:, :2], self.start_pose[:, 2],
+                self.start_speed, self.extent.detach().cpu().numpy(), self.future_steps, self.start_step,
+                self.start_pose, self.start_speed,
+            )
+            start = self.memo[_AT_START] = start if self.device.type == "cpu" else start.to(self.device)
+        return start
+
     def to_world(self, xy_local: np.ndarray) -> np.ndarray:
         """(..., 2) local world frame -> (..., 2) scene world metres (float64)."""
         return np.asarray(xy_local, dtype=np.float64) + self.origin
@@ -95,6 +121,7 @@ class GuidanceBatch:
         return np.asarray(xy_world, dtype=np.float64) - self.origin
 
 
+_AT_START = ("at_start",)  # memo key of the start step's batch
 _SDF_CACHE: weakref.WeakKeyDictionary[DrivableArea, Tensor] = weakref.WeakKeyDictionary()
 
 
@@ -110,15 +137,30 @@ def _sdf_tensor(drivable: DrivableArea) -> Tensor:
 def build_guidance_batch(obs: Observation, future_steps: int = 52) -> GuidanceBatch:
     """The guidance view of an observation: current states of the controlled vehicles (from the
     simulated past in ``obs.tracks``), the logged future of every other agent (what replay will do,
-    from ``obs.scene.agents``), the drivable SDF and the lanes, in the local world frame."""
-    scene, step, idx = obs.scene, obs.step, np.asarray(obs.controlled, dtype=np.int64)
+    from ``obs.scene.agents``), the drivable SDF and the lanes, in the local world frame; and the
+    episode's start (``obs.start_step``: the controlled vehicles' poses and speeds then)."""
+    step, start, idx = int(obs.step), int(obs.start_step), np.asarray(obs.controlled, dtype=np.int64)
     tr = obs.tracks
-    origin = tr.xy[idx[0], step].astype(np.float64) if len(idx) else np.zeros(2)
+    start_pose = np.concatenate([tr.xy[idx, start], tr.yaw[idx, start][:, None]], axis=-1).astype(np.float64)
+    start_speed = np.asarray(tr.speed[idx, start], dtype=np.float64)
+    return _batch(
+        obs.scene, step, idx, tr.xy[idx, step], tr.yaw[idx, step], tr.speed[idx, step], tr.extent[idx],
+        future_steps, start, start_pose, start_speed,
+    )
+
+
+def _batch(
+    scene: Scene, step: int, idx: np.ndarray, xy: np.ndarray, yaw: np.ndarray, speed: np.ndarray,
+    extent: np.ndarray, future_steps: int, start_step: int, start_pose: np.ndarray, start_speed: np.ndarray,
+) -> GuidanceBatch:
+    """The batch of ``scene`` at ``step`` for the controlled agents ``idx`` (B,) whose states then are
+    xy (B, 2) world m, yaw (B,) rad, speed (B,) m/s, extent (B, 2) m."""
+    origin = xy[0].astype(np.float64) if len(idx) else np.zeros(2)
 
     def f32(a: np.ndarray) -> Tensor:
         return torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))
 
-    pose = np.concatenate([tr.xy[idx, step] - origin, tr.yaw[idx, step][:, None]], axis=-1)  # (B, 3)
+    pose = np.concatenate([xy - origin, yaw[:, None]], axis=-1)  # (B, 3)
 
     log = scene.agents
     steps = np.arange(step + 1, step + 1 + future_steps)
@@ -138,8 +180,8 @@ def build_guidance_batch(obs: Observation, future_steps: int = 52) -> GuidanceBa
         origin=origin,
         agent_index=idx,
         pose=f32(pose),
-        speed=f32(tr.speed[idx, step]),
-        extent=f32(tr.extent[idx]),
+        speed=f32(speed),
+        extent=f32(extent),
         obstacles_index=obst,
         obstacles_xy=f32(obst_xy),
         obstacles_yaw=f32(log.yaw[obst][:, t]),
@@ -152,4 +194,7 @@ def build_guidance_batch(obs: Observation, future_steps: int = 52) -> GuidanceBa
         lane_offsets=np.asarray(scene.lanes.offsets),
         dt_s=float(scene.dt_s),
         future_steps=future_steps,
+        start_step=start_step,
+        start_pose=start_pose,
+        start_speed=start_speed,
     )

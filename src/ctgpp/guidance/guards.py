@@ -4,25 +4,25 @@ every agent and in its lane, except where the rule or query asks otherwise.
 The guards are three rules of the library, composed (:class:`RealismGuards`, a guidance loss like
 any other) and added to the rule's or query's loss by :func:`with_guards`:
 
-- ``offroad``: :class:`~ctgpp.guidance.rules_motion.NoOffroad` for every vehicle that is on the road
+- ``offroad``: :class:`~ctgpp.guidance.rules.motion.NoOffroad` for every vehicle that is on the road
   at the re-plan (one that is off it now — a car park beyond the mapped drivable area — is not
   dragged onto it across whatever lies between; the fail metric leaves such vehicles out too).
-- ``collision``: :class:`~ctgpp.guidance.rules_interaction.NoCollision` between every pair of
+- ``collision``: :class:`~ctgpp.guidance.rules.interaction.NoCollision` between every pair of
   vehicles (moving or held still) and between every vehicle and every replayed agent (pedestrians,
   cyclists, static objects, vehicles that appear later), each box traced by its capsule and its
-  four corners (:func:`~ctgpp.guidance.rules_common.outline_layout`): all that the guidance batch
-  holds; and :class:`~ctgpp.guidance.rules_interaction.ClearAhead`: each moving vehicle keeps the
+  four corners (:func:`~ctgpp.guidance.rules.common.outline_layout`): all that the guidance batch
+  holds; and :class:`~ctgpp.guidance.rules.interaction.ClearAhead`: each moving vehicle keeps the
   road it covers in the next ``headway_s`` seconds clear of them, so that it brakes for what is
   ahead before its plan's box touches it. A pair the loss asks to collide is left out of both
-  (``LossScope.collide``); each of the two still keeps clear of everyone else. Its hard side runs
-  on the executed plans (:mod:`ctgpp.guidance.brakes`, :func:`braking_exemptions`): a vehicle whose
-  chosen plan still drives into what is ahead of it within 2 s brakes just enough.
-- ``lane``: :class:`~ctgpp.guidance.rules_map.KeepLane` — within ``lane_tolerance_m`` of one of its
+  (``LossScope.collide``); each of the two still keeps clear of everyone else. Braking the executed
+  plans for what is ahead is a plan stage of its own (:mod:`ctgpp.policies.stages.brakes`), which
+  leaves the same pairs out (:meth:`RealismGuards.constraints`).
+- ``lane``: :class:`~ctgpp.guidance.rules.lanes.KeepLane` — within ``lane_tolerance_m`` of one of its
   lane paths, turns included, never further than it is now — for every vehicle the loss leaves in
   its lane (:meth:`LossScope.keeps_lane`): not the vehicles it sends across lanes (lane change,
   rightmost lane, turn, goal, reach a point, stop region, cut in, stay beside or head the way of
   another, both vehicles of a collision and the one that rear-ends). Its gradient steers and never
-  brakes, on a bend too (:class:`~ctgpp.guidance.rules_map.KeepLane`): braking is the collision
+  brakes, on a bend too (:class:`~ctgpp.guidance.rules.lanes.KeepLane`): braking is the collision
   guard's to ask.
 
 An opaque loss (a language model's program) may do anything to any vehicle: only the off-road
@@ -33,7 +33,7 @@ rule's opposing part, and filtration prefers the samples that keep the guards (:
 the guards win.
 
 Weights. The sampler's Adam step moves every action element of a rule by about the learning rate
-whatever the size of its gradient (:mod:`ctgpp.guidance.rules_relative`); the guards take their own
+whatever the size of its gradient (:mod:`ctgpp.guidance.rules.relative`); the guards take their own
 step, along their gradient as far as their cost needs (:func:`ctgpp.diffusion.guided.guard_step`),
 which a guard's weight alone does not change — so weights do not set how hard a guard pushes a
 vehicle it alone concerns; they matter where a vehicle is pulled two ways (the
@@ -54,14 +54,16 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from ctgpp.geometry import DISC_CLEARANCE_M
 from ctgpp.guidance.base import GuidanceLoss
 from ctgpp.guidance.composite import CompositeLoss, join_costs
+from ctgpp.guidance.constraints import PlanConstraints, collide_pairs
 from ctgpp.guidance.context import GuidanceBatch
-from ctgpp.guidance.rules_common import sample_sdf
-from ctgpp.guidance.rules_interaction import ClearAhead, NoCollision
-from ctgpp.guidance.rules_map import KeepLane
-from ctgpp.guidance.rules_motion import NoOffroad
-from ctgpp.guidance.scope import LossScope, Pair, pair
+from ctgpp.guidance.rules.common import sample_sdf
+from ctgpp.guidance.rules.interaction import ClearAhead, NoCollision
+from ctgpp.guidance.rules.lanes import KeepLane
+from ctgpp.guidance.rules.motion import NoOffroad
+from ctgpp.guidance.scope import LossScope
 
 GUARD_NAMES = ("offroad", "collision", "lane")
 COLLISION_WEIGHT = 1.0  # 5 measured worse (BENCHMARKS.md, Realism guards)
@@ -89,7 +91,7 @@ class GuardConfig:
     lane_weight: float = 1.0
     rule_weight: float = 1.0
     offroad_margin_m: float = 0.5
-    collision_buffer_m: float = 0.2
+    collision_buffer_m: float = DISC_CLEARANCE_M
     lane_tolerance_m: float = LANE_TOLERANCE_M
     headway_s: float = HEADWAY_S
 
@@ -144,11 +146,20 @@ class RealismGuards(GuidanceLoss):
     def scope(self) -> LossScope:
         return LossScope.everyone()
 
+    def constraints(self, data_batch: Any) -> PlanConstraints:
+        """No cap and no route; the pairs the guarded loss may ask to collide (those the collision guard
+        leaves out)."""
+        return PlanConstraints.of_scope(self.addressed, int(data_batch.num_vehicles))
+
+    def guided_parts(self, x: Tensor, data_batch: Any) -> tuple[Tensor, Tensor]:
+        """(no rule: zero, the guards' cost): the guards alone take their own step."""
+        return x.new_zeros(()), self(x, data_batch)
+
     def pair_guards(self, num_vehicles: int) -> tuple[NoCollision, ClearAhead]:
         """The collision guard of a scene of ``num_vehicles`` vehicles — no overlap, and the road ahead
         kept clear — with the pairs the loss may ask to collide left out."""
         if num_vehicles not in self._pair_guards:
-            pairs = exempt_pairs(self.addressed, num_vehicles)
+            pairs = sorted(collide_pairs(self.addressed, num_vehicles))
             cfg = self.config
             overlap = NoCollision(cfg.collision_buffer_m).except_pairs(pairs)
             ahead = ClearAhead(cfg.headway_s, cfg.collision_buffer_m).except_pairs(pairs)
@@ -186,23 +197,6 @@ def on_road(data_batch: GuidanceBatch) -> Tensor:
     return data_batch.memo[key]
 
 
-def exempt_pairs(scope: LossScope, num_vehicles: int) -> list[tuple[int, int]]:
-    """The vehicle pairs the collision guard leaves out for a loss of ``scope``: those it may ask to
-    collide (every pair when the loss is opaque)."""
-    vehicles = range(num_vehicles)
-    return [(a, b) for a in vehicles for b in vehicles if a < b and scope.may_collide(a, b)]
-
-
-def braking_exemptions(loss: GuidanceLoss | None, num_vehicles: int) -> frozenset[Pair] | None:
-    """The vehicle pairs that braking for what is ahead (:mod:`ctgpp.guidance.brakes`) leaves out under
-    ``loss`` — the collision guard's (those the loss may ask to collide) — or None where no collision
-    guard runs (guards off, or without the collision guard): then nothing brakes."""
-    guards = loss.guards if isinstance(loss, GuardedLoss) else loss
-    if not isinstance(guards, RealismGuards) or "collision" not in guards.config.guards:
-        return None
-    return guards.pair_guards(num_vehicles)[0].exempt
-
-
 def with_guards(
     loss: GuidanceLoss | None, config: GuardConfig, scope: LossScope | None = None
 ) -> GuidanceLoss | None:
@@ -234,10 +228,18 @@ class GuardedLoss(CompositeLoss):
         """(the weighted rule's cost, the guards' cost), each as the part returns it."""
         return self.rule_weight * self.rule(x, data_batch, agt_mask), self.guards(x, data_batch, agt_mask)
 
-    def ranking(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
+    def guided_parts(self, x: Tensor, data_batch: Any) -> tuple[Tensor, Tensor]:
+        """The rule's cost and the guards' apart: the guidance step lets the guards win."""
+        return self.parts(x, data_batch)
+
+    def ranking(self, x: Tensor, data_batch: Any) -> Tensor:
         """What filtration minimizes: the guards first (``GUARDS_FIRST`` times their cost), then the rule."""
-        rule, guards = self.parts(x, data_batch, agt_mask)
+        rule, guards = self.parts(x, data_batch)
         return join_costs([rule, GUARDS_FIRST * guards])
+
+    def constraints(self, data_batch: Any) -> PlanConstraints:
+        """The rule's caps and routes; the pairs it may ask to collide as the guards read its scope."""
+        return self.rule.constraints(data_batch).merged([], self.guards.constraints(data_batch).may_collide)
 
 
 def guard_report(
@@ -265,7 +267,7 @@ def guard_report(
             "buffer_m": config.collision_buffer_m,
             "headway_s": config.headway_s,
             "exempt_pairs": "all vehicle pairs" if scope.collide is None
-            else [list(pair(a, b)) for a, b in exempt_pairs(scope, num_vehicles)],
+            else [list(p) for p in sorted(collide_pairs(scope, num_vehicles))],
         }
     if "lane" in config.guards:
         kept = [v for v in moving if scope.keeps_lane(v)]
@@ -280,7 +282,6 @@ __all__ = [
     "GuardConfig",
     "GuardedLoss",
     "RealismGuards",
-    "exempt_pairs",
     "guard_report",
     "on_road",
     "with_guards",

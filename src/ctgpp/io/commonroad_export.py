@@ -50,7 +50,7 @@ from ctgpp.scene.types import AgentType, LaneGraph
 if TYPE_CHECKING:
     from pathlib import Path
 
-    from ctgpp.sim.rollout import Rollout
+    from ctgpp.interfaces import Rollout
 
 DECIMALS = 10
 _OBSTACLE_TYPES = {

@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from ctgpp.sim.rollout import Rollout
+    from ctgpp.interfaces import Rollout
 
 EXPORT_KINDS = ("scenarionet", "commonroad")
 

@@ -40,7 +40,7 @@ from ctgpp.scene.types import AgentType
 if TYPE_CHECKING:
     from pathlib import Path
 
-    from ctgpp.sim.rollout import Rollout
+    from ctgpp.interfaces import Rollout
 
 STATIC_BARRIER_LENGTH_M = 1.0
 HEIGHT_M = {"VEHICLE": 1.6, "PEDESTRIAN": 1.75, "CYCLIST": 1.75, "TRAFFIC_CONE": 0.8,

@@ -1,15 +1,13 @@
 """Language interface (DESIGN.md, Language interface): a sentence becomes a checked guidance loss.
 
-- :mod:`~ctgpp.language.client`: :class:`LLMClient` for any OpenAI-compatible chat endpoint.
-- :mod:`~ctgpp.language.prompt`: the prompt from the template files; :mod:`~ctgpp.language.extract`:
-  the program in a reply.
-- :mod:`~ctgpp.language.sandbox` (rules in :mod:`~ctgpp.language.sandbox_rules`, allow lists in
-  :mod:`~ctgpp.language.vocabulary`): generated code is parsed and allow-listed before it runs.
-- :mod:`~ctgpp.language.checks` (worker process :mod:`~ctgpp.language.worker`): shape, finiteness,
-  gradients, time and memory limits on a real scene batch.
-- :mod:`~ctgpp.language.generate`: prompt -> reply -> sandbox -> checks, with repair rounds and the
-  cache of :mod:`~ctgpp.language.cache`.
+- :mod:`~ctgpp.language.query`: the one entry point — the offline compiler's loss, or a language
+  model's checked program, for a user's sentence.
+- :mod:`~ctgpp.language.compiler`: the offline query compiler (no model, no network).
+- :mod:`~ctgpp.language.llm`: the language-model path (client, prompt, reply, repair rounds, cache).
+- :mod:`~ctgpp.language.sandbox`: generated code is allow-listed before it runs, and runs in a worker
+  process under time and memory limits.
+- :mod:`~ctgpp.language.satisfaction`: whether a rollout satisfies the query, checked independently.
 
-Submodules are imported explicitly (``from ctgpp.language.generate import generate_loss``): importing
-this package loads nothing else.
+Submodules are imported explicitly (``from ctgpp.language.llm.generate import generate_loss``):
+importing this package loads nothing else.
 """

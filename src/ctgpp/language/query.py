@@ -2,7 +2,7 @@
 
 Offline by default: the project's query compiler. With a language model configured: the model's
 program, sandboxed and tried on the episode's real scene batch, then run for every call of sampling in
-its limited worker process (:class:`ctgpp.language.remote.RemoteLoss`); when every round of it is
+its limited worker process (:class:`ctgpp.language.llm.remote.RemoteLoss`); when every round of it is
 refused (or the model cannot be reached) the compiler takes over, and the user is told. A program
 stopped during sampling is evicted from the cache and :func:`fall_back` gives the compiler's loss.
 """
@@ -22,12 +22,12 @@ from ctgpp.guidance.base import GuidanceLoss
 from ctgpp.guidance.context import build_guidance_batch
 from ctgpp.guidance.scope import LossScope
 from ctgpp.interfaces import Observation
-from ctgpp.language.cache import LossCache
-from ctgpp.language.checks import LossChecker
-from ctgpp.language.client import LLMClient, LLMConfig, LLMError
-from ctgpp.language.compiler import CompiledQuery, QueryError, compile_query
-from ctgpp.language.generate import GenerationFailed, generate_loss
-from ctgpp.language.remote import GeneratedLossError
+from ctgpp.language.compiler.compile import CompiledQuery, QueryError, compile_query
+from ctgpp.language.llm.cache import LossCache
+from ctgpp.language.llm.client import LLMClient, LLMConfig, LLMError
+from ctgpp.language.llm.generate import GenerationFailed, generate_loss
+from ctgpp.language.llm.remote import GeneratedLossError
+from ctgpp.language.sandbox.checks import LossChecker
 
 log = logging.getLogger(__name__)
 

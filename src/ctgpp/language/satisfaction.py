@@ -21,8 +21,8 @@ from dataclasses import dataclass, replace
 
 from ctgpp.behaviours import get_behaviour
 from ctgpp.behaviours.timing import TimeWindow
-from ctgpp.language.compiler import CompiledQuery, QueryPart
-from ctgpp.sim.rollout import Rollout
+from ctgpp.interfaces import Rollout
+from ctgpp.language.compiler.compile import CompiledQuery, QueryPart
 
 
 @dataclass(frozen=True)

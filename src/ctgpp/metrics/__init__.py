@@ -6,7 +6,6 @@ Importing this package registers ``collision_rate``, ``offroad_rate``, ``fail``,
 them all on one rollout. :func:`vehicle_events` lists what happened to each vehicle.
 """
 
-from ctgpp.metrics.boxes import bounding_radius, box_corners, boxes_overlap
 from ctgpp.metrics.collision import collided_vehicles, collision_rate, collision_steps, first_contacts
 from ctgpp.metrics.events import vehicle_events
 from ctgpp.metrics.moving import MOVING_COUNTS, MOVING_METRICS, POOL_WEIGHT, moving_counts, pooled_mean
@@ -36,9 +35,6 @@ __all__ = [
     "MetricValue",
     "VehicleOutcomes",
     "beyond_map_steps",
-    "bounding_radius",
-    "box_corners",
-    "boxes_overlap",
     "collided_vehicles",
     "collision_rate",
     "collision_steps",

@@ -10,10 +10,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from ctgpp.metrics.boxes import bounding_radius, boxes_overlap
+from ctgpp.geometry import bounding_radius, boxes_overlap
+from ctgpp.interfaces import Rollout
 from ctgpp.metrics.registry import MetricValue, register_metric
 from ctgpp.scene.types import AgentTracks
-from ctgpp.sim.rollout import Rollout
 
 
 def controlled_vehicle_indices(rollout: Rollout) -> np.ndarray:

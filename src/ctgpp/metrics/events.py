@@ -8,9 +8,9 @@ from typing import Any
 
 import numpy as np
 
+from ctgpp.interfaces import Rollout
 from ctgpp.metrics.outcomes import VehicleOutcomes, vehicle_outcomes
 from ctgpp.scene.types import AgentType
-from ctgpp.sim.rollout import Rollout
 
 
 def _time(rollout: Rollout, step: int) -> float:

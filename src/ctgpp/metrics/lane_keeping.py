@@ -17,8 +17,8 @@ import math
 
 import numpy as np
 
+from ctgpp.interfaces import Rollout
 from ctgpp.scene.lanes import centerline_distance
-from ctgpp.sim.rollout import Rollout
 
 LANE_LEAVE_M = 2.0
 SAME_DIRECTION_DEG = 45.0

@@ -1,7 +1,7 @@
 """Per-vehicle motion figures of a rollout: stops, yaw-rate sign changes, displacement from the log.
 
 - Stop: a vehicle comes to a stop at the first future step where it is valid and slower than
-  ``STOP_SPEED_MPS`` (0.2 m/s).
+  ``STANDSTILL_SPEED_MPS`` (0.2 m/s).
 - Yaw-rate sign changes per 10 s: the yaw rate of step k is the wrapped heading change from step k
   to k + 1 over dt, from the start (t = 0) to the end of the episode, over steps valid at both ends.
   Rates within ``YAW_RATE_DEAD_BAND_RADPS`` (1e-3 rad/s, 0.06°/s: a curve of 10 km radius at 10 m/s)
@@ -21,9 +21,13 @@ from __future__ import annotations
 import numpy as np
 
 from ctgpp.geometry import wrap_angle
-from ctgpp.sim.rollout import Rollout
+from ctgpp.interfaces import Rollout
 
-STOP_SPEED_MPS = 0.2
+# A standstill, what stop_rate counts (EVALUATION.md): a near-zero speed at one step. Not the
+# moving threshold (ctgpp.scene.vehicles.MOVING_SPEED_MPS, 0.5 m/s), which decides who is at rest at
+# the start and when a "stop" behaviour holds: a vehicle creeping at 0.3 m/s in a queue is not
+# moving, but has not come to a standstill.
+STANDSTILL_SPEED_MPS = 0.2
 YAW_RATE_DEAD_BAND_RADPS = 1e-3
 HORIZONS_S = (5.0, 10.0)
 
@@ -31,7 +35,7 @@ HORIZONS_S = (5.0, 10.0)
 def stop_steps(rollout: Rollout, agents: np.ndarray) -> np.ndarray:
     """(C,) window index of each vehicle's first future step slower than 0.2 m/s, -1 if it never stops."""
     f = rollout.future
-    slow = rollout.sim.valid[agents, f] & (rollout.sim.speed[agents, f] < STOP_SPEED_MPS)  # (C, T)
+    slow = rollout.sim.valid[agents, f] & (rollout.sim.speed[agents, f] < STANDSTILL_SPEED_MPS)  # (C, T)
     index = np.arange(rollout.sim.num_steps)[f]
     return np.where(slow.any(axis=1), index[np.argmax(slow, axis=1)], -1)
 

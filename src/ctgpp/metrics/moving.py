@@ -29,9 +29,9 @@ from collections.abc import Iterable
 
 import numpy as np
 
+from ctgpp.interfaces import Rollout
 from ctgpp.metrics.outcomes import vehicle_outcomes
 from ctgpp.metrics.registry import MetricValue, register_metric
-from ctgpp.sim.rollout import Rollout
 
 MOVING_METRICS = (
     "moving_fail",

@@ -20,11 +20,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from ctgpp.interfaces import Rollout
 from ctgpp.metrics.collision import collided_vehicles, controlled_vehicle_indices
 from ctgpp.metrics.registry import MetricValue, register_metric
 from ctgpp.scene.map_ends import map_end_points
 from ctgpp.scene.types import Scene
-from ctgpp.sim.rollout import Rollout
 
 # a vehicle first off the road within these of such an end (past it, beside its centerline) drove off the map
 MAP_END_ALONG_M = (-1.0, 6.0)

@@ -15,12 +15,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ctgpp.interfaces import Rollout
 from ctgpp.metrics.collision import controlled_vehicle_indices, first_contacts
 from ctgpp.metrics.lane_keeping import lane_leave_steps
 from ctgpp.metrics.motion import HORIZONS_S, displacement_errors, rollout_yaw_sign_changes, stop_steps
 from ctgpp.metrics.offroad import beyond_map_steps, first_step, offroad_steps
 from ctgpp.metrics.realism import realism_vehicles
-from ctgpp.sim.rollout import Rollout
 
 PARTNER_KINDS = ("held", "moving", "replayed")
 

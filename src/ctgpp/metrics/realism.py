@@ -31,16 +31,16 @@ from __future__ import annotations
 import numpy as np
 
 from ctgpp.geometry import rotate, world_to_local
+from ctgpp.interfaces import Rollout
 from ctgpp.metrics.collision import controlled_vehicle_indices
 from ctgpp.metrics.registry import MetricValue, register_metric
 from ctgpp.scene.types import AgentTracks
-from ctgpp.sim.rollout import Rollout
+from ctgpp.scene.vehicles import MOVING_SPEED_MPS
 
 SUBSAMPLE_STEPS = 5  # 0.5 s at dt = 0.1 s
 NUM_BINS = 20
 ACC_RANGE_MPS2 = (-2.0, 2.0)
 JERK_RANGE_MPS3 = (-1.0, 1.0)
-MIN_START_SPEED_MPS = 0.5
 PAIR_RADIUS_M = 50.0
 FEATURES = ("lon_acc", "lat_acc", "jerk")
 
@@ -49,7 +49,7 @@ def realism_vehicles(rollout: Rollout) -> np.ndarray:
     """(N,) indices of the controlled vehicles valid and faster than 0.5 m/s at the start."""
     agents = controlled_vehicle_indices(rollout)
     start = rollout.current
-    moving = rollout.sim.valid[agents, start] & (rollout.sim.speed[agents, start] > MIN_START_SPEED_MPS)
+    moving = rollout.sim.valid[agents, start] & (rollout.sim.speed[agents, start] > MOVING_SPEED_MPS)
     return agents[moving]
 
 

@@ -11,7 +11,7 @@ import math
 from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
-from ctgpp.sim.rollout import Rollout
+from ctgpp.interfaces import Rollout
 
 
 class MetricValue(NamedTuple):

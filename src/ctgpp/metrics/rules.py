@@ -17,10 +17,10 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from ctgpp.metrics.boxes import boxes_overlap
+from ctgpp.geometry import boxes_overlap
+from ctgpp.interfaces import Rollout
 from ctgpp.metrics.collision import collision_rate, controlled_vehicle_indices
 from ctgpp.metrics.offroad import failed_vehicles, offroad_rate
-from ctgpp.sim.rollout import Rollout
 
 
 def vehicle_agents(rollout: Rollout, vehicles: int | Sequence[int] | None = None) -> np.ndarray:

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from ctgpp.data.context import ContextConfig
-from ctgpp.data.map_inputs import MapConfig
+from ctgpp.data.map_config import MapConfig
 from ctgpp.data.windows import WindowConfig
 
 # Per-channel mean and standard deviation of the training targets in each vehicle's own frame, measured
@@ -36,7 +36,7 @@ class ModelConfig:
     so the model is no longer invariant to rotating the scene.
     context: the agents each window is conditioned on (held vehicles, replayed agents: DESIGN.md,
     Model); None for checkpoints from before the context existed, which see the sampled vehicles only.
-    map: the driving map (:class:`~ctgpp.data.map_inputs.MapConfig`: lanes ahead, drivable grid);
+    map: the driving map (:class:`~ctgpp.data.map_config.MapConfig`: lanes ahead, drivable grid);
     None for the nearest lanes of the first checkpoints.
     lane_segments: lane tokens per lane slot of the driving map, each pooled from a stretch of
     consecutive points (:class:`~ctgpp.model.lane_encoder.LaneEncoder`; 8 stretches of 12.5 m with

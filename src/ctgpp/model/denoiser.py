@@ -148,7 +148,7 @@ class Denoiser(nn.Module):
             self.agent_emb = AgentEmbedding(d)
             self.context_encoder = ContextEncoder(d, config.heads, config.ffn_mult)
         if config.map is not None:
-            # the lane slots come in priority order (own path ahead first: ctgpp.data.map_inputs)
+            # the lane slots come in priority order (own path ahead first: ctgpp.data.lane_slots)
             self.slot_emb = nn.Parameter(torch.randn(config.map.max_lanes, d) * 0.02)
             self.grid_encoder = GridEncoder(config.map.grid_cells, config.grid_patch, d)
         self.blocks = nn.ModuleList(Block(config) for _ in range(config.blocks))

@@ -1,4 +1,4 @@
-"""Tokens of the drivable area around an agent: its grid (:func:`ctgpp.data.map_inputs.drivable_grid`)
+"""Tokens of the drivable area around an agent: its grid (:func:`ctgpp.data.drivable_grid.drivable_grid`)
 cut into square patches, each projected to one token with a learned position (a ViT-style patch
 embedding). The map attention attends over them beside the lane tokens: they show road edges that
 no lane centerline does."""

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ctgpp.metrics.boxes import boxes_overlap
+from ctgpp.geometry import boxes_overlap
 from ctgpp.scene.types import AgentTracks, AgentType
 
 PARKED_SPREAD_M = 1.0  # a track whose positions all lie within this of their median is parked

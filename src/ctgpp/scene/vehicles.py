@@ -6,6 +6,13 @@ import numpy as np
 
 from ctgpp.scene.types import Scene
 
+MOVING_SPEED_MPS = 0.5
+"""A vehicle at this speed (m/s) or faster is moving, a slower one is at rest: the one definition
+the simulator (holding vehicles at rest at the start), the training windows, the metrics and
+evaluation rules over the vehicles moving at the start, the turns (a heading counts only while
+moving) and the ``stop`` behaviours (stopped: not moving) use. Readers keep their own side of the
+boundary (``>`` or ``>=``)."""
+
 
 def controlled_vehicles(scene: Scene, step: int) -> np.ndarray:
     """Agent indices of the vehicles present at ``step``, in displayed order.

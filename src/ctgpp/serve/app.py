@@ -29,14 +29,14 @@ from starlette.exceptions import HTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from ctgpp.io.export import EXPORT_KINDS, check_export_kind
-from ctgpp.serve.jobs import JobQueue, QueueFull
+from ctgpp.serve.job_queue import JobQueue, QueueFull
 from ctgpp.serve.scenes import SceneSets
 from ctgpp.serve.schema import MAX_BODY_BYTES, MAX_SENTENCE_CHARS, RunRequest
 from ctgpp.serve.sentences import Refused, SentenceChecker, Vocabulary
 from ctgpp.serve.worker import RunSpec
 
 if TYPE_CHECKING:
-    from ctgpp.language.client import LLMConfig
+    from ctgpp.language.llm.client import LLMConfig
 
 log = logging.getLogger(__name__)
 

@@ -21,10 +21,10 @@ import numpy as np
 
 from ctgpp.data.catalog import Catalog, CatalogEntry
 from ctgpp.scene.types import AgentType, Scene
+from ctgpp.scene.vehicles import MOVING_SPEED_MPS
 from ctgpp.sim.closed_loop import (
     DURATION_S,
     MIN_HISTORY_S,
-    STATIONARY_SPEED_MPS,
     episode_bounds,
     episode_config,
     initial_observation,
@@ -130,7 +130,7 @@ def scene_view(scene: Scene, duration_s: float = DURATION_S) -> dict[str, Any]:
             "x": round(float(tracks.xy[a, step, 0]), 2), "y": round(float(tracks.xy[a, step, 1]), 2),
             "yaw": round(float(tracks.yaw[a, step]), 3), "length": round(float(tracks.extent[a, 0]), 2),
             "width": round(float(tracks.extent[a, 1]), 2), "speed": round(speed, 2),
-            "moving": bool(numbers[a] >= 0 and speed >= STATIONARY_SPEED_MPS),
+            "moving": bool(numbers[a] >= 0 and speed >= MOVING_SPEED_MPS),
             "color": agent_color(int(numbers[a]), int(tracks.types[a])),
         })
     present = obs.controlled if len(obs.controlled) else np.flatnonzero(tracks.valid[:, step])

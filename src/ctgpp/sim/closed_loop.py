@@ -8,12 +8,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ctgpp.interfaces import Observation, Policy, Rollout
+from ctgpp.interfaces import Observation, Policy, Rollout, StageChange
 from ctgpp.scene.parked import fill_parked, parked_agents
 from ctgpp.scene.types import AgentTracks, Scene
-from ctgpp.scene.vehicles import controlled_vehicles
-
-STATIONARY_SPEED_MPS = 0.5
+from ctgpp.scene.vehicles import MOVING_SPEED_MPS, controlled_vehicles
 
 
 class EpisodeError(ValueError):
@@ -122,10 +120,14 @@ def simulate(
     still = controlled[held_numbers(tracks, step0, controlled, policy.hold_stationary, drive)]
     rng = np.random.default_rng(seed)
     n_replans = -(-config.duration_steps // config.replan_every)
+    changes: list[tuple[float, StageChange]] = []  # what the plan stages did, re-plan by re-plan
     for k in range(n_replans):
         step = step0 + k * config.replan_every
-        obs = Observation(scene, tracks, step, controlled, config.horizon_steps, rng, held=still)
+        obs = Observation(
+            scene, tracks, step, controlled, config.horizon_steps, rng, held=still, start_step=step0
+        )
         plan = policy.plan(obs)
+        changes.extend((round((step - step0) * scene.dt_s, 6), change) for change in plan.changes)
         n = min(config.replan_every, step0 + config.duration_steps - step)
         exe = slice(step + 1, step + 1 + n)
         tracks.xy[controlled, exe] = plan.states[:, :n, :2]
@@ -143,17 +145,18 @@ def simulate(
     number = np.full(scene.agents.num_agents, -1)
     number[controlled] = np.arange(len(controlled))
     is_controlled = number >= 0
-    return Rollout(scene, first, config.history_steps - 1, sim, is_controlled, number, policy.name)
+    return Rollout(scene, first, config.history_steps - 1, sim, is_controlled, number, policy.name,
+                   tuple(changes))
 
 
 def held_numbers(
     tracks: AgentTracks, step: int, controlled: np.ndarray, hold_stationary: bool, drive: Iterable[int] = ()
 ) -> np.ndarray:
     """The displayed numbers (H,) of the ``controlled`` vehicles (V,) the simulator holds still: with
-    ``hold_stationary``, those slower than ``STATIONARY_SPEED_MPS`` at ``step`` and not in ``drive``."""
+    ``hold_stationary``, those slower than ``MOVING_SPEED_MPS`` at ``step`` and not in ``drive``."""
     if not hold_stationary:
         return np.zeros(0, dtype=np.int64)
-    slow = tracks.speed[controlled, step] < STATIONARY_SPEED_MPS  # (V,)
+    slow = tracks.speed[controlled, step] < MOVING_SPEED_MPS  # (V,)
     slow[np.asarray(sorted({int(v) for v in drive} & set(range(len(controlled)))), dtype=np.int64)] = False
     return np.flatnonzero(slow)
 
@@ -171,7 +174,9 @@ def initial_observation(scene: Scene, start_s: float, config: SimConfig = SimCon
     number[controlled] = np.arange(len(controlled))
     fill_parked(tracks, scene.agents, parked_agents(scene.agents, number))
     tracks.valid[controlled, step0 + 1 :] = False
-    return Observation(scene, tracks, step0, controlled, config.horizon_steps, np.random.default_rng(0))
+    return Observation(
+        scene, tracks, step0, controlled, config.horizon_steps, np.random.default_rng(0), start_step=step0
+    )
 
 
 def _padded(a: AgentTracks, n_steps: int) -> AgentTracks:

@@ -18,8 +18,8 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.colors import to_rgba
 from PIL import Image
 
+from ctgpp.interfaces import Rollout
 from ctgpp.scene.parked import parked_agents
-from ctgpp.sim.rollout import Rollout
 from ctgpp.viz.caption import QueryCaption
 from ctgpp.viz.colors import RGBA, vehicle_color
 from ctgpp.viz.events import Event

@@ -10,9 +10,9 @@ from typing import Literal
 
 import numpy as np
 
+from ctgpp.interfaces import Rollout
 from ctgpp.metrics.outcomes import vehicle_outcomes
 from ctgpp.scene.types import AgentType
-from ctgpp.sim.rollout import Rollout
 
 EVENT_KINDS = ("collision", "offroad")
 AGENT_NOUNS = {

@@ -21,11 +21,10 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
 from matplotlib.text import Annotation, Text
 
-from ctgpp.geometry import rotate
-from ctgpp.metrics.boxes import box_corners
+from ctgpp.geometry import box_corners, rotate
+from ctgpp.interfaces import Rollout
 from ctgpp.scene.parked import ParkedAgents
 from ctgpp.scene.types import AgentTracks, AgentType, Scene
-from ctgpp.sim.rollout import Rollout
 from ctgpp.viz.caption import QueryCaption
 from ctgpp.viz.colors import REPLAYED_COLORS, agent_colors, text_color, vehicle_color
 from ctgpp.viz.events import Event, distinct_events, event_lines

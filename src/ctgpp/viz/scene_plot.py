@@ -16,11 +16,11 @@ from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from ctgpp.interfaces import Rollout
 from ctgpp.io.atomic import atomic_path
 from ctgpp.scene.parked import parked_agents
 from ctgpp.scene.types import Scene
 from ctgpp.scene.vehicles import controlled_vehicles
-from ctgpp.sim.rollout import Rollout
 from ctgpp.viz.caption import QueryCaption
 from ctgpp.viz.events import Event
 from ctgpp.viz.layers import View

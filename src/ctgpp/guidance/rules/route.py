@@ -1,0 +1,126 @@
+"""Rules that steer a vehicle along a lane path to a target (DESIGN.md, Language interface): into the
+lane of another vehicle, ahead of it (cut in), or through a point (reach).
+
+Both pull the vehicle's predicted positions toward a lane centerline (:func:`signed_offset`, weighted
+up over the first seconds) besides their target term, so that the sampler is steered along the lanes —
+paths the denoiser keeps — rather than straight at the target. Target terms are hinges that aim a
+margin inside what the independent check accepts (:mod:`ctgpp.language.satisfaction`): a plan that
+only just meets the check is not executed exactly, and a satisfied hinge no longer pushes the sample.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any, ClassVar
+
+import torch
+from torch import Tensor
+
+from ctgpp.guidance.base import register_loss
+from ctgpp.guidance.lane_helpers import get_route_to_point, ramp_weights, signed_offset
+from ctgpp.guidance.lane_paths import get_current_lane
+from ctgpp.guidance.rules.common import Rule, apply_mask, check_vehicle, soft_abs, world_states
+from ctgpp.guidance.rules.motion import GoalWaypoint, _scatter
+from ctgpp.guidance.rules.relative import relative_position
+from ctgpp.guidance.scope import LossScope
+
+CUT_IN_RAMP_S = 3.0  # a cut-in is a lane change: its lane offsets count fully after 3 s
+KEEP_MOVING_AIM = 0.6  # the one cut in front of keeps this share of its speed (the verdict asks for 0.5)
+ROUTE_RAMP_S = 0.5  # a route is followed from the start: the executed near term counts as much
+
+
+@register_loss("cut_in")
+class CutIn(Rule):
+    """A vehicle cuts in ahead of another: both should be in the other's lane — the lateral offsets
+    (m) of the vehicle and of the other from the centerline of the lane the other is on (from the
+    other's heading line off the lane graph), so that the one cuts in and the other keeps its lane —
+    with a bumper gap ahead of the other between ``min_gap_m`` and ``gap_m`` (shortfall or excess
+    in m, in the other's predicted frame); weighted up over the first 3 s. The other keeps moving: its
+    speed's shortfall (m/s) below ``KEEP_MOVING_AIM`` of its current speed, at every step (a cut-in
+    ahead of a vehicle that stops is no cut-in). One cost per sample (N)."""
+
+    couples_agents: ClassVar[bool] = True
+    param_doc = {
+        "vehicle": ("", "displayed number of the vehicle that cuts in"),
+        "ahead_of": ("", "displayed number of the vehicle it cuts in front of"),
+        "gap_m": ("m", "largest bumper-to-bumper gap ahead of the other vehicle"),
+        "min_gap_m": ("m", "smallest bumper gap the guidance aims for (contact is no cut-in)"),
+    }
+
+    def __init__(self, vehicle: int, ahead_of: int, gap_m: float = 10.0, min_gap_m: float = 2.0) -> None:
+        super().__init__()
+        if int(vehicle) == int(ahead_of):
+            raise ValueError(f"a vehicle cannot cut in ahead of itself (vehicle {vehicle})")
+        if not 0.0 <= min_gap_m < gap_m:
+            raise ValueError(f"need 0 <= min_gap_m < gap_m, got {min_gap_m} and {gap_m}")
+        self.vehicle, self.ahead_of = int(vehicle), int(ahead_of)
+        self.gap_m, self.min_gap_m = float(gap_m), float(min_gap_m)
+
+    def scope(self) -> LossScope:
+        """The vehicle that cuts in changes lanes; the one it cuts in front of keeps its lane."""
+        return LossScope.of((self.vehicle, self.ahead_of), leave_lane=[self.vehicle])
+
+    def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
+        a = check_vehicle(self.vehicle, data_batch, x.shape[0])
+        b = check_vehicle(self.ahead_of, data_batch, x.shape[0])
+        lon, lat = relative_position(x, data_batch, a, b)  # (N, T) in b's predicted frame
+        line = get_current_lane(data_batch, b)
+        if line is None:  # off the lane graph: the vehicle onto the other's heading line
+            offsets = soft_abs(lat)
+        else:
+            pos, _ = world_states(x, data_batch)  # (B, N, T, 2)
+            line = line.to(x)
+            offsets = soft_abs(signed_offset(pos[a], line)) + soft_abs(signed_offset(pos[b], line))
+        half = data_batch.extent[:, 0].to(x) / 2  # (B,) half lengths
+        gap = lon - half[a] - half[b]  # (N, T) bumper gap ahead of vehicle b
+        gap_cost = torch.relu(self.min_gap_m - gap) + torch.relu(gap - self.gap_m)
+        w = ramp_weights(x.shape[2], data_batch.dt_s, CUT_IN_RAMP_S, x)
+        keep_moving = torch.relu(KEEP_MOVING_AIM * data_batch.speed[b].to(x) - x[b, ..., 2]).mean(-1)  # (N,)
+        return ((offsets + gap_cost) * w).sum(-1) + keep_moving
+
+
+@register_loss("reach_point")
+class ReachPoint(GoalWaypoint):
+    """A vehicle reaches a point (x, y, scene world metres): its closest approach (m) over the horizon
+    beyond half of ``reach_m``, plus, where a lane path ahead of it leads through the point
+    (:func:`~ctgpp.guidance.lane_helpers.get_route_to_point`), the lateral offset (m) from that path,
+    weighted up over the first 0.5 s; with ``target_speed_mps`` also the mean absolute deviation from
+    that speed times ``speed_weight``. The distance term aims at half of ``reach_m``, the distance the
+    verdict accepts. Several vehicles: pass lists of equal length. Unlike
+    ``goal_waypoint`` (evaluation rule 7) it follows the lanes to the point and stops pulling once the
+    plan passes within half of ``reach_m``."""
+
+    param_doc = {
+        **GoalWaypoint.param_doc,
+        "reach_m": ("m", "closest approach that counts as reached (the loss aims at half of it)"),
+    }
+
+    def __init__(
+        self,
+        vehicle: int | Sequence[int],
+        x: float | Sequence[float],
+        y: float | Sequence[float],
+        reach_m: float = 2.0,
+        target_speed_mps: float | None = None,
+        speed_weight: float = 1.0,
+    ) -> None:
+        super().__init__(vehicle, x, y, target_speed_mps, speed_weight)
+        self.reach_m = float(reach_m)
+
+    def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
+        rows, dist = self.goal_distances(x, data_batch)  # (G, N, T)
+        pos, _ = world_states(x, data_batch)  # (B, N, T, 2)
+        w = ramp_weights(x.shape[2], data_batch.dt_s, ROUTE_RAMP_S, x)
+        terms = []
+        for g, row in enumerate(rows):
+            term = torch.relu(dist[g].min(-1).values - 0.5 * self.reach_m)  # (N,)
+            line = get_route_to_point(data_batch, row, self.goals_world[g])
+            if line is not None:
+                term = term + (soft_abs(signed_offset(pos[row], line.to(x))) * w).sum(-1)
+            if self.target_speed_mps is not None:
+                term = term + self.speed_weight * soft_abs(x[row, ..., 2] - self.target_speed_mps).mean(-1)
+            terms.append(term)
+        return apply_mask(_scatter(x, rows, torch.stack(terms)), agt_mask)
+
+
+__all__ = ["CutIn", "ReachPoint"]

@@ -1,0 +1,96 @@
+"""The first stage: N joint samples of every moving vehicle's next 5.2 s from the scene-level
+denoiser, guided by the loss (paper §3.4, Algorithm 2: :func:`~ctgpp.diffusion.guided.guided_sample`).
+
+Only the vehicles that move are sampled: those the simulator holds (``obs.held``) stand still in every
+sample, and the guidance loss sees them so, in their rows of x. A model with context
+(``ModelConfig.context``) is conditioned on them and on every replayed agent near the moving vehicles.
+The denoiser runs in inference mode (its outputs cloned back to normal tensors, which the guidance
+steps may use: autograd refuses inference tensors); only the guidance steps enable gradients.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import replace
+from typing import ClassVar
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ctgpp.data.batch import collate
+from ctgpp.data.context import standing_vehicles
+from ctgpp.data.windows import build_window
+from ctgpp.diffusion import Sampler
+from ctgpp.diffusion.guided import GuidanceConfig, Objective, action_trajectories, guided_sample
+from ctgpp.dynamics import clip_actions
+from ctgpp.interfaces import Observation
+from ctgpp.model.denoiser import Denoiser
+from ctgpp.policies.stages.base import PlanContext, PlanSet
+
+
+class GuidedSampling:
+    """Algorithm 2 over the moving vehicles; ``denoiser_for`` gives the denoiser of an observation (a
+    policy may bind per-observation inputs to it). ``calls`` counts forward passes over all N samples."""
+
+    name: ClassVar[str] = "sample"
+
+    def __init__(
+        self, denoiser_for: Callable[[Observation], Denoiser], sampler: Sampler, num_samples: int,
+        config: GuidanceConfig,
+    ) -> None:
+        self.denoiser_for, self.sampler = denoiser_for, sampler
+        self.num_samples, self.config = num_samples, config
+        self.calls = 0
+
+    def run(self, plans: PlanSet, ctx: PlanContext) -> PlanSet:
+        obs, moves = ctx.obs, ctx.moving.numpy()
+        if not moves.any():  # every vehicle is held: nothing to sample
+            return plans
+        planned = replace(obs, controlled=obs.controlled[moves], held=obs.held[:0])
+        model = self.denoiser_for(planned)
+        cfg = model.config
+        n, f = self.num_samples, cfg.future_steps
+        rows = torch.from_numpy(np.flatnonzero(moves))  # the moving vehicles' rows among the V
+        windows = cfg.window_config(max_agents=len(rows), with_future=False)
+        # the simulated past, never the logged future; the model is conditioned on the held vehicles
+        # (standing still) and on every replayed agent (the log the simulator will play)
+        seen = replace(obs.scene, agents=obs.tracks)
+        parked = standing_vehicles(seen, obs.step, obs.controlled, f)  # held, as in training
+        held = np.concatenate([obs.held, parked])
+        window = build_window(seen, obs.step, windows, agent_index=planned.controlled, held=held)
+        batch = collate([window])  # (1, M, ...): the N samples share one scene
+        context = model.encode_context(batch).expand(n)  # encoded once, (N, M, ...) views
+        gen = torch.Generator().manual_seed(int(obs.rng.integers(2**31)))
+        moving = batch.hist[0, :, -1]  # (M, 4) current states of the sampled vehicles
+        current = plans.current.clone()
+        current[rows] = moving
+        normalizer = model.normalizer
+        v = len(obs.controlled)
+
+        def denoise(x: Tensor, k: int) -> Tensor:
+            self.calls += 1
+            with torch.inference_mode():  # no autograd bookkeeping at all: cheaper than no_grad
+                out = model(x, torch.full((n,), k, dtype=torch.long), batch, context)
+            return out.clone()  # a normal tensor again, which the guidance steps may differentiate around
+
+        def every_vehicle(traj: Tensor) -> Tensor:  # (M, N, F, 6) -> (V, N, F, 6), held rows at rest
+            if len(rows) == v:
+                return traj
+            return traj.new_zeros(v, *traj.shape[1:]).index_copy(0, rows, traj)
+
+        objective: Objective | None = None
+        loss_fn, data_batch = ctx.loss, ctx.batch
+        if loss_fn is not None and data_batch is not None:
+
+            def objective(x: Tensor) -> Tensor | tuple[Tensor, Tensor]:  # normalized actions (N, M, F, 2)
+                traj = every_vehicle(action_trajectories(normalizer.denormalize_actions(x), moving, cfg.dt_s))
+                return loss_fn.guided_parts(traj, data_batch)  # the rule's and the guards' apart
+
+        x0 = guided_sample(denoise, (n, len(rows), f, 2), self.sampler, objective, self.config, gen)
+        actions = plans.actions.clone()
+        actions[:, rows] = clip_actions(normalizer.denormalize_actions(x0))  # (N, V, F, 2)
+        return replace(plans, actions=actions, current=current)
+
+
+__all__ = ["GuidedSampling"]

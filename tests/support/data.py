@@ -1,0 +1,9 @@
+"""Where the real driving data of the tests lies (../shared/data): nuScenes mini and CommonRoad NGSIM."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+SHARED_DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
+NUSCENES = SHARED_DATA / "nuscenes-mini"
+NGSIM = SHARED_DATA / "commonroad-ngsim"
