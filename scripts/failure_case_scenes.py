@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from ctgpp.data.catalog import Catalog
-from ctgpp.guidance.lane_paths import lanes_beside, turn_path
+from ctgpp.scene.lane_paths import lanes_beside, turn_path
 from ctgpp.scene.lanes import nearest_lane
 from ctgpp.sim.closed_loop import episode_config, episode_starts, initial_observation
 

@@ -38,7 +38,7 @@ from ctgpp.data.catalog import Catalog
 from ctgpp.guidance.base import GuidanceLoss
 from ctgpp.guidance.context import GuidanceBatch, build_guidance_batch
 from ctgpp.guidance.guards import GuardConfig
-from ctgpp.language.compiler.compile import compile_query
+from ctgpp.language.compiler import compile_query
 from ctgpp.language.llm.remote import RemoteLoss
 from ctgpp.language.query import probe_x
 from ctgpp.language.sandbox.checks import LossChecker

@@ -15,12 +15,12 @@ from ctgpp.behaviours import behaviours, get_behaviour
 from ctgpp.cli.main import main
 from ctgpp.data.catalog import Catalog
 from ctgpp.guidance import registered_losses
-from ctgpp.guidance.lane_paths import same_direction_neighbour, turn_path
 from ctgpp.interfaces import Rollout
-from ctgpp.language.compiler.compile import compile_query
+from ctgpp.language.compiler import compile_query
 from ctgpp.language.llm.prompt import build_messages
 from ctgpp.language.satisfaction import check_satisfied, in_order
 from ctgpp.policies.simple import ReplayPolicy
+from ctgpp.scene.lane_paths import same_direction_neighbour, turn_path
 from ctgpp.scene.lanes import lane_points_ahead, nearest_lane
 from ctgpp.scene.types import AgentTracks
 from ctgpp.sim.closed_loop import simulate

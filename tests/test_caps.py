@@ -18,7 +18,7 @@ from ctgpp.dynamics.unicycle import ACC_MIN_MPS2
 from ctgpp.guidance import CompositeLoss, make_loss
 from ctgpp.guidance.rules.relative import ForVehicles
 from ctgpp.guidance.rules.timing import During
-from ctgpp.language.compiler.compile import compile_query
+from ctgpp.language.compiler import compile_query
 from ctgpp.policies.stages.caps import cap_speeds
 
 

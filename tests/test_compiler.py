@@ -11,8 +11,9 @@ import pytest
 import torch
 
 from ctgpp.guidance import GuidanceBatch, build_guidance_batch, make_loss, registered_losses
-from ctgpp.guidance.rules.lanes import LaneChange, signed_offset
-from ctgpp.language.compiler.compile import (
+from ctgpp.guidance.lane_helpers import signed_offset
+from ctgpp.guidance.rules.lane_change import LaneChange
+from ctgpp.language.compiler import (
     QueryError,
     UnsupportedQuery,
     VehicleOutOfRange,

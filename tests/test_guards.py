@@ -14,18 +14,18 @@ import torch
 
 from ctgpp.guidance import GuidanceBatch, GuidanceLoss, build_guidance_batch, make_loss
 from ctgpp.guidance.base import registered_losses
+from ctgpp.guidance.constraints import collide_pairs
 from ctgpp.guidance.guards import (
     GUARDS_FIRST,
     GuardConfig,
     GuardedLoss,
     RealismGuards,
-    exempt_pairs,
     guard_report,
     with_guards,
 )
 from ctgpp.guidance.helpers import transform_coord_agents_to_world, transform_coord_world_to_agent_i
 from ctgpp.guidance.scope import LossScope
-from ctgpp.language.compiler.compile import compile_query
+from ctgpp.language.compiler import compile_query
 from ctgpp.model.checkpoint import load_checkpoint
 from ctgpp.policies.diffusion import DiffusionPolicy, SamplingConfig
 from ctgpp.policies.factory import default_checkpoint
@@ -116,7 +116,7 @@ def test_global_rules_address_everyone_and_keep_them_in_lane() -> None:
 def test_an_opaque_loss_lifts_the_lane_guard_and_the_vehicle_pairs() -> None:
     scope = Opaque().scope()
     assert scope.opaque and not scope.keeps_lane(0) and scope.may_collide(0, 5)
-    assert len(exempt_pairs(scope, 4)) == 6
+    assert len(collide_pairs(scope, 4)) == 6
     report = guard_report(GuardConfig(), scope, 4)
     assert report["addressed"] == "unknown" and report["lane"]["vehicles"] == []
 

@@ -13,7 +13,7 @@ from ctgpp.eval.rule_setup import setup_rule
 from ctgpp.guidance import CompositeLoss, GuidanceBatch, build_guidance_batch, describe_rules, make_loss
 from ctgpp.guidance.base import registered_losses
 from ctgpp.guidance.rules import TargetSpeed
-from ctgpp.guidance.rules.interaction import ClearAhead
+from ctgpp.guidance.rules.clearance import ClearAhead
 from tests.support.observations import boxes_scene, logged_x, real_observation
 from tests.support.rule_activation import active_params
 
@@ -216,18 +216,18 @@ def test_no_collision_keeps_the_replayed_discs_of_one_batch_only(
 def test_closest_overlap_is_the_deepest_disc_pair_overlap() -> None:
     """By hand: discs 1.5 m apart with radii 1 and 1 and a 0.2 m buffer overlap by 0.7 m; and on random
     disc sets the hinge at the closest pair equals the largest hinge over all pairs, gradients too."""
-    from ctgpp.guidance.rules.interaction import _closest_overlap
+    from ctgpp.guidance.rules.pair_guard import closest_overlap
 
     a = torch.tensor([[[0.0, 0.0], [10.0, 0.0]]])  # (1, 2 discs, 2)
     b = torch.tensor([[[1.5, 0.0], [30.0, 0.0]]])
-    pen = _closest_overlap(a, torch.tensor([1.0]), b, torch.tensor([1.0]), 0.2)
+    pen = closest_overlap(a, torch.tensor([1.0]), b, torch.tensor([1.0]), 0.2)
     torch.testing.assert_close(pen, torch.tensor([0.7]), atol=1e-5, rtol=0)
     gen = torch.Generator().manual_seed(5)
     a = (3 * torch.randn(40, 3, 2, generator=gen)).requires_grad_()
     b, ra, rb = 3 * torch.randn(40, 3, 2, generator=gen), torch.rand(40) + 0.5, torch.rand(40) + 0.5
     d = torch.sqrt(((a[:, :, None] - b[:, None]) ** 2).sum(-1) + 1e-6)  # (40, 3, 3)
     want = torch.relu((ra + rb + 0.2)[:, None, None] - d).flatten(1).max(-1).values
-    got = _closest_overlap(a, ra, b, rb, 0.2)
+    got = closest_overlap(a, ra, b, rb, 0.2)
     torch.testing.assert_close(got, want)
     assert (want > 0).any() and (want == 0).any()
     torch.testing.assert_close(torch.autograd.grad(got.sum(), a)[0], torch.autograd.grad(want.sum(), a)[0])

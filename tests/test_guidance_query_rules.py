@@ -13,11 +13,12 @@ import torch
 from ctgpp.diffusion.guided import action_trajectories
 from ctgpp.guidance import GuidanceBatch, build_guidance_batch, make_loss
 from ctgpp.guidance.lane_helpers import get_route_to_point, signed_offset
-from ctgpp.guidance.lane_paths import arc_length, point_at, vehicle_lane
+from ctgpp.guidance.lane_paths import vehicle_lane
 from ctgpp.guidance.rules.common import world_states
-from ctgpp.guidance.rules.lanes import TurnAtNextIntersection, free_speed
 from ctgpp.guidance.rules.relative import along_path
+from ctgpp.guidance.rules.turns import TurnAtNextIntersection, free_speed
 from ctgpp.policies.diffusion import DiffusionPolicy, SamplingConfig
+from ctgpp.scene.polylines import arc_length, point_at
 from ctgpp.scene.types import Scene
 from tests.support.denoisers import PriorDenoiser, losses, make_model
 from tests.support.observations import real_observation

@@ -1,5 +1,5 @@
 """Where the mapped road stops: the drivable area and the lane paths that guidance plans on go on past
-it, as the road does (ctgpp.scene.map_ends, ctgpp.guidance.lane_paths)."""
+it, as the road does (ctgpp.scene.map_ends, ctgpp.scene.lane_paths)."""
 
 from __future__ import annotations
 

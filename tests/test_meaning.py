@@ -11,7 +11,7 @@ import torch
 from torch import Tensor
 
 from ctgpp.guidance.context import GuidanceBatch
-from ctgpp.language.compiler.compile import compile_query
+from ctgpp.language.compiler import compile_query
 from ctgpp.language.llm.generate import GenerationFailed, generate_loss
 from ctgpp.language.llm.meaning import MIN_AGREEMENT, PROBES, agreement, judge_meaning, probe_plans
 from tests.support.llm_server import CannedServer, no_proxy, reply, server

@@ -16,8 +16,9 @@ import torch
 from ctgpp.data.catalog import Catalog
 from ctgpp.guidance import CompositeLoss, GuidanceBatch, GuidanceLoss, build_guidance_batch, make_loss
 from ctgpp.guidance.rules.compare import ReachAhead
-from ctgpp.guidance.rules.lanes import CommittedLaneRule, LaneChange, TurnAtNextIntersection
+from ctgpp.guidance.rules.lane_change import CommittedLaneRule, LaneChange
 from ctgpp.guidance.rules.timing import During
+from ctgpp.guidance.rules.turns import TurnAtNextIntersection
 from ctgpp.interfaces import Observation, Plan
 from ctgpp.policies.simple import ConstantVelocityPolicy
 from ctgpp.sim.closed_loop import SimConfig, simulate

@@ -12,9 +12,9 @@ import torch
 import ctgpp
 from ctgpp.dynamics import rollout
 from ctgpp.guidance import CompositeLoss, GuidanceBatch, build_guidance_batch, make_loss
-from ctgpp.guidance.lane_paths import turn_path
 from ctgpp.policies.stages.config import SteeringConfig
 from ctgpp.policies.stages.steering import curve_speeds, steer_along, way_clear
+from ctgpp.scene.lane_paths import turn_path
 from ctgpp.scene.lanes import nearest_lane
 from tests.support.observations import boxes_scene, real_observation
 from tests.support.paths import off_path

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 
 from ctgpp.data.catalog import Catalog
-from ctgpp.guidance.lane_paths import same_direction_neighbour
 from ctgpp.interfaces import Rollout
-from ctgpp.language.compiler.compile import compile_query
+from ctgpp.language.compiler import compile_query
 from ctgpp.language.satisfaction import check_satisfied
 from ctgpp.policies.simple import ReplayPolicy
+from ctgpp.scene.lane_paths import same_direction_neighbour
 from ctgpp.scene.lanes import lane_points_ahead, nearest_lane
 from ctgpp.scene.types import AgentTracks
 from ctgpp.sim.closed_loop import simulate

@@ -13,8 +13,8 @@ from typing import Any
 
 import pytest
 
-from ctgpp.language.compiler import compile as compiler
-from ctgpp.language.compiler.compile import compile_query
+from ctgpp.language import compiler
+from ctgpp.language.compiler import compile_query
 
 SENTENCES = [json.loads(line) for line in (Path(__file__).parent / "data" / "sentences.jsonl").read_text(
     encoding="utf-8").splitlines() if line.strip()]

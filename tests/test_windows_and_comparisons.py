@@ -15,7 +15,7 @@ from ctgpp.behaviours.timing import TimeWindow, windowed
 from ctgpp.guidance import build_guidance_batch, make_loss
 from ctgpp.guidance.rules.timing import During
 from ctgpp.interfaces import Rollout
-from ctgpp.language.compiler.compile import compile_query
+from ctgpp.language.compiler import compile_query
 from ctgpp.language.satisfaction import check_satisfied
 from ctgpp.scene.lanes import point_ahead
 from tests.support.observations import logged_x, real_observation

@@ -13,10 +13,16 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
+from ctgpp.api.records import (
+    fail_without_rule_pairs,
+    guards_record,
+    query_report,
+    rule_record,
+    stages_record,
+)
 from ctgpp.api.result import Result
 from ctgpp.api.rule_text import parse_rule_arg
 from ctgpp.behaviours.rule_spec import RuleSpec, custom_rule
@@ -24,19 +30,16 @@ from ctgpp.data.catalog import Catalog, default_data_dir
 from ctgpp.diffusion.guided import GuidanceConfig
 from ctgpp.guidance import CompositeLoss
 from ctgpp.guidance.base import GuidanceLoss
-from ctgpp.guidance.guards import GuardConfig, guard_report
+from ctgpp.guidance.guards import GuardConfig
 from ctgpp.guidance.scope import LossScope
 from ctgpp.interfaces import Policy, Rollout
 from ctgpp.language.llm.client import LLMConfig
 from ctgpp.language.llm.remote import GeneratedLossError
-from ctgpp.language.query import QueryLoss, fall_back, resolve_query
-from ctgpp.language.satisfaction import check_satisfied
+from ctgpp.language.query import fall_back, resolve_query
 from ctgpp.metrics import compute_metrics, moving_counts, vehicle_events
-from ctgpp.metrics.rules import fail_excluding
-from ctgpp.policies.diffusion import DiffusionPolicy, SamplingConfig
-from ctgpp.policies.factory import GUARDED_POLICIES, POLICY_NAMES, UNGUIDED_POLICIES, PolicyFactory
+from ctgpp.policies.diffusion import SamplingConfig
+from ctgpp.policies.factory import POLICY_NAMES, UNGUIDED_POLICIES, PolicyFactory
 from ctgpp.policies.stages import StageConfig
-from ctgpp.policies.stages.report import stage_report
 from ctgpp.scene.types import Scene
 from ctgpp.scene.vehicles import controlled_vehicles
 from ctgpp.sim.closed_loop import (
@@ -45,7 +48,6 @@ from ctgpp.sim.closed_loop import (
     SimConfig,
     episode_bounds,
     episode_config,
-    held_numbers,
     initial_observation,
     start_step,
 )
@@ -186,11 +188,11 @@ def simulate(
         metrics=compute_metrics(rollout),
         events=vehicle_events(rollout),
         moving_vehicles=int(moving_counts(rollout)["moving"]),
-        rules={spec.description: _rule_record(spec, rollout) for spec in specs},
-        fail_excluding_rule_pairs=_fail_excluding(specs, rollout),
-        query=None if query_loss is None or query is None else _query_report(query, query_loss, rollout),
-        guards=_guards_record(policy, used, factory.guards, scope, scene, step0),
-        stages=_stages_record(used, rollout),
+        rules={spec.description: rule_record(spec, rollout) for spec in specs},
+        fail_excluding_rule_pairs=fail_without_rule_pairs(specs, rollout),
+        query=None if query_loss is None or query is None else query_report(query, query_loss, rollout),
+        guards=guards_record(policy, used, factory.guards, scope, scene, step0),
+        stages=stages_record(used, rollout),
     )
 
 
@@ -291,54 +293,3 @@ def _rule(text: str, scene: Scene, step: int, controlled: np.ndarray) -> RuleSpe
     except ValueError as err:
         message = str(err) if str(err).startswith("--rule") else f"--rule {text}: {err}"
         raise ValueError(message) from None
-
-
-def _rule_record(spec: RuleSpec, rollout: Rollout) -> dict[str, Any]:
-    """A rule's violation (appendix E) with its unit and its verdict, with what was measured and when."""
-    verdict = spec.verdict(rollout)
-    assert verdict is not None  # every rule given by name is a behaviour with a check
-    return {"rule": spec.name, "violation": spec.violation(rollout), "unit": spec.unit,
-            "satisfied": verdict.satisfied, "measured": verdict.measured, "window": verdict.window}
-
-
-def _fail_excluding(specs: list[RuleSpec], rollout: Rollout) -> float | None:
-    """``fail`` without the pairs a collision rule asks to crash (None when no rule asks)."""
-    exempt = sorted({v for spec in specs for v in spec.exempt})
-    return fail_excluding(rollout, exempt) if exempt else None
-
-
-def _query_report(text: str, query: QueryLoss, rollout: Rollout) -> dict[str, Any]:
-    """Whether the rollout satisfies the query, by the independent checks of the compiled query's
-    parts (not by the loss); "unknown" when only the language model understood the query. With a
-    language model: why its program was not used (``fallback``, null when it was) and every round's
-    reply, refusal and seconds (``rounds``)."""
-    named = None if query.scope.vehicles is None else sorted(query.scope.vehicles)  # None: every vehicle
-    report: dict[str, Any] = {"text": text, "path": query.path, "code": query.code, "notes": query.notes,
-                              "vehicles": named, "fallback": query.fallback, "rounds": query.rounds}
-    if query.compiled is None:
-        return {**report, "satisfied": "unknown (no independent check for this query)", "parts": []}
-    parts = check_satisfied(rollout, query.compiled)
-    rows = [{"text": p.text, "satisfied": p.satisfied, "measured": p.measured, "window": p.window,
-             "violation": p.violation, "unit": p.unit} for p in parts]
-    return {**report, "satisfied": all(p.satisfied for p in parts), "parts": rows}
-
-
-def _guards_record(
-    name: str, policy: Policy, guards: GuardConfig, scope: LossScope, scene: Scene, step: int
-) -> dict[str, Any]:
-    """The realism guards of the episode (:func:`guard_report`), or why none ran."""
-    if not guards.enabled:
-        return {"ran": [], "note": "off (--guards off)"}
-    if name not in GUARDED_POLICIES:
-        guarded = ", ".join(GUARDED_POLICIES)
-        return {"ran": [], "note": f"policy {name} takes no guards (only the diffusion policies {guarded})"}
-    controlled = controlled_vehicles(scene, step)
-    held = held_numbers(scene.agents, step, controlled, policy.hold_stationary, scope.moves)
-    return guard_report(guards, scope, len(controlled), [int(v) for v in held])
-
-
-def _stages_record(policy: Policy, rollout: Rollout) -> dict[str, Any]:
-    """The plan stages of the episode's policy and what each changed (:func:`stage_report`)."""
-    if not isinstance(policy, DiffusionPolicy):
-        return {"ran": [], "note": f"policy {policy.name} has no plan stages"}
-    return stage_report([stage.name for stage in policy.stages], policy.stage_config, rollout.stage_changes)

@@ -4,12 +4,10 @@ side, the move to the rightmost lane, and a cut-in ahead of another vehicle.
 They read the simulated track (``rollout.sim``) and the scene's lane graph only — never a guidance
 loss. The lane a vehicle starts on is taken at t = 0, the pose its guidance plans from; the target the
 verdict asks for is chosen by the same lane-graph functions the guidance steers along
-(:func:`~ctgpp.guidance.lane_paths.same_direction_neighbour`,
-:func:`~ctgpp.guidance.lane_paths.lanes_beside`).
+(:func:`~ctgpp.scene.lane_paths.same_direction_neighbour`,
+:func:`~ctgpp.scene.lane_paths.lanes_beside`).
 The lane a track is on is followed with the hysteresis of :func:`ctgpp.scene.lanes.follow_lane`
-(:func:`~ctgpp.behaviours.lane_positions.lanes_along`, which does switch to a neighbour). The
-guidance's lane paths load with the first measure that needs them, so that the vocabulary itself
-imports no torch.
+(:func:`~ctgpp.behaviours.lane_positions.lanes_along`, which does switch to a neighbour).
 """
 
 from __future__ import annotations
@@ -24,6 +22,7 @@ from ctgpp.behaviours.base import Starts, Vehicles, Verdict
 from ctgpp.behaviours.lane_positions import chain_distance, end_lane, lanes_along, reachable, with_start
 from ctgpp.behaviours.tracks import Track, both_valid, held_from, track, wrapped_deg
 from ctgpp.interfaces import Rollout
+from ctgpp.scene.lane_paths import lanes_beside, same_direction_neighbour
 from ctgpp.scene.lanes import LaneProjection, nearest_lane, project_to_lane
 from ctgpp.scene.types import LaneGraph
 from ctgpp.scene.vehicles import MOVING_SPEED_MPS
@@ -43,8 +42,6 @@ def _lane_change_target(lanes: LaneGraph, xy0: np.ndarray, yaw0: float,
                         side: str) -> tuple[LaneProjection | None, str]:
     """The same-direction lane on ``side`` of the lane a vehicle at ``xy0`` heading ``yaw0`` is on, or
     None and why there is none."""
-    from ctgpp.guidance.lane_paths import same_direction_neighbour
-
     start = nearest_lane(lanes, xy0, yaw0)
     if start is None:
         return None, "the vehicle starts on no lane"
@@ -101,8 +98,6 @@ END = "the last simulated step (the lane it starts on: t = 0)"
 
 
 def _lanes_to_the_right(lanes: LaneGraph, proj: LaneProjection) -> int:
-    from ctgpp.guidance.lane_paths import lanes_beside
-
     return len(lanes_beside(lanes, proj, "right"))
 
 

@@ -4,8 +4,7 @@ against the heading change of the way through that intersection that turns left,
 They read the simulated track (``rollout.sim``) and the scene's lane graph only — never a guidance
 loss. The lane a vehicle starts on is taken at t = 0, the pose its guidance plans from; the way the
 verdict asks for is chosen by the lane-graph function the guidance steers along
-(:func:`~ctgpp.guidance.lane_paths.turn_path`), loaded with the first measure that needs it, so that
-the vocabulary itself imports no torch.
+(:func:`~ctgpp.scene.lane_paths.turn_path`).
 """
 
 from __future__ import annotations
@@ -20,6 +19,7 @@ from ctgpp.behaviours.base import Vehicles, Verdict
 from ctgpp.behaviours.lane_positions import lanes_along, with_start
 from ctgpp.behaviours.tracks import Track, held_from, track, wrapped_deg
 from ctgpp.interfaces import Rollout
+from ctgpp.scene.lane_paths import turn_path
 from ctgpp.scene.lanes import nearest_lane
 from ctgpp.scene.types import LaneGraph
 from ctgpp.scene.vehicles import MOVING_SPEED_MPS
@@ -39,8 +39,6 @@ def _turn(lanes: LaneGraph, t: Track, direction: str) -> tuple[bool, float, str,
     the next intersection that turns ``direction`` (within 15°), the mismatch (°), the words, the
     time (s) from which it matches to the end (None: not at the end) and the time it entered an
     intersection lane (None: never)."""
-    from ctgpp.guidance.lane_paths import turn_path
-
     start = nearest_lane(lanes, t.xy0, t.yaw0)
     path = None if start is None else turn_path(lanes, start, direction)  # type: ignore[arg-type]
     if path is None:

@@ -30,7 +30,7 @@ from ctgpp.api.episode import simulate
 from ctgpp.api.result import Result
 from ctgpp.data.catalog import Catalog
 from ctgpp.eval.records import append_records, metric_cell, read_records, record_key
-from ctgpp.language.compiler.compile import CompiledQuery
+from ctgpp.language.compiler import CompiledQuery
 from ctgpp.language.llm.client import LLMConfig
 from ctgpp.language.query import resolve_query
 from ctgpp.language.satisfaction import check_satisfied

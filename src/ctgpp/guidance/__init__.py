@@ -7,7 +7,8 @@ helpers generated code may import, and the realism guards.
 - :mod:`~ctgpp.guidance.context`: :class:`GuidanceBatch`, the ``data_batch`` losses receive.
 - :mod:`~ctgpp.guidance.helpers`: the paper's six helpers; :mod:`~ctgpp.guidance.lane_helpers`: the
   map-aware ones (adjacent / rightmost lanes, next intersection, turns); both are the API of generated
-  code. :mod:`~ctgpp.guidance.lane_paths`: lane-path geometry on the batch.
+  code. :mod:`~ctgpp.guidance.lane_paths`: target lane polylines on the batch (the paths through the
+  lane graph: :mod:`ctgpp.scene.lane_paths`; polyline projections: :mod:`ctgpp.scene.polylines`).
 - :mod:`~ctgpp.guidance.rules`: the rules library (motion, lanes, interaction, relative, route,
   comparisons, time windows); :mod:`~ctgpp.guidance.composite`: "and" of weighted losses,
   ``make_loss`` by name, ``describe_rules``.

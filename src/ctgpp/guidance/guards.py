@@ -7,11 +7,11 @@ any other) and added to the rule's or query's loss by :func:`with_guards`:
 - ``offroad``: :class:`~ctgpp.guidance.rules.motion.NoOffroad` for every vehicle that is on the road
   at the re-plan (one that is off it now — a car park beyond the mapped drivable area — is not
   dragged onto it across whatever lies between; the fail metric leaves such vehicles out too).
-- ``collision``: :class:`~ctgpp.guidance.rules.interaction.NoCollision` between every pair of
+- ``collision``: :class:`~ctgpp.guidance.rules.clearance.NoCollision` between every pair of
   vehicles (moving or held still) and between every vehicle and every replayed agent (pedestrians,
   cyclists, static objects, vehicles that appear later), each box traced by its capsule and its
   four corners (:func:`~ctgpp.guidance.rules.common.outline_layout`): all that the guidance batch
-  holds; and :class:`~ctgpp.guidance.rules.interaction.ClearAhead`: each moving vehicle keeps the
+  holds; and :class:`~ctgpp.guidance.rules.clearance.ClearAhead`: each moving vehicle keeps the
   road it covers in the next ``headway_s`` seconds clear of them, so that it brakes for what is
   ahead before its plan's box touches it. A pair the loss asks to collide is left out of both
   (``LossScope.collide``); each of the two still keeps clear of everyone else. Braking the executed
@@ -59,8 +59,8 @@ from ctgpp.guidance.base import GuidanceLoss
 from ctgpp.guidance.composite import CompositeLoss, join_costs
 from ctgpp.guidance.constraints import PlanConstraints, collide_pairs
 from ctgpp.guidance.context import GuidanceBatch
+from ctgpp.guidance.rules.clearance import ClearAhead, NoCollision
 from ctgpp.guidance.rules.common import sample_sdf
-from ctgpp.guidance.rules.interaction import ClearAhead, NoCollision
 from ctgpp.guidance.rules.lanes import KeepLane
 from ctgpp.guidance.rules.motion import NoOffroad
 from ctgpp.guidance.scope import LossScope

@@ -16,11 +16,8 @@ from torch import Tensor
 
 from ctgpp.geometry import local_to_world, world_to_local, wrap_angle
 from ctgpp.guidance.context import GuidanceBatch
-from ctgpp.guidance.lane_paths import (
-    get_adjacent_lane,
-    get_current_lane,
-    project_onto_polylines,
-)
+from ctgpp.guidance.lane_paths import get_adjacent_lane, get_current_lane
+from ctgpp.scene.polylines import project_onto_polylines
 
 __all__ = [
     "transform_coord_agents_to_world",

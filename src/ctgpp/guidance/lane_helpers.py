@@ -18,9 +18,7 @@ from torch import Tensor
 from ctgpp.guidance.context import GuidanceBatch
 from ctgpp.guidance.helpers import _lane_projection
 from ctgpp.guidance.lane_paths import (
-    Direction,
     _memo,
-    _path_polyline,
     _reach_m,
     _to_tensor,
     get_adjacent_lane,
@@ -28,11 +26,11 @@ from ctgpp.guidance.lane_paths import (
     get_rightmost_lane,
     get_turn_lane,
     next_intersection_distance,
-    project_onto_polyline,
-    project_onto_polylines,
     vehicle_lane,
 )
+from ctgpp.scene.lane_paths import Direction, path_polyline
 from ctgpp.scene.lanes import LaneProjection, lane_length, lanes_ahead, project_to_lane
+from ctgpp.scene.polylines import project_onto_polyline, project_onto_polylines
 from ctgpp.scene.types import LaneGraph
 
 LANE_PATHS_MAX = 12  # get_lane_paths: at most this many paths per vehicle
@@ -151,7 +149,7 @@ def get_route_to_point(data_batch: GuidanceBatch, i: int, point_world: np.ndarra
         best, best_d = None, ROUTE_MAX_OFFSET_M + 1e-9
         for start in _fork_starts(lanes, proj, xy):
             for path in lanes_ahead(lanes, start, reach):  # the straightest first: it wins ties
-                line = _path_polyline(lanes, path, start.s_m, reach)
+                line = path_polyline(lanes, path, start.s_m, reach)
                 d = _distance_to_polyline(line, point)
                 if d < best_d:
                     best, best_d = line, d
@@ -177,7 +175,7 @@ def get_lane_paths(data_batch: GuidanceBatch, i: int) -> list[Tensor]:
             reach = _reach_m(data_batch, i)
             for start in _fork_starts(lanes, proj, xy):
                 for path in lanes_ahead(lanes, start, reach, max_paths=LANE_PATHS_MAX):
-                    line = _thinned(_path_polyline(lanes, path, start.s_m, reach), LANE_PATHS_SPACING_M)
+                    line = _thinned(path_polyline(lanes, path, start.s_m, reach), LANE_PATHS_SPACING_M)
                     paths.append(_to_tensor(data_batch, line))
         data_batch.memo[key] = paths[:LANE_PATHS_MAX]
     return data_batch.memo[key]

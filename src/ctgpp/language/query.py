@@ -22,7 +22,7 @@ from ctgpp.guidance.base import GuidanceLoss
 from ctgpp.guidance.context import build_guidance_batch
 from ctgpp.guidance.scope import LossScope
 from ctgpp.interfaces import Observation
-from ctgpp.language.compiler.compile import CompiledQuery, QueryError, compile_query
+from ctgpp.language.compiler import CompiledQuery, QueryError, compile_query
 from ctgpp.language.llm.cache import LossCache
 from ctgpp.language.llm.client import LLMClient, LLMConfig, LLMError
 from ctgpp.language.llm.generate import GenerationFailed, generate_loss

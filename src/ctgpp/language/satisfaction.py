@@ -22,7 +22,7 @@ from dataclasses import dataclass, replace
 from ctgpp.behaviours import get_behaviour
 from ctgpp.behaviours.timing import TimeWindow
 from ctgpp.interfaces import Rollout
-from ctgpp.language.compiler.compile import CompiledQuery, QueryPart
+from ctgpp.language.compiler import CompiledQuery, QueryPart
 
 
 @dataclass(frozen=True)

@@ -1,5 +1,6 @@
 """The CTG++ policy: joint diffusion sampling of every controlled vehicle's next 5.2 s, optionally
-guided by a rule (paper §3.4, Algorithm 2) with filtration among the N samples."""
+guided by a rule (paper §3.4, Algorithm 2), taken through the declared plan stages
+(:mod:`ctgpp.policies.stages`) to the plan each vehicle drives."""
 
 from __future__ import annotations
 

@@ -35,7 +35,7 @@ class Refused(ValueError):
 
 def load_vocabulary() -> Vocabulary:
     """The phrasings and policies (imports the behaviours' registry and the policies: torch)."""
-    from ctgpp.language.compiler.compile import phrasings
+    from ctgpp.language.compiler import phrasings
     from ctgpp.policies.factory import POLICY_NAMES
 
     return Vocabulary(tuple(dict.fromkeys(phrasings())), tuple(POLICY_NAMES))
@@ -44,7 +44,7 @@ def load_vocabulary() -> Vocabulary:
 def refusal(sentence: str, num_vehicles: int) -> tuple[str, list[str]] | None:
     """Why the offline compiler cannot compile ``sentence`` for a scene of ``num_vehicles`` vehicles
     (numbers 0 .. num_vehicles - 1) and the closest supported phrasings; None when it can."""
-    from ctgpp.language.compiler.compile import QueryError, UnsupportedQuery, compile_query
+    from ctgpp.language.compiler import QueryError, UnsupportedQuery, compile_query
 
     try:
         compile_query(sentence, num_vehicles)

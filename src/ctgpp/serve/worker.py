@@ -92,7 +92,7 @@ def run_safely(spec: RunSpec, llm: LLMConfig | None, tell: Tell,
                cancelled: Callable[[], bool]) -> tuple[str, dict[str, Any]]:
     """:func:`run` with its outcome as the last message: ``done``, ``cancelled``, ``refused`` or
     ``error`` with a one-line message (a stack trace goes only to the server's log)."""
-    from ctgpp.language.compiler.compile import UnsupportedQuery
+    from ctgpp.language.compiler import UnsupportedQuery
 
     try:
         run(spec, llm, tell, cancelled)
@@ -164,7 +164,7 @@ def run(spec: RunSpec, llm: LLMConfig | None, tell: Tell, cancelled: Callable[[]
 def _verdict(sentence: str, unguided: Any) -> dict[str, Any]:
     """The guided run's independent checks of ``sentence`` on the ``unguided`` result (the compiled
     query's parts); "unknown" when only a language model understands the sentence."""
-    from ctgpp.language.compiler.compile import QueryError, compile_query
+    from ctgpp.language.compiler import QueryError, compile_query
     from ctgpp.language.satisfaction import check_satisfied
 
     try:

@@ -4,10 +4,12 @@ rules library, with no model and no network.
 ``compile_query("vehicle 3 should cut in ahead of vehicle 7 and no collisions", 12)`` splits the
 query into clauses at "and", ",", ";", "while", "then", "after that", "but" (not inside "between 10
 and 30 m", a point "(x, y)" or "one by one"; a piece that only names vehicles or times, such as
-"vehicle 1" in "vehicle 1 and vehicle 2 collide", is joined with the next one), reads each clause
+"vehicle 1" in "vehicle 1 and vehicle 2 collide", is joined with the next one:
+:mod:`ctgpp.language.compiler.segments`), reads each clause
 (:mod:`ctgpp.language.compiler.patterns`: its subjects and objects, quantities in SI units, its
 times), recognises its family (:mod:`ctgpp.language.compiler.families`) and joins the rules in a
-:class:`CompositeLoss` (the conjunction, every part weighted 1).
+:class:`CompositeLoss` (the conjunction, every part weighted 1; the parts and their code:
+:mod:`ctgpp.language.compiler.compiled`).
 
 How a sentence is read:
 
@@ -29,232 +31,33 @@ subject (:class:`SteerOnly`); the other keeps driving as sampled.
 Vehicles are displayed numbers: "vehicle 3", "car 3", "v3", "#3", "the ego" (= 0).
 Nothing is guessed or dropped: a clause no family recognises raises :class:`UnsupportedQuery` with
 the closest supported phrasings, a vehicle a clause names that no part would involve raises
-:class:`QueryError`, a vehicle outside the scene :class:`VehicleOutOfRange`.
+:class:`QueryError`, a vehicle outside the scene :class:`VehicleOutOfRange`
+(:mod:`ctgpp.language.compiler.refusals`).
 """
 
 from __future__ import annotations
 
-import difflib
 import re
-from dataclasses import dataclass, field, replace
-from typing import Any
+from dataclasses import replace
 
-from ctgpp.behaviours import behaviours, get_behaviour
+from ctgpp.behaviours import get_behaviour
 from ctgpp.behaviours.timing import TimeWindow
-from ctgpp.guidance import CompositeLoss, GuidanceLoss, make_loss
-from ctgpp.guidance.composite import check_quantity
-from ctgpp.guidance.rules.relative import ForVehicles, SteerOnly
-from ctgpp.guidance.rules.timing import During
-from ctgpp.language.compiler.families import recognise
-from ctgpp.language.compiler.patterns import Clause, analyse, split_points
+from ctgpp.guidance import CompositeLoss
+from ctgpp.language.compiler.compiled import CompiledQuery, QueryPart, render_code
+from ctgpp.language.compiler.patterns import Clause
+from ctgpp.language.compiler.refusals import (
+    UnsupportedQuery,
+    check_none_dropped,
+    check_quantities,
+    check_vehicles,
+    part_vehicles,
+    suggest,
+    unsupported,
+)
+from ctgpp.language.compiler.segments import segments
 from ctgpp.language.compiler.subjects import Context, PartSpec, QueryError
 
-__all__ = [
-    "CompiledQuery",
-    "QueryError",
-    "QueryPart",
-    "UnsupportedQuery",
-    "VehicleOutOfRange",
-    "compile_query",
-    "phrasings",
-    "render_code",
-    "suggest",
-]
-
-
-class UnsupportedQuery(QueryError):
-    """A query (or one of its clauses) that no supported phrasing matches; the message lists the
-    closest supported phrasings, ``suggestions`` holds them."""
-
-    def __init__(self, message: str, suggestions: list[str]) -> None:
-        super().__init__(message)
-        self.suggestions = suggestions
-
-
-class VehicleOutOfRange(QueryError):
-    """A query names a vehicle number the scene does not have."""
-
-
-@dataclass(frozen=True)
-class QueryPart:
-    """One rule of a compiled query.
-
-    rule: registered rule name; params: its keyword parameters (units in the names: m, m/s; points
-    in scene world metres); text: the clause of the query it came from and span (start, end) its
-    position in the query; family: the query family ("lane_change", "keep_within", "stop", ...,
-    what :mod:`ctgpp.language.satisfaction` checks); vehicles: the vehicles a global rule is
-    restricted to (None: the rule's own scope, every vehicle for speed limits and the like);
-    steers: the only vehicles the rule's gradient moves (None: every vehicle it involves), the
-    subject of a relation to another vehicle, which then keeps driving as sampled; window: the
-    episode time the clause names ("within 5 s", "after 3 s", :mod:`ctgpp.behaviours.timing`; None:
-    the behaviour's own window); stage: the part's place in a sequence ("then", "one by one": 0, 1,
-    ...; parts of one stage have no order among them); steers_when_held: the vehicles steered
-    instead of ``steers`` when those are held still by the simulator (:class:`SteerOnly`).
-    """
-
-    rule: str
-    params: dict[str, Any]
-    text: str
-    span: tuple[int, int]
-    family: str
-    vehicles: tuple[int, ...] | None = None
-    steers: tuple[int, ...] | None = None
-    window: TimeWindow | None = None
-    stage: int = 0
-    steers_when_held: tuple[int, ...] = ()
-
-    def build(self) -> GuidanceLoss:
-        """The loss of this part: the registered rule, on the steps of ``window``, restricted to
-        ``vehicles`` and steering only ``steers`` when given."""
-        loss = make_loss(self.rule, **self.params)
-        if self.window is not None:
-            loss = During(loss, self.window.start_s, self.window.end_s)
-        if self.vehicles is not None:
-            loss = ForVehicles(loss, list(self.vehicles))
-        if self.steers is None:
-            return loss
-        return SteerOnly(loss, list(self.steers), list(self.steers_when_held))
-
-    def code(self) -> str:
-        """Python source of :meth:`build`."""
-        args = "".join(f", {k}={v!r}" for k, v in self.params.items())
-        call = f"make_loss({self.rule!r}{args})".replace("'", '"')
-        if self.window is not None:
-            call = f"During({call}, start_s={self.window.start_s!r}, end_s={self.window.end_s!r})"
-        if self.vehicles is not None:
-            call = f"ForVehicles({call}, vehicles={list(self.vehicles)})"
-        if self.steers is None:
-            return call
-        held = f", when_held={list(self.steers_when_held)}" if self.steers_when_held else ""
-        return f"SteerOnly({call}, vehicles={list(self.steers)}{held})"
-
-
-@dataclass(frozen=True, eq=False)
-class CompiledQuery:
-    """A compiled query: the ``loss`` (a :class:`CompositeLoss` of every part, weight 1 each), its
-    ``parts`` and ``code``, a readable Python rendering of the composition."""
-
-    query: str
-    loss: GuidanceLoss
-    parts: list[QueryPart] = field(default_factory=list)
-    code: str = ""
-
-
-def phrasings() -> list[str]:
-    """Every behaviour's phrasings (:mod:`ctgpp.behaviours`): the sentences suggestions come from."""
-    return [p for b in behaviours().values() for p in b.phrasings]
-
-
-def suggest(text: str, n: int = 3) -> list[str]:
-    """The ``n`` supported phrasings closest to ``text`` (difflib similarity)."""
-    canon = re.sub(r"\s+", " ", text.lower()).strip()
-    return difflib.get_close_matches(canon, phrasings(), n=n, cutoff=0.0)
-
-
-def _unsupported(text: str, query: str) -> UnsupportedQuery:
-    hints = suggest(text)
-    where = "" if text.strip() == query.strip() else f" (in {query!r})"
-    listed = "; ".join(f"'{h}'" for h in hints)
-    return UnsupportedQuery(
-        f"cannot compile {text.strip()!r}{where}: no supported phrasing matches. Closest supported "
-        f"phrasings: {listed}. Vehicles are named 'vehicle N'; points as (x, y) in scene metres.",
-        hints,
-    )
-
-
-def _segments(query: str) -> list[tuple[Clause, str, Any]]:
-    """Clauses of the query with their family and handler: the shortest run of atoms that some family
-    recognises; a trailing run that none recognises joins the previous clause."""
-    atoms = split_points(query)
-    if not atoms:
-        raise _unsupported(query, query)
-    out: list[tuple[Clause, str, Any]] = []
-    i = 0
-    while i < len(atoms):
-        for j in range(i, len(atoms)):
-            start, end = atoms[i][0], atoms[j][1]
-            clause = analyse(query[start:end], start)
-            found = recognise(clause)
-            if found is not None:
-                out.append((clause, *found))
-                i = j + 1
-                break
-            if not _is_filler(query[atoms[j][0] : atoms[j][1]]):  # only vehicle lists join the next piece
-                raise _unsupported(query[start:end], query)
-        else:
-            rest = query[atoms[i][0] : atoms[-1][1]]
-            if not out or not _is_filler(rest):
-                raise _unsupported(rest, query)
-            start = out[-1][0].start
-            clause = analyse(query[start : atoms[-1][1]], start)
-            found = recognise(clause)
-            if found is None:
-                raise _unsupported(rest, query)
-            out[-1:] = [(clause, *found)]
-            i = len(atoms)
-    return out
-
-
-_FILLER = re.compile(
-    r"\b(?:vehicles?|cars?|agents?|trucks?|ego|the|and|or|both|each|other|for|make|let|have|get|also|please"
-    r"|should|must|will|number|no)\b|\bv?\d+\b|[#.,;&!?]"
-)
-
-
-def _is_filler(text: str) -> bool:
-    """Whether a piece of a query only names vehicles or times ("vehicle 1", "for car 3", "make 2",
-    "within 5 s", "one by one"): such a piece joins its neighbour; any other word that no family
-    recognises makes the query unsupported."""
-    blank = analyse(text, 0).text  # time phrases blanked
-    blank = re.sub(r"\b(?:one\s+by\s+one|one\s+after\s+(?:the\s+)?other|in\s+turn)\b", " ", blank)
-    return not _FILLER.sub(" ", blank).strip()
-
-
-def _check_vehicles(spec: PartSpec, num_vehicles: int, text: str) -> None:
-    named = [v for k, v in spec.params.items() if k in _VEHICLE_PARAMS and v is not None]
-    for v in [*named, *(spec.only or ())]:
-        if not 0 <= int(v) < num_vehicles:
-            valid = f"vehicles 0-{num_vehicles - 1}" if num_vehicles > 0 else "no vehicles"
-            raise VehicleOutOfRange(f"vehicle {v} does not exist in {text.strip()!r}: this scene has {valid}")
-
-
-def _check_quantities(spec: PartSpec, text: str) -> None:
-    """Refuse numbers out of physical range (a speed above 40 m/s, NaN, infinity): never clipped."""
-    for key, value in spec.params.items():
-        what = f"{'speed' if key.endswith('_mps') else key} in {text.strip()!r}"
-        try:
-            check_quantity(what, value, "m/s" if key.endswith("_mps") else "")
-        except ValueError as err:
-            raise QueryError(str(err)) from None
-
-
-_VEHICLE_PARAMS = {"vehicle", "vehicle_a", "vehicle_b", "follower", "leader", "other", "target", "ahead_of"}
-
-
-def _part_vehicles(spec: PartSpec) -> set[int] | None:
-    """The vehicles a spec involves (None: every vehicle, a global rule with no restriction)."""
-    named = {int(v) for k, v in spec.params.items() if k in _VEHICLE_PARAMS and v is not None}
-    if spec.only is not None:
-        return named | set(spec.only)
-    if named:
-        return named
-    return None
-
-
-def _check_none_dropped(clause: Clause, specs: list[PartSpec], text: str) -> None:
-    """Every vehicle a clause names is in some part it compiled to (never silently left out)."""
-    covered: set[int] = set()
-    for spec in specs:
-        got = _part_vehicles(spec)
-        if got is None:
-            return
-        covered |= got
-    if clause.others:  # "every car but vehicle 3": the vehicles named are those left out on purpose
-        covered |= set(clause.vehicles)
-    missing = [v for v in clause.vehicles if v not in covered]
-    if missing:
-        raise QueryError(f"{text.strip()!r}: vehicle(s) {missing} would be left out of the compiled rules "
-                         f"({', '.join(s.rule or s.family for s in specs)}); name each vehicle's part")
+__all__ = ["compile_query"]
 
 
 def _window(clause: Clause, rule: str, text: str) -> TimeWindow | None:
@@ -309,7 +112,7 @@ def _refines(parts: list[QueryPart], part: QueryPart, refinable: set[int]) -> in
 
 
 def _vehicle_of(spec: PartSpec) -> int | None:
-    got = _part_vehicles(spec)
+    got = part_vehicles(spec)
     return min(got) if got and len(got) == 1 else None
 
 
@@ -326,7 +129,7 @@ def compile_query(query: str, num_vehicles: int) -> CompiledQuery:
     refinable: set[int] = set()
     ctx = Context(num_vehicles=num_vehicles)
     stage = 0
-    for k, (clause, _family, handler) in enumerate(_segments(query)):
+    for k, (clause, _family, handler) in enumerate(segments(query)):
         joiner = query[: clause.start].lower().rstrip(" ,;")
         then = k > 0 and bool(re.search(r"(?:\bthen|after\s+that|afterwards)$", joiner))
         joined = k > 0 and bool(re.search(r"(?:\bwhile|\bwhilst|\bthen|after\s+that|afterwards)$", joiner))
@@ -335,13 +138,13 @@ def compile_query(query: str, num_vehicles: int) -> CompiledQuery:
         ctx = replace(ctx, joined=joined)
         text = query[clause.start : clause.end]
         specs = handler(clause, ctx)
-        _check_none_dropped(clause, specs, text)
+        check_none_dropped(clause, specs, text)
         if clause.one_by_one:  # one part per vehicle, in turn
             specs = [one for s in specs for one in ([replace(s, only=(v,)) for v in s.only or ()] or [s])]
         order = list(clause.subjects or clause.vehicles or ctx.previous or ctx.subjects)  # "one by one"
         for spec in specs:
-            _check_vehicles(spec, num_vehicles, text)
-            _check_quantities(spec, text)
+            check_vehicles(spec, num_vehicles, text)
+            check_quantities(spec, text)
             step = stage
             if clause.one_by_one and (v := _vehicle_of(spec)) is not None and v in order:
                 step = stage + order.index(v)
@@ -362,7 +165,7 @@ def compile_query(query: str, num_vehicles: int) -> CompiledQuery:
             if spec.refinable:
                 refinable.add(len(parts))
             parts.append(part)
-        involved = tuple(sorted({v for s in specs for v in (_part_vehicles(s) or ())}))
+        involved = tuple(sorted({v for s in specs for v in (part_vehicles(s) or ())}))
         subjects = clause.subjects or (tuple(clause.vehicles) if not clause.objects else ())
         if clause.others and not clause.vehicles:
             subjects = involved
@@ -374,22 +177,6 @@ def compile_query(query: str, num_vehicles: int) -> CompiledQuery:
                                                             and involved == ctx.subjects))
     parts += _pair_paces(paces, query)
     if not parts:
-        raise _unsupported(query, query)
+        raise unsupported(query, query)
     loss = CompositeLoss([(part.build(), 1.0) for part in parts])
     return CompiledQuery(query, loss, parts, render_code(parts))
-
-
-def render_code(parts: list[QueryPart]) -> str:
-    """Readable Python source that builds the same loss as the compiled ``parts``."""
-    lines = ["from ctgpp.guidance import CompositeLoss, make_loss"]
-    wrappers = [name for name, used in (("ForVehicles", any(p.vehicles is not None for p in parts)),
-                                        ("SteerOnly", any(p.steers is not None for p in parts))) if used]
-    if wrappers:
-        lines.append(f"from ctgpp.guidance.rules.relative import {', '.join(wrappers)}")
-    if any(p.window is not None for p in parts):
-        lines.append("from ctgpp.guidance.rules.timing import During")
-    lines += ["", "loss = CompositeLoss(["]
-    for p in parts:
-        lines.append(f"    ({p.code()}, 1.0),  # {p.text}")
-    lines.append("])")
-    return "\n".join(lines) + "\n"

@@ -21,7 +21,7 @@ from typing import Any, Protocol
 from torch import Tensor
 
 from ctgpp.guidance.context import GuidanceBatch
-from ctgpp.language.compiler.compile import CompiledQuery
+from ctgpp.language.compiler import CompiledQuery
 from ctgpp.language.llm.cache import LossCache
 from ctgpp.language.llm.extract import ExtractionError, extract_code
 from ctgpp.language.llm.meaning import judge_meaning

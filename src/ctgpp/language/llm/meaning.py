@@ -23,7 +23,7 @@ from ctgpp.dynamics import rollout
 from ctgpp.guidance.base import GuidanceLoss
 from ctgpp.guidance.composite import CompositeLoss
 from ctgpp.guidance.context import GuidanceBatch
-from ctgpp.language.compiler.compile import CompiledQuery
+from ctgpp.language.compiler import CompiledQuery
 
 __all__ = ["MIN_AGREEMENT", "MIN_PAIRS", "PROBES", "MeaningReport", "agreement", "judge_meaning",
            "probe_plans"]

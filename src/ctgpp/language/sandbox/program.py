@@ -40,7 +40,8 @@ import copy
 
 from ctgpp.guidance.base import GuidanceLoss
 from ctgpp.language.llm.extract import main_class
-from ctgpp.language.sandbox.rules import ProgramChecker, SandboxError
+from ctgpp.language.sandbox.nodes import SandboxError
+from ctgpp.language.sandbox.statements import ProgramChecker
 from ctgpp.language.sandbox.vocabulary import prebound_names, safe_builtins
 
 __all__ = ["GENERATED_FILENAME", "MAX_SOURCE_CHARS", "SandboxError", "check_source", "load_loss_class"]

@@ -10,7 +10,7 @@ cars parked beside its exit lane.
 
 Where a query commits a vehicle to a lane path through the next intersection (a route of the loss's
 :class:`~ctgpp.guidance.constraints.PlanConstraints`, from
-:class:`~ctgpp.guidance.rules.lanes.TurnAtNextIntersection`), its sampled plans are steered along that
+:class:`~ctgpp.guidance.rules.turns.TurnAtNextIntersection`), its sampled plans are steered along that
 path before they are ranked and executed, as a query's speed limit is held exactly
 (:mod:`ctgpp.policies.stages.caps`). The constants are
 :class:`~ctgpp.policies.stages.config.SteeringConfig`'s:
@@ -46,9 +46,9 @@ from torch import Tensor
 from ctgpp.dynamics.unicycle import ACC_MIN_MPS2, step
 from ctgpp.geometry import wrap_angle
 from ctgpp.guidance.context import GuidanceBatch
-from ctgpp.guidance.lane_paths import arc_length, foot_and_arc_length, point_at
 from ctgpp.policies.stages.base import PlanContext, PlanSet
 from ctgpp.policies.stages.config import SteeringConfig
+from ctgpp.scene.polylines import arc_length, foot_and_arc_length, point_at
 
 
 class RouteSteering:

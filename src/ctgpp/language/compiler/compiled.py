@@ -1,0 +1,94 @@
+"""A compiled query: its parts (one registered rule each, with its vehicles, steering, time window and
+stage), the loss each part builds, and the readable Python code of the whole composition.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from ctgpp.behaviours.timing import TimeWindow
+from ctgpp.guidance import GuidanceLoss, make_loss
+from ctgpp.guidance.rules.relative import ForVehicles, SteerOnly
+from ctgpp.guidance.rules.timing import During
+
+
+@dataclass(frozen=True)
+class QueryPart:
+    """One rule of a compiled query.
+
+    rule: registered rule name; params: its keyword parameters (units in the names: m, m/s; points
+    in scene world metres); text: the clause of the query it came from and span (start, end) its
+    position in the query; family: the query family ("lane_change", "keep_within", "stop", ...,
+    what :mod:`ctgpp.language.satisfaction` checks); vehicles: the vehicles a global rule is
+    restricted to (None: the rule's own scope, every vehicle for speed limits and the like);
+    steers: the only vehicles the rule's gradient moves (None: every vehicle it involves), the
+    subject of a relation to another vehicle, which then keeps driving as sampled; window: the
+    episode time the clause names ("within 5 s", "after 3 s", :mod:`ctgpp.behaviours.timing`; None:
+    the behaviour's own window); stage: the part's place in a sequence ("then", "one by one": 0, 1,
+    ...; parts of one stage have no order among them); steers_when_held: the vehicles steered
+    instead of ``steers`` when those are held still by the simulator (:class:`SteerOnly`).
+    """
+
+    rule: str
+    params: dict[str, Any]
+    text: str
+    span: tuple[int, int]
+    family: str
+    vehicles: tuple[int, ...] | None = None
+    steers: tuple[int, ...] | None = None
+    window: TimeWindow | None = None
+    stage: int = 0
+    steers_when_held: tuple[int, ...] = ()
+
+    def build(self) -> GuidanceLoss:
+        """The loss of this part: the registered rule, on the steps of ``window``, restricted to
+        ``vehicles`` and steering only ``steers`` when given."""
+        loss = make_loss(self.rule, **self.params)
+        if self.window is not None:
+            loss = During(loss, self.window.start_s, self.window.end_s)
+        if self.vehicles is not None:
+            loss = ForVehicles(loss, list(self.vehicles))
+        if self.steers is None:
+            return loss
+        return SteerOnly(loss, list(self.steers), list(self.steers_when_held))
+
+    def code(self) -> str:
+        """Python source of :meth:`build`."""
+        args = "".join(f", {k}={v!r}" for k, v in self.params.items())
+        call = f"make_loss({self.rule!r}{args})".replace("'", '"')
+        if self.window is not None:
+            call = f"During({call}, start_s={self.window.start_s!r}, end_s={self.window.end_s!r})"
+        if self.vehicles is not None:
+            call = f"ForVehicles({call}, vehicles={list(self.vehicles)})"
+        if self.steers is None:
+            return call
+        held = f", when_held={list(self.steers_when_held)}" if self.steers_when_held else ""
+        return f"SteerOnly({call}, vehicles={list(self.steers)}{held})"
+
+
+@dataclass(frozen=True, eq=False)
+class CompiledQuery:
+    """A compiled query: the ``loss`` (a :class:`CompositeLoss` of every part, weight 1 each), its
+    ``parts`` and ``code``, a readable Python rendering of the composition."""
+
+    query: str
+    loss: GuidanceLoss
+    parts: list[QueryPart] = field(default_factory=list)
+    code: str = ""
+
+
+def render_code(parts: list[QueryPart]) -> str:
+    """Readable Python source that builds the same loss as the compiled ``parts``."""
+    lines = ["from ctgpp.guidance import CompositeLoss, make_loss"]
+    wrappers = [name for name, used in (("ForVehicles", any(p.vehicles is not None for p in parts)),
+                                        ("SteerOnly", any(p.steers is not None for p in parts))) if used]
+    if wrappers:
+        lines.append(f"from ctgpp.guidance.rules.relative import {', '.join(wrappers)}")
+    if any(p.window is not None for p in parts):
+        lines.append("from ctgpp.guidance.rules.timing import During")
+    lines += ["", "loss = CompositeLoss(["]
+    for p in parts:
+        lines.append(f"    ({p.code()}, 1.0),  # {p.text}")
+    lines.append("])")
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,232 @@
+"""The handlers of the query families: the rules of the library a recognised clause becomes.
+
+A handler returns :class:`PartSpec` values (rule name, parameters, an optional restriction to some
+vehicles) or raises :class:`QueryError` when the clause names too few vehicles or a needed quantity is
+missing. Whom a clause is about (subjects, objects, "the others") is read by
+:mod:`ctgpp.language.compiler.subjects`.
+
+Relations of a subject to another vehicle (keep a distance, stay within or away, stay on a side, same
+direction) steer only the subject: moving the other vehicle as well (slowing the leader down to wait
+for its follower, say) puts it where the traffic it would have passed meets it. A distance (keep a
+distance, stay within or away) is kept by the other vehicle instead when the subject is held still by
+the simulator (parked at the start): nothing else could keep it. Collisions and cut-ins
+steer both: the pair meets halfway, and the vehicle cut in front of keeps its lane.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+from ctgpp.language.compiler.patterns import Clause
+from ctgpp.language.compiler.phrases import (
+    ACCELERATION,
+    LANE_CHANGE,
+    PACE,
+    REACH_BELOW,
+    SIDE_OF,
+    STRAIGHT,
+    TURN,
+)
+from ctgpp.language.compiler.subjects import Context, PartSpec, QueryError, pairs, scope, subjects
+
+DEFAULT_NEAR_M = 10.0  # "stay close to" without a distance
+DEFAULT_AWAY_M = 10.0  # "stay away from" without a distance
+DEFAULT_CUT_IN_GAP_M = 10.0
+DEFAULT_STOP_RADIUS_M = 3.0
+FOLLOW_RANGE_M = (10.0, 30.0)  # "follow vehicle N": the paper's keep-distance range
+SPEED_MARGIN_MPS = 0.5  # a compiled speed limit aims this far under the limit the verdict holds
+DISTANCE_MARGIN_M = 2.0  # a compiled distance band aims this far inside the band the verdict holds
+TARGET_SPEED_DECAY = 0.98  # "drive at v" weighs step t by this**t: the executed near term counts most
+
+
+Handler = Callable[[Clause, Context], list[PartSpec]]
+
+
+def clause_speed(c: Clause) -> float | None:
+    """The clause's speed (m/s): its first speed, else its first bare number; None without either."""
+    if c.speeds:
+        return c.speeds[0]
+    return c.bare[0] if c.bare else None
+
+
+def _distance(c: Clause, default: float) -> float:
+    if c.distances:
+        return c.distances[0]
+    return c.bare[0] if c.bare else default
+
+
+def rear_end(c: Clause, ctx: Context) -> list[PartSpec]:
+    return [PartSpec("collide_from_behind", "collide_from_behind", {"vehicle": a, "target": b})
+            for a, b in pairs(c, ctx, "a rear-end collision")]
+
+
+def collision(c: Clause, ctx: Context) -> list[PartSpec]:
+    if c.negated or c.has(r"collision[- ]free"):
+        return [PartSpec("no_collision", "no_collision", {}, scope(c, ctx))]
+    return [PartSpec("collision", "collision", {"vehicle_a": a, "vehicle_b": b})
+            for a, b in pairs(c, ctx, "a collision")]
+
+
+def cut_in(c: Clause, ctx: Context) -> list[PartSpec]:
+    gap = _distance(c, DEFAULT_CUT_IN_GAP_M)
+    return [PartSpec("cut_in", "cut_in", {"vehicle": a, "ahead_of": b, "gap_m": gap})
+            for a, b in pairs(c, ctx, "a cut-in")]
+
+
+def follow_lane(c: Clause, ctx: Context) -> list[PartSpec]:
+    if not c.others and (c.everyone or (not c.vehicles and ctx.subject is None)):
+        return [PartSpec("follow_lane", "follow_lane", {"vehicle": None})]
+    return [PartSpec("follow_lane", "follow_lane", {"vehicle": v}) for v in subjects(c, ctx)]
+
+
+def rightmost(c: Clause, ctx: Context) -> list[PartSpec]:
+    return [PartSpec("rightmost_lane", "move_to_rightmost_lane", {"vehicle": v}) for v in subjects(c, ctx)]
+
+
+def _side_word(c: Clause, pattern: str) -> str:
+    m = c.has(pattern)
+    return "left" if m is None or "left" in m.group(0) else "right"
+
+
+def lane_change(c: Clause, ctx: Context) -> list[PartSpec]:
+    side = _side_word(c, LANE_CHANGE)
+    return [PartSpec("lane_change", "lane_change", {"vehicle": v, "side": side}) for v in subjects(c, ctx)]
+
+
+def turn(c: Clause, ctx: Context) -> list[PartSpec]:
+    direction = "straight" if c.has(STRAIGHT) else _side_word(c, TURN)
+    return [PartSpec("turn", "turn_at_next_intersection", {"vehicle": v, "direction": direction})
+            for v in subjects(c, ctx)]
+
+
+def side_of(c: Clause, ctx: Context) -> list[PartSpec]:
+    side = _side_word(c, SIDE_OF)
+    return [PartSpec("stay_side_of", "stay_side_of", {"vehicle": a, "other": b, "side": side}, steers=(a,))
+            for a, b in pairs(c, ctx, "staying beside a vehicle")]
+
+
+def same_direction(c: Clause, ctx: Context) -> list[PartSpec]:
+    return [PartSpec("same_direction", "same_direction", {"vehicle": a, "other": b}, steers=(a,))
+            for a, b in pairs(c, ctx, "driving in the same direction")]
+
+
+def stop(c: Clause, ctx: Context) -> list[PartSpec]:
+    if c.points:
+        radius = _distance(c, DEFAULT_STOP_RADIUS_M)
+        x, y = c.points[0]
+        return [PartSpec("stop_region", "stop_region", {"vehicle": v, "x": x, "y": y, "radius_m": radius})
+                for v in subjects(c, ctx)]
+    return [PartSpec("stop", "stop", {}, scope(c, ctx))]
+
+
+def reach(c: Clause, ctx: Context) -> list[PartSpec]:
+    x, y = c.points[0]
+    params: dict[str, Any] = {"x": x, "y": y}
+    if c.speeds:
+        params["target_speed_mps"] = c.speeds[0]
+    return [PartSpec("reach", "reach_point", {"vehicle": v, **params}) for v in subjects(c, ctx)]
+
+
+def speed_limit(c: Clause, ctx: Context) -> list[PartSpec]:
+    params = {"limit_mps": clause_speed(c), "margin_mps": SPEED_MARGIN_MPS}
+    return [PartSpec("speed_limit", "speed_limit", params, scope(c, ctx))]
+
+
+def reach_speed(c: Clause, ctx: Context) -> list[PartSpec]:
+    bound = "below" if c.has(REACH_BELOW) else "above"
+    params = {"speed_mps": clause_speed(c), "bound": bound}
+    return [PartSpec("reach_speed", "reach_speed", params, scope(c, ctx))]
+
+
+def acceleration(c: Clause, ctx: Context) -> list[PartSpec]:
+    m = ACCELERATION.search(c.text)
+    if m is None:
+        raise QueryError(f"{c.text.strip()!r}: an acceleration limit needs a value in m/s² (e.g. '3 m/s²')")
+    params = {"max_mps2": float(m.group(1))}
+    return [PartSpec("acceleration_limit", "acceleration_limit", params, scope(c, ctx))]
+
+
+def goal(c: Clause, ctx: Context) -> list[PartSpec]:
+    x, y = c.points[0]
+    return [PartSpec("goal_waypoint", "goal_waypoint", {"vehicle": v, "x": x, "y": y})
+            for v in subjects(c, ctx)]
+
+
+def keep_lane(c: Clause, ctx: Context) -> list[PartSpec]:
+    if not c.others and (c.everyone or (not c.vehicles and ctx.subject is None)):
+        return [PartSpec("keep_lane", "keep_lane", {"vehicle": None})]
+    return [PartSpec("keep_lane", "keep_lane", {"vehicle": v}) for v in subjects(c, ctx)]
+
+
+def target_speed(c: Clause, ctx: Context) -> list[PartSpec]:
+    params = {"speed_mps": clause_speed(c), "decay": TARGET_SPEED_DECAY}
+    return [PartSpec("target_speed", "target_speed", params, scope(c, ctx))]
+
+
+def _band(follower: int, leader: int, lo: float, hi: float) -> dict[str, Any]:
+    """A distance band's parameters; the loss aims :data:`DISTANCE_MARGIN_M` inside it."""
+    return {"follower": follower, "leader": leader, "min_m": lo, "max_m": hi, "margin_m": DISTANCE_MARGIN_M}
+
+
+def keep_range(c: Clause, ctx: Context) -> list[PartSpec]:
+    lo, hi = c.ranges[0]
+    return [PartSpec("keep_distance", "keep_distance", _band(a, b, lo, hi), steers=(a,),
+                     steers_when_held=(b,)) for a, b in pairs(c, ctx, "keeping a distance")]
+
+
+def stay_away(c: Clause, ctx: Context) -> list[PartSpec]:
+    d = _distance(c, DEFAULT_AWAY_M)
+    params = {"min_m": d, "margin_m": DISTANCE_MARGIN_M}
+    return [PartSpec("stay_away", "stay_away", {"vehicle": a, "other": b, **params}, steers=(a,),
+                     steers_when_held=(b,))
+            for a, b in pairs(c, ctx, "staying away")]
+
+
+def keep_within(c: Clause, ctx: Context) -> list[PartSpec]:
+    d = _distance(c, DEFAULT_NEAR_M)
+    return [PartSpec("keep_within", "keep_distance", _band(a, b, 0.0, d), steers=(a,), steers_when_held=(b,))
+            for a, b in pairs(c, ctx, "staying close")]
+
+
+def follow_vehicle(c: Clause, ctx: Context) -> list[PartSpec]:
+    lo, hi = FOLLOW_RANGE_M
+    return [PartSpec("keep_distance", "keep_distance", _band(a, b, lo, hi), steers=(a,), refinable=True,
+                     steers_when_held=(b,))
+            for a, b in pairs(c, ctx, "following a vehicle")]
+
+
+def offroad(c: Clause, ctx: Context) -> list[PartSpec]:
+    return [PartSpec("no_offroad", "no_offroad", {}, scope(c, ctx))]
+
+
+def faster_than(c: Clause, ctx: Context) -> list[PartSpec]:
+    slower = bool(c.has(r"\b(?:slower|more\s+slowly)\s+than"))
+    return [PartSpec("faster_than", "faster_than", {"vehicle": b, "other": a} if slower else
+                     {"vehicle": a, "other": b}) for a, b in pairs(c, ctx, "a comparison")]
+
+
+def pace(c: Clause, ctx: Context) -> list[PartSpec]:
+    """"Drives fast" / "drives slowly": half of a comparison, paired by the compiler with a vehicle
+    of the other pace in the same query ("vehicle 2 drives fast while vehicle 3 drives slowly")."""
+    m = c.has(PACE)
+    which = "fast" if m is not None and m.group(0) in ("fast", "quickly", "rapidly", "speedily") else "slow"
+    return [PartSpec("pace", "", {"vehicle": v, "pace": which}) for v in subjects(c, ctx)]
+
+
+def reach_ahead(c: Clause, ctx: Context) -> list[PartSpec]:
+    distance = c.distances[0] if c.distances else float(c.bare[0])
+    return [PartSpec("reach_ahead", "reach_ahead", {"vehicle": v, "distance_m": distance})
+            for v in subjects(c, ctx)]
+
+
+def speed_range(c: Clause, ctx: Context) -> list[PartSpec]:
+    lo, hi = c.speed_ranges[0]
+    only = scope(c, ctx)
+    return [PartSpec("speed_limit", "speed_limit", {"limit_mps": hi, "margin_mps": SPEED_MARGIN_MPS}, only),
+            PartSpec("reach_speed", "reach_speed", {"speed_mps": lo, "bound": "above"}, only)]
+
+
+def min_speed(c: Clause, ctx: Context) -> list[PartSpec]:
+    params = {"speed_mps": c.speeds[0], "bound": "above"}
+    return [PartSpec("reach_speed", "reach_speed", params, scope(c, ctx))]

@@ -1,0 +1,111 @@
+"""The wording of each query family: the regular expressions (on lower-case text) that recognise a
+clause's family in :data:`ctgpp.language.compiler.families.FAMILIES`, and that some handlers
+(:mod:`ctgpp.language.compiler.handlers`) read a side, a bound or a pace from.
+"""
+
+from __future__ import annotations
+
+import re
+
+from ctgpp.language.compiler.patterns import NUM
+
+LANE_CHANGE = (
+    r"(?:chang|switch|mov|go|shift|merg|get|pull)\w*\s+(?:\w+\s+){0,3}?(?:to|into|onto|in)\s+(?:the\s+)?"
+    r"(?:left|right)(?:[- ]hand)?\s+lane|lane[- ]change\s+(?:to\s+the\s+)?(?:left|right)"
+    r"|chang\w*\s+lanes?\s+(?:to\s+(?:the\s+)?)?(?:left|right)|(?:left|right)\s+lane[- ]change"
+    r"|\b(?:mov|shift|go|chang|switch)\w*\s+(?:one\s+|a\s+)?lanes?\s+(?:over\s+)?(?:to\s+(?:the\s+)?)?(?:left|right)"
+)
+
+TURN = (
+    r"\bturn\w*\s+(?:to\s+the\s+)?(?:left|right)|\b(?:left|right)\s*-?\s*turn"
+    r"|\btak\w*\s+(?:a\s+)?(?:left|right)"
+)
+
+STRAIGHT = r"\b(?:go|goes|going|drive\w*|continu\w*|head\w*|keep\w*\s+going)\s+straight"
+
+SIDE_OF = r"(?:on|to)\s+(?:the\s+)?(?:left|right)(?:[- ]hand)?\s+(?:side\s+)?of\b"
+
+ACCELERATION = re.compile(
+    rf"({NUM})\s*(?:m/s²|m/s\^?2|m/s/s|m\s*s-2|(?:meters?|metres?)\s+per\s+second\s+squared)"
+)
+
+COLLIDE = (
+    r"\bcollid\w*|\bcollision\w*|\bcrash\w*|\bhit\b|\bhits\b|\bsmash\w*|\brams?\b|\bbump\w*\s+into"
+    r"|accident"
+)
+
+REAR_END = r"rear[- ]?end|from\s+behind|into\s+the\s+(?:back|rear)\s+of"
+
+CUT_IN = r"\bcut\w*\s+(?:in|off|ahead|in\s+front)\b|\bmerg\w*\s+(?:\w+\s+){0,2}?(?:ahead|in\s+front)\s+of"
+
+RIGHTMOST = r"right-?\s?most\s+lane|far(?:thest)?[- ]right\s+lane"
+
+FOLLOW_VEHICLE = r"\bfollow\w*|\btail\w*|\bbehind\b"
+
+SPEED_LIMIT = (
+    r"speed\s+limit|exceed|slower\s+than|(?:no|not)\s+(?:faster|quicker|more)\s+than|at\s+most|\bbelow\b"
+    r"|(?<!speeds\s)(?<!speed\s)(?<!speeding\s)\bup\s+to\b|(?:never|not|n't)\s+(?:go|drive|get)\w*\s+(?:over|above)"
+    r"|\bunder\b|max(?:imum)?\s+(?:speed|of)|\blimit\w*|(?:faster|above|over)\s+than"
+)
+
+TARGET_SPEED = (
+    r"target\s+speed|(?:drive|travel|go|move|cruise|run|ride|proceed)\w*\s+(?:at|with)|speed\s+of|\bat\s+"
+    r"|maintain\w*|hold\w*|keep\w*|speed\w*\s+(?:up|down)|accelerat\w*|slow\w*|decelerat\w*|\bspeed\b"
+)
+
+STAY_AWAY = (
+    r"away\s+from|at\s+least|(?<!no )(?:more|further|farther)\s+than|keep\w*\s+(?:a\s+)?(?:safe\s+)?distance"
+    r"|(?:not|n't|never)\s+(?:get|come|go|drive)\w*\s+(?:too\s+)?(?:close|near)|minimum\s+distance|\bavoid\w*\s+"
+)
+
+WITHIN = (
+    r"within|close\s+to|\bnear\b|closer\s+than|less\s+than|no\s+more\s+than|no\s+(?:farther|further)\s+than"
+    r"|at\s+most|\bstay\w*\s+with\b|\bstick\w*\s+(?:close\s+)?to\b|\bup\s+to\b|\bunder\b|\bmax(?:imum)?\b"
+)
+
+FOLLOW_LANE = (
+    r"follow\w*\s+(?:its|their|his|her|the|a|current)?\s*(?:own\s+|current\s+)?lanes?\b"
+    r"|(?:stay|remain)\w*\s+in\s+(?:its|their|the|his|her)?\s*(?:own\s+|current\s+)?lanes?\b"
+    r"|lane[- ]following"
+)
+
+KEEP_LANE = (
+    r"\bkeep\w*\s+(?:to\s+)?(?:its|their|his|her|the)\s+(?:own\s+|current\s+)?lanes?\b|lane[- ]keeping"
+    r"|(?:not|n't|never)\s+(?:change|switch|leave)\w*\s+(?:its\s+|their\s+)?lanes?"
+)
+
+REACH_BELOW = (
+    r"\b(?:slow\w*|decelerat\w*|brak\w*|reduc\w*)\b.*"
+    r"\b(?:under|below|less\s+than|at\s+most|no\s+more\s+than)\b"
+)
+
+REACH_ABOVE = (
+    r"\b(?:speed\w*\s+up|accelerat\w*|get\w*\s+to|reach\w*|pick\w*\s+up)\b.*"
+    r"\b(?:over|above|more\s+than|at\s+least|faster\s+than)\b"
+)
+
+OFFROAD = (
+    r"(?:stay|remain|keep|drive)\w*\s+on\s+(?:the\s+)?(?:road|drivable|pavement|street)|off[- ]?road"
+    r"|leav\w*\s+the\s+(?:road|drivable\s+area)|drivable\s+area"
+)
+
+STOP = r"\bstop\w*|\bhalt\w*|standstill|\bpark(?:s|ed)?\b"
+
+REACH = (
+    r"\breach\w*|\b(?:go|drive|head|move|navigate|travel|get)\w*\s+(?:\w+\s+)?(?:to|towards?)\b|arriv\w*"
+    r"|\bgoal\b|destination|waypoint"
+)
+
+COMPARE = r"\b(?:faster|quicker|slower|more\s+slowly|more\s+quickly)\s+than\b"
+
+PACE = r"\b(?:fast|quickly|rapidly|speedily|slow|slowly)\b(?!\s+(?:down|up))"
+
+AHEAD = (
+    rf"({NUM})\s*(?:m|meters?|metres?|ft|feet)\s+(?:further\s+|farther\s+)?"
+    r"(?:ahead|in\s+front|down|along|forward|on|up)\b"
+)
+
+MIN_SPEED = (
+    r"\bat\s+least|\bno\s+(?:less|slower)\s+than|\bnot\s+(?:less|slower)\s+than|\bminimum(?:\s+speed)?"
+    r"|(?:never|not|n't)\s+(?:drop|go|fall|get|slow)\w*\s+(?:down\s+)?(?:below|under)"
+)
