@@ -20,6 +20,7 @@ from ctgpp.diffusion.guided import GuidanceConfig
 from ctgpp.model import Denoiser, ModelConfig
 from ctgpp.policies.diffusion import SamplingConfig
 from ctgpp.policies.presets import preset
+from ctgpp.policies.stages import StageConfig
 from ctgpp.scene.types import Scene
 from ctgpp.scene.vehicles import MOVING_SPEED_MPS, controlled_vehicles
 
@@ -141,10 +142,19 @@ def test_spelled_out_presets(name: str, sampling: SamplingConfig, guidance: Guid
         assert (named.sampling, named.guidance) == (sampling, guidance)
 
 
+def test_presets_with_the_plan_stages() -> None:
+    """``-stages`` runs every plan stage beyond the paper; without it a preset times the sampler alone."""
+    assert preset("fast").stages == StageConfig.off() and preset("ddim6-n2").stages == StageConfig.off()
+    with_stages = preset("fast-stages")
+    assert with_stages.stages == StageConfig() and with_stages.sampling == preset("fast").sampling
+    assert preset("ddim6-n2-lr0.9-stages").stages.stages == ("steer", "cap", "brake")
+
+
 @pytest.mark.parametrize(
     "name",
     [
-        "warp", "ddim", "ddim0", "ddim5-n0", "ddim5-n2-n3", "ddim5-x2", "ddim5-w-1", "ddim@99",
+        "warp", "ddim", "ddim0", "ddim4-stages-stages", "paper-stages-stages",
+        "ddim5-n0", "ddim5-n2-n3", "ddim5-x2", "ddim5-w-1", "ddim@99",
         "ddim4-scene-scene", "ddim4-scene2", "ddim6-e1.5", "ddpm-e1",
     ],
 )

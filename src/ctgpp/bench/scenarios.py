@@ -112,7 +112,8 @@ class _Worker:
         scene = self.scenes[scene_id]
         spec = episode_rule(scene, start_s, self.job.rule)
         loss = None if spec is None else spec.loss
-        policy = DiffusionPolicy(self.factory.model, self.chosen.sampling, loss, self.chosen.guidance)
+        policy = DiffusionPolicy(self.factory.model, self.chosen.sampling, loss, self.chosen.guidance,
+                                 self.chosen.stages)
         began = time.perf_counter()
         rollout = simulate(scene, policy, start_s, seed=seed)
         seconds = time.perf_counter() - began

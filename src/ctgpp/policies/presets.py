@@ -10,28 +10,31 @@ Any other configuration is spelled out in its name, so that a candidate can be t
 (default 4), ``-w<Adam steps per denoising step>`` (default 1), ``-lr<learning rate>`` (default
 0.3), ``-r<radius>`` (the smallest clip radius of a guidance step, ``GuidanceConfig.min_radius``;
 default 0.3, ``-r0``: Algorithm 2's radii), ``-from<k>`` (guide only at diffusion steps k ≤ this;
-default every step) and ``-scene`` (filtration keeps one sample for the whole scene when the loss
-couples vehicles, as the paper; default: the plan is composed vehicle by vehicle).
+default every step), ``-scene`` (filtration keeps one sample for the whole scene when the loss
+couples vehicles, as the paper; default: the plan is composed vehicle by vehicle) and ``-stages``
+(every plan stage beyond the paper runs: steering, speed caps, brakes, :mod:`ctgpp.policies.stages`;
+default none, so that a preset times the sampler alone). ``fast-stages`` is ``fast`` with the stages.
 ``ddim6-n2-lr0.9`` is ``fast``; ``ddpm-n5-scene-r0`` is ``paper``.
 """
 
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 from ctgpp.diffusion.guided import GuidanceConfig
 from ctgpp.policies.diffusion import SamplingConfig
+from ctgpp.policies.stages import StageConfig
 
 SPELLING = (
     "ddim<steps>|ddim@<k>.<k>...|ddpm[-e<eta>][-n<samples>][-w<adam steps>][-lr<rate>][-r<radius>]"
-    "[-from<k>][-scene]"
+    "[-from<k>][-scene][-stages]"
 )
 _NAME = re.compile(
     r"(?:ddim(?P<steps>\d+)|ddim@(?P<grid>\d+(?:\.\d+)+)|ddpm)"
-    r"(?P<options>(?:-(?:e\d*\.?\d+|n\d+|w\d+|lr\d*\.?\d+|r\d*\.?\d+|from\d+|scene))*)"
+    r"(?P<options>(?:-(?:e\d*\.?\d+|n\d+|w\d+|lr\d*\.?\d+|r\d*\.?\d+|from\d+|scene|stages))*)"
 )
-_OPTION = re.compile(r"-(e|n|w|lr|r|from|scene)(\d*\.?\d*)")
+_OPTION = re.compile(r"-(e|n|w|lr|r|from|scene|stages)(\d*\.?\d*)")
 
 
 @dataclass(frozen=True)
@@ -40,6 +43,7 @@ class SamplerPreset:
     sampling: SamplingConfig
     guidance: GuidanceConfig
     description: str
+    stages: StageConfig = field(default_factory=StageConfig.off)
 
 
 PRESETS: dict[str, SamplerPreset] = {
@@ -67,6 +71,10 @@ def preset(name: str) -> SamplerPreset:
     docstring); a clear error otherwise."""
     if name in PRESETS:
         return PRESETS[name]
+    if name.endswith("-stages") and name.removesuffix("-stages") in PRESETS:
+        named = PRESETS[name.removesuffix("-stages")]
+        return replace(named, name=name, stages=StageConfig(),
+                       description=named.description + ", with the plan stages")
     match = _NAME.fullmatch(name)
     if match is None:
         raise ValueError(f"unknown sampler preset {name!r}: use {', '.join(PRESETS)} or {SPELLING}")
@@ -101,4 +109,7 @@ def preset(name: str) -> SamplerPreset:
     adam = f"{adam_steps} Adam step{'' if adam_steps == 1 else 's'} of lr {lr:g}"
     adam += f" (clip radius ≥ {min_radius:g})" if min_radius > 0 else ""
     filtration = "plans composed vehicle by vehicle" if compose else "one sample per scene"
-    return SamplerPreset(name, sampling, guidance, f"{sampler}, N = {samples}, {adam} {where}, {filtration}")
+    stages = StageConfig() if "stages" in options else StageConfig.off()
+    description = f"{sampler}, N = {samples}, {adam} {where}, {filtration}"
+    description += ", with the plan stages" if stages.stages else ""
+    return SamplerPreset(name, sampling, guidance, description, stages)
