@@ -49,10 +49,10 @@ from ctgpp.scene.types import Scene
 from ctgpp.sim.closed_loop import episode_bounds, initial_observation, simulate
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the checkout's tests/, for the programs
-from tests import model_programs  # noqa: E402
+from tests.support import model_programs  # noqa: E402
 
 # query for the offline compiler -> the language model's program for it, the paper's way: the replies
-# tests/test_llm_steering.py runs through ctgpp simulate on the same scene (tests/model_programs.py)
+# tests/test_llm_steering.py runs through ctgpp simulate on the same scene (tests/support/model_programs.py)
 QUERIES = {
     "vehicle 18 should stay at least 25 m behind vehicle 17": model_programs.STAY_BEHIND,
     "vehicle 17 should change to the right lane": model_programs.RIGHT_LANE,

@@ -282,7 +282,6 @@ def test_action_trajectories_yawvel_is_the_yaw_rate_turned_at() -> None:
     assert (x[..., 5].abs() <= KAPPA_MAX_PER_M * x[..., 2] + 1e-12).all()
 
 
-@pytest.mark.slow
 def test_guided_plans_on_the_untrained_model(scene_0103: Scene) -> None:
     model, sampling = make_model(), SamplingConfig.evenly("ddim", 5, 3)
     loss = TargetSpeedOnX(2.0)

@@ -106,7 +106,6 @@ def test_repair_hints_cover_the_checks_refusals() -> None:
 
 
 @pytest.mark.model
-@pytest.mark.slow
 def test_the_result_states_the_fallback_and_keeps_the_rounds(llm_env: CannedServer) -> None:
     server = llm_env  # an empty program cache
     from ctgpp.api import simulate

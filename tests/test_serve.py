@@ -228,6 +228,7 @@ def test_request_size_is_bounded(server: Server) -> None:
     assert status == 413 and "larger than" in answer["message"]
 
 
+@pytest.mark.model
 def test_runs_queue_are_cancelled_and_the_server_answers_meanwhile(server: Server) -> None:
     long = server.submit(sentence=SENTENCE, duration_s=10, compare=False)
     waiting = server.submit(sentence="vehicle 2 should stop", duration_s=1, policy="constvel")
@@ -314,6 +315,7 @@ def _hover(driver: Any, number: int) -> str:
     return str(tooltip.text)
 
 
+@pytest.mark.model
 def test_the_page_runs_a_sentence_and_plays_it(server: Server, browser: Any, tmp_path: Path) -> None:
     """Pick scene-0103, hover a vehicle, type a sentence the compiler refuses (the closest phrasings
     appear), then one it takes, run it: the first frame is drawn, the animation advances, the verdict

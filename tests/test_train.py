@@ -69,7 +69,6 @@ def test_training_resumes_where_it_stopped(
         assert torch.equal(tensor, got[name]), name
 
 
-@pytest.mark.slow
 def test_loaded_checkpoint_samples_the_same_plans(scene_0103: Scene, trained: tuple[Path, dict]) -> None:
     out, _ = trained
     sampling = SamplingConfig.evenly("ddim", 5, 3)
