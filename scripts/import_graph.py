@@ -51,7 +51,7 @@ eval above api (evaluation runs each episode through the public ``simulate``).
 Usage::
 
     python scripts/import_graph.py            # the graph, the cycles, the arrows back up; exits 0
-    python scripts/import_graph.py --check    # same, exits 1 when there is any cycle
+    python scripts/import_graph.py --check    # same, exits 1 on any cycle or arrow back up
     python scripts/import_graph.py --quiet    # the summary only
 """
 
@@ -231,7 +231,7 @@ def _rel(path: Path, root: Path) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--check", action="store_true", help="exit 1 when there is any package cycle")
+    parser.add_argument("--check", action="store_true", help="exit 1 on any package cycle or import running back up")
     parser.add_argument("--quiet", action="store_true", help="print the summary only")
     parser.add_argument("--root", type=Path, default=ROOT, help="the ctgpp package (default: src/ctgpp)")
     args = parser.parse_args(argv)
@@ -279,7 +279,7 @@ def main(argv: list[str] | None = None) -> int:
           + "".join(f"\n    {a} -> {b} ({n})" for (a, b), n in sorted(up_edges.items())))
     print(f"  lazy arrows back up: {len(up_lazy_edges)} edges ({sum(up_lazy_edges.values())} imports)"
           + "".join(f"\n    {a} -> {b} ({n})" for (a, b), n in sorted(up_lazy_edges.items())))
-    return 1 if args.check and cycles else 0
+    return 1 if args.check and (cycles or up_edges) else 0
 
 
 if __name__ == "__main__":

@@ -61,3 +61,15 @@ def test_the_package_is_typed() -> None:
     assert (ROOT / "src" / "ctgpp" / "py.typed").is_file()
     package_data = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))["tool"]["setuptools"]
     assert "py.typed" in package_data["package-data"]["ctgpp"]
+
+
+def test_the_packages_import_downwards_only() -> None:
+    """No import cycle between ctgpp's packages and no import running back up the declared layers
+    (``scripts/import_graph.py --check``: README, Layout)."""
+    import subprocess
+
+    root = Path(__file__).resolve().parents[1]
+    done = subprocess.run([sys.executable, str(root / "scripts" / "import_graph.py"), "--check", "--quiet"],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "cycles: 0" in done.stdout and "arrows back up: 0 edges" in done.stdout
