@@ -169,3 +169,47 @@ def test_a_capped_turn_never_goes_faster_than_its_limit(seed: int) -> None:
     assert stages["ran"] == list(PIPELINE)
     assert 3 in stages["changed"]["cap"]["vehicles"] or 3 in stages["changed"]["steer"]["vehicles"]
     assert 3 in stages["changed"]["steer"]["vehicles"]
+
+
+@pytest.mark.parametrize(
+    ("argv", "expected"),
+    [
+        (["simulate"], StageConfig()),
+        (["simulate", "--stages", "off"], StageConfig.off()),
+        (["simulate", "--guards", "off"], StageConfig()),  # the guards do not switch the stages
+        (["simulate", "--stages", "brake,steer"], StageConfig(stages=("steer", "brake"))),
+        (["evaluate"], StageConfig.off()),  # the paper's protocol
+        (["evaluate", "--stages", "on"], StageConfig()),
+        (["evaluate-queries"], StageConfig()),
+    ],
+)
+def test_stages_flag_reaches_the_config(argv: list[str], expected: StageConfig) -> None:
+    from ctgpp.cli.common import stage_config
+    from ctgpp.cli.main import build_parser
+
+    assert stage_config(build_parser(argv[0]).parse_args(argv)) == expected
+
+
+def test_an_unknown_stage_is_refused_in_one_line(capsys: pytest.CaptureFixture[str]) -> None:
+    from ctgpp.cli.main import main
+
+    assert main(["simulate", "--stages", "steer,guards"]) != 0
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "unknown stage 'guards'" in err and "steer, cap, brake" in err
+
+
+@pytest.mark.model
+def test_the_guards_do_not_choose_the_stages() -> None:
+    """Before the pipeline was declared, ``--guards off`` silently dropped the caps, the steering and
+    the brakes; now only ``--stages`` does, and the model alone runs none."""
+    from ctgpp.guidance.guards import GuardConfig
+    from ctgpp.policies.factory import PolicyFactory
+
+    limit = make_loss("speed_limit", limit_mps=CAP_MPS)
+    for guards in (GuardConfig(), GuardConfig.off()):
+        policy = PolicyFactory.of("ctgpp", guards=guards)("ctgpp", limit)
+        assert [s.name for s in policy.stages] == list(PIPELINE)  # type: ignore[attr-defined]
+    paper = PolicyFactory.of("ctgpp", guards=GuardConfig.off(), stages=StageConfig.off())("ctgpp", limit)
+    assert [s.name for s in paper.stages] == ["sample", "rank", "compose"]  # type: ignore[attr-defined]
+    alone = PolicyFactory.of("ctgpp")("ctgpp-unguided", limit)
+    assert [s.name for s in alone.stages] == ["sample", "rank", "compose"]  # type: ignore[attr-defined]
