@@ -44,10 +44,27 @@ def vehicle_lane(data_batch: GuidanceBatch, i: int) -> LaneProjection | None:
     return data_batch.memo[key]
 
 
+# How far ahead a target lane path must reach (:func:`reach_m`): what the vehicle covers over the time
+# if it speeds up by half (a plan may accelerate), plus 30 m so that a vehicle standing still still has
+# a path to follow; at most 300 m for one plan's path and 400 m for a path committed for the whole
+# episode (set by hand, not measured: a bound on the work of extending a path, well past what any
+# vehicle covers in an episode)
+REACH_SPEED_FACTOR = 1.5
+REACH_MARGIN_M = 30.0
+PLAN_REACH_MAX_M = 300.0
+EPISODE_REACH_MAX_M = 400.0
+
+
+def reach_m(speed_mps: float, seconds: float, most_m: float) -> float:
+    """How far ahead (m) a target lane path reaches for a vehicle at ``speed_mps`` over ``seconds``:
+    ``REACH_MARGIN_M`` + ``REACH_SPEED_FACTOR`` · speed · seconds, at most ``most_m``."""
+    return float(min(REACH_MARGIN_M + REACH_SPEED_FACTOR * speed_mps * seconds, most_m))
+
+
 def _reach_m(data_batch: GuidanceBatch, i: int) -> float:
-    """How far ahead a target polyline must reach: the horizon at 1.5x the current speed, plus 30 m."""
+    """How far ahead one plan's target polyline must reach: over the plan's horizon."""
     horizon_s = data_batch.future_steps * data_batch.dt_s
-    return float(min(30.0 + 1.5 * float(data_batch.speed[i]) * horizon_s, 300.0))
+    return reach_m(float(data_batch.speed[i]), horizon_s, PLAN_REACH_MAX_M)
 
 
 def _straight_polyline(data_batch: GuidanceBatch, proj: LaneProjection, i: int) -> Tensor:

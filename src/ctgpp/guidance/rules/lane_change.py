@@ -21,12 +21,12 @@ from torch import Tensor
 from ctgpp.guidance.base import register_loss
 from ctgpp.guidance.context import GuidanceBatch
 from ctgpp.guidance.lane_helpers import ramp_weights, signed_offset
-from ctgpp.guidance.lane_paths import get_adjacent_lane, get_rightmost_lane
+from ctgpp.guidance.lane_paths import EPISODE_REACH_MAX_M, get_adjacent_lane, get_rightmost_lane, reach_m
 from ctgpp.guidance.rules.common import Rule, apply_mask, check_vehicle, soft_abs, world_states
 from ctgpp.guidance.scope import LossScope
 from ctgpp.scene.lanes import lane_points_ahead, nearest_lane
 
-EPISODE_REACH_S = 15.0  # committed target lanes reach this long ahead at 1.5x the current speed
+EPISODE_REACH_S = 15.0  # committed target lanes reach this long ahead (:func:`reach_m`)
 
 
 def extended(data_batch: GuidanceBatch, line: Tensor, extra_m: float) -> Tensor:
@@ -84,7 +84,7 @@ class CommittedLaneRule(Rule):
             line = self.choose(start, i)
             world = None
             if line is not None:
-                reach = min(30.0 + 1.5 * float(start.speed[i]) * EPISODE_REACH_S, 400.0)
+                reach = reach_m(float(start.speed[i]), EPISODE_REACH_S, EPISODE_REACH_MAX_M)
                 world = start.to_world(extended(start, line, reach).detach().cpu().numpy())
             start.memo[key] = world
         committed: np.ndarray | None = start.memo[key]

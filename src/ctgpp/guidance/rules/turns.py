@@ -23,7 +23,10 @@ from ctgpp.scene.vehicles import MOVING_SPEED_MPS
 
 EXIT_PAST_M = 5.0  # a turn aims this far along its path beyond the intersection's exit
 HEADING_M_PER_RAD = 20.0  # a turn's heading miss at the end of the plan weighs as this many m per rad
-NEAR_TERM_DECAY = 0.95  # a turn's speed to keep weighs each step this much less than the one before
+# a turn's speed to keep weighs each step this much less than the one before; "drive at v" weighs its
+# near term at 0.98 (language/compiler/handlers.py): one idea, each value measured on its own query
+# family (docs/decisions/plan-stages.md)
+NEAR_TERM_DECAY = 0.95
 
 
 def free_speed(x_row: Tensor, speed_now: Tensor, dt_s: float) -> Tensor:

@@ -37,7 +37,9 @@ DEFAULT_STOP_RADIUS_M = 3.0
 FOLLOW_RANGE_M = (10.0, 30.0)  # "follow vehicle N": the paper's keep-distance range
 SPEED_MARGIN_MPS = 0.5  # a compiled speed limit aims this far under the limit the verdict holds
 DISTANCE_MARGIN_M = 2.0  # a compiled distance band aims this far inside the band the verdict holds
-TARGET_SPEED_DECAY = 0.98  # "drive at v" weighs step t by this**t: the executed near term counts most
+# "drive at v" weighs step t by this**t: the executed near term counts most (a turn's speed to keep uses
+# 0.95, guidance/rules/turns.py: one idea, each value measured on its own query family)
+TARGET_SPEED_DECAY = 0.98
 
 
 Handler = Callable[[Clause, Context], list[PartSpec]]
