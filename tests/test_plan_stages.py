@@ -122,6 +122,8 @@ def test_the_pipeline_order_and_its_switches() -> None:
     assert [s.name for s in plan_pipeline(sampling, StageConfig.off())] == ["sample", "rank", "compose"]
     assert [s.name for s in plan_pipeline(sampling, StageConfig.parse("brake,steer"))] == [
         "sample", "steer", "rank", "compose", "brake"]
+    assert [s.name for s in plan_pipeline(sampling, StageConfig(), compose=False)] == [
+        "sample", "steer", "cap", "rank", "brake"]  # --filtration scene: the paper's one sample per scene
     with pytest.raises(ValueError, match="unknown stage 'guards'"):
         StageConfig.parse("guards")
 

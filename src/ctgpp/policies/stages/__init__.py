@@ -39,11 +39,12 @@ def plan_pipeline(
     sampling: GuidedSampling, config: StageConfig, compose: bool = True
 ) -> tuple[PlanStage, ...]:
     """The stages of a re-plan in :data:`PIPELINE` order: ``sampling`` first, the switchable ones that
-    ``config`` runs, composition when ``compose``."""
-    stages: tuple[PlanStage, ...] = (sampling, RouteSteering(), SpeedCaps(), Ranking(), Composition(compose),
+    ``config`` runs, composition when ``compose`` (``--filtration compose``)."""
+    stages: tuple[PlanStage, ...] = (sampling, RouteSteering(), SpeedCaps(), Ranking(), Composition(),
                                      Brakes())
     assert tuple(s.name for s in stages) == PIPELINE
-    return tuple(s for s in stages if s.name not in SWITCHABLE or config.runs(s.name))
+    runs = {*config.stages, "sample", "rank", *(("compose",) if compose else ())}
+    return tuple(s for s in stages if s.name in runs)
 
 
 def run_stages(

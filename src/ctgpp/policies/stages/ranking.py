@@ -35,16 +35,13 @@ class Ranking:
 class Composition:
     """For a loss that couples vehicles, each vehicle may take its trajectory from another sample where
     that lowers the ranked loss of the whole scene (:func:`~ctgpp.diffusion.filtration.compose`);
-    ``GuidanceConfig.compose`` False keeps the paper's one sample for the scene."""
+    without this stage (``GuidanceConfig.compose`` False) the paper's one sample for the scene is kept."""
 
     name: ClassVar[str] = "compose"
 
-    def __init__(self, enabled: bool = True) -> None:
-        self.enabled = enabled
-
     def run(self, plans: PlanSet, ctx: PlanContext) -> PlanSet:
         loss, batch = ctx.loss, ctx.batch
-        if not self.enabled or loss is None or batch is None or plans.loss is None or plans.chosen is None:
+        if loss is None or batch is None or plans.loss is None or plans.chosen is None:
             return plans
         if not (bool(loss.couples_agents) or plans.loss.ndim == 1):
             return plans
