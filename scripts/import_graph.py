@@ -231,7 +231,8 @@ def _rel(path: Path, root: Path) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--check", action="store_true", help="exit 1 on any package cycle or import running back up")
+    parser.add_argument("--check", action="store_true",
+                        help="exit 1 on any package cycle or import running back up")
     parser.add_argument("--quiet", action="store_true", help="print the summary only")
     parser.add_argument("--root", type=Path, default=ROOT, help="the ctgpp package (default: src/ctgpp)")
     args = parser.parse_args(argv)

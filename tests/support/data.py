@@ -1,4 +1,4 @@
-"""Where the real driving data of the tests lies (../shared/data): nuScenes mini and CommonRoad NGSIM."""
+"""Where the real driving data of the tests lies (../shared/data): nuScenes, NGSIM, INTERACTION."""
 
 from __future__ import annotations
 
@@ -7,3 +7,4 @@ from pathlib import Path
 SHARED_DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 NUSCENES = SHARED_DATA / "nuscenes-mini"
 NGSIM = SHARED_DATA / "commonroad-ngsim"
+INTERACTION = SHARED_DATA / "interaction"
