@@ -192,7 +192,8 @@ def _lanelet2() -> Any:
         import lanelet2
     except ImportError as err:
         raise ValueError(
-            "reading INTERACTION maps needs the optional dependency lanelet2: pip install 'ctgpp[interaction]'"
+            "reading INTERACTION maps needs the optional dependency lanelet2: "
+            "pip install 'ctgpp[interaction]'"
         ) from err
     return lanelet2
 
