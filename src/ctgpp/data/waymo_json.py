@@ -51,7 +51,7 @@ RESOLUTION_M = 0.2
 LANE_HALF_WIDTH_M = 1.8
 EDGE_REACH_M = 8.0
 EDGE_HALF_WIDTH_M = 0.2  # road edges drawn as barriers this thick on each side
-MOVING_SPEED_MPS = 1.0  # agents this fast decide the heading unit
+HEADING_PROBE_MPS = 1.0  # agents this fast decide the heading unit (their velocity has a direction)
 _TYPES = {"vehicle": AgentType.VEHICLE, "pedestrian": AgentType.PEDESTRIAN, "cyclist": AgentType.CYCLIST}
 
 
@@ -81,7 +81,7 @@ def _heading_in_degrees(objects: list[dict]) -> bool:
             continue
         largest = max(largest, float(np.nanmax(np.abs(heading[ok]), initial=0.0)))
         velocity = _points(obj["velocity"])
-        moving = ok & (np.linalg.norm(velocity, axis=1) > MOVING_SPEED_MPS)
+        moving = ok & (np.linalg.norm(velocity, axis=1) > HEADING_PROBE_MPS)
         direction = np.arctan2(velocity[moving, 1], velocity[moving, 0])
         err_rad.append(np.abs(wrap_angle(heading[moving] - direction)))
         err_deg.append(np.abs(wrap_angle(np.deg2rad(heading[moving]) - direction)))
