@@ -120,7 +120,8 @@ def draw_scene(
         painter.show_events(events)
     painter.add_legend(tracks.valid[:, index], futures=rollout is not None, events=events or ())
     if title is None:
-        title = f"{scene.id} ({scene.dataset}, {scene.map_name})   t = {step * scene.dt_s:.1f} s"
+        where = ", ".join(part for part in (scene.dataset, scene.map_name) if part)  # Waymo names no map
+        title = f"{scene.id} ({where})   t = {step * scene.dt_s:.1f} s"
         if rollout is not None:
             title += f"   [{rollout.policy}, sim +{(index - rollout.current) * scene.dt_s:.1f} s]"
     painter.add_caption(title, query)
