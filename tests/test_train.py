@@ -14,6 +14,7 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
+from ctgpp.data.terms import DATA_TERMS
 from ctgpp.interfaces import Observation
 from ctgpp.model.checkpoint import load_checkpoint
 from ctgpp.model.config import ModelConfig
@@ -43,6 +44,7 @@ def test_training_lowers_the_loss_and_writes_a_record(trained: tuple[Path, dict]
         assert (out / name).is_file()
     extra = json.loads((out / "config.json").read_text())["extra"]
     assert extra["steps"] == 40 and extra["final_val_loss"] == pytest.approx(history[-1]["val_loss"])
+    assert extra["data_terms"] == [DATA_TERMS["nuscenes"]]  # what the model may be used under
 
 
 @pytest.mark.slow

@@ -25,6 +25,7 @@ from ctgpp.baselines.config import BaselineConfig
 from ctgpp.baselines.kinds import LossFn, kind_of
 from ctgpp.data.batch import SceneBatch
 from ctgpp.data.smoothing import SMOOTH_SIGMA_S, smooth_scene
+from ctgpp.data.terms import terms_of
 from ctgpp.data.windows import WindowConfig
 from ctgpp.diffusion import CosineSchedule
 from ctgpp.model.checkpoint import load_weights, save_checkpoint
@@ -187,14 +188,14 @@ def train(
                 state["history"].append(entry)
                 state["wall_s"] = time.monotonic() - start_wall
                 bar.set_postfix(train=f"{entry['train_loss']:.3f}", val=f"{entry['val_loss']:.3f}")
-                record = _record(config, state, data_note, sizes)
+                record = _record(config, state, data_note, sizes, [*train_scenes, *val_scenes])
                 save_train_state(out, model, ema, optimizer, state, generators)
                 save_checkpoint(out, ema, model_config, record)  # sampling uses the EMA weights
                 plot_curve(state["history"], out / "curve.png", title=f"training: {data_note}")
             if world > 1:
                 dist.barrier()
     bar.close()
-    record = {**_record(config, state, data_note, sizes), "rank": rank}
+    record = {**_record(config, state, data_note, sizes, [*train_scenes, *val_scenes]), "rank": rank}
     if dist.is_initialized():
         dist.destroy_process_group()
     return record
@@ -223,11 +224,14 @@ def _generator_states(gen: torch.Generator, world: int) -> list[torch.Tensor]:
 
 
 def _record(
-    config: TrainConfig, state: dict[str, Any], data_note: str, sizes: dict[str, int]
+    config: TrainConfig, state: dict[str, Any], data_note: str, sizes: dict[str, int], scenes: list[Scene]
 ) -> dict[str, Any]:
+    """The training record the checkpoint keeps: the data (``data_note``) and the terms of every data
+    set of ``scenes`` (training and validation), the sizes, the steps, the losses and their history."""
     last = state["history"][-1] if state["history"] else {}
     return {
         "data": data_note,
+        "data_terms": terms_of(s.dataset for s in scenes),
         **sizes,
         "steps": state["step"],
         "wall_s": round(state["wall_s"], 1),
