@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from ctgpp.data.lane_topology import detect_intersections, successor_edges
 from ctgpp.data.nuscenes_drivable import rasterize_polygons
 from ctgpp.geometry import wrap_angle
 from ctgpp.scene.types import AgentTracks, AgentType, DrivableArea, LaneGraph, Scene
@@ -31,8 +32,6 @@ SCENE_STEPS = 200  # 20 s scenes, like nuScenes
 MIN_SCENE_STEPS = 130  # the episode needs 3 s of history + 10 s to simulate
 DRIVABLE_RESOLUTION_M = 0.2
 DRIVABLE_MARGIN_M = 10.0
-JOIN_TOLERANCE_M = 0.5  # a lanelet whose start lies this close to another's end continues it
-JOIN_MAX_TURN_RAD = np.pi / 4
 
 COLUMNS = ("track_id", "frame_id", "timestamp_ms", "agent_type", "x", "y", "vx", "vy", "psi_rad",
            "length", "width")
@@ -202,28 +201,6 @@ def _xy(linestring: Any) -> np.ndarray:
     return np.array([(p.x, p.y) for p in linestring], dtype=np.float64).reshape(-1, 2)
 
 
-def _geometric_joins(centerlines: list[np.ndarray]) -> set[tuple[int, int]]:
-    """(i, j) pairs where lane j starts at lane i's end in i's direction.
-
-    Some maps join lanelets at a shared point without a shared bound, so the routing graph misses
-    the link (DR_USA_Intersection_GL: 11 of 111 joins, e.g. a westbound lane of the main road).
-    """
-    usable = [c for c in centerlines if len(c) >= 2]
-    if len(usable) != len(centerlines):
-        return set()
-    ends = np.array([c[-1] for c in centerlines])  # (L, 2)
-    starts = np.array([c[0] for c in centerlines])  # (L, 2)
-    end_dir = np.array([c[-1] - c[-2] for c in centerlines])  # (L, 2)
-    start_dir = np.array([c[1] - c[0] for c in centerlines])  # (L, 2)
-    gap = np.linalg.norm(ends[:, None] - starts[None], axis=-1)  # (L, L)
-    cos = np.einsum("id,jd->ij", end_dir, start_dir) / np.maximum(
-        np.linalg.norm(end_dir, axis=-1)[:, None] * np.linalg.norm(start_dir, axis=-1)[None], 1e-9
-    )
-    joined = (gap < JOIN_TOLERANCE_M) & (cos > np.cos(JOIN_MAX_TURN_RAD))
-    np.fill_diagonal(joined, False)
-    return {(int(i), int(j)) for i, j in zip(*np.nonzero(joined), strict=True)}
-
-
 def _lane_graph(lanelet_map_: Any, graph: Any) -> tuple[LaneGraph, list[np.ndarray]]:
     """Lanelets (sorted by id) as lanes; successors, predecessors and neighbours of the routing graph."""
     lanelets = sorted(lanelet_map_.laneletLayer, key=lambda ll: ll.id)
@@ -231,7 +208,11 @@ def _lane_graph(lanelet_map_: Any, graph: Any) -> tuple[LaneGraph, list[np.ndarr
     centerlines = [_xy(ll.centerline) for ll in lanelets]
     offsets = np.concatenate([[0], np.cumsum([len(c) for c in centerlines])]).astype(np.int64)
     routed = {(i, index[n.id]) for i, ll in enumerate(lanelets) for n in graph.following(ll)}
-    successors = sorted(routed | _geometric_joins(centerlines))
+    # some maps join lanelets at a shared point without a shared bound, so the routing graph misses the
+    # link (DR_USA_Intersection_GL: 11 of 111 joins); the successor rule of the maps without links adds
+    # them (lane_topology: start within 0.5 m of an end, headings within 60°)
+    geometric = {(int(a), int(b)) for a, b in successor_edges(centerlines)}
+    successors = sorted(routed | geometric)
     predecessors = [(j, i) for i, j in successors]
 
     def neighbour(lanelet: Any, side: str) -> int:
@@ -248,5 +229,6 @@ def _lane_graph(lanelet_map_: Any, graph: Any) -> tuple[LaneGraph, list[np.ndarr
         predecessors=np.array(predecessors, dtype=np.int64).reshape(-1, 2),
         left=np.array([neighbour(ll, "left") for ll in lanelets], dtype=np.int64),
         right=np.array([neighbour(ll, "right") for ll in lanelets], dtype=np.int64),
+        intersection=detect_intersections(centerlines),  # connectors, by the rule of the other maps
     )
     return lanes, polygons

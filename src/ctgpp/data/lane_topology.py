@@ -126,6 +126,16 @@ def _neighbours(centerlines: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     return left, right
 
 
+def successor_edges(centerlines: list[np.ndarray]) -> np.ndarray:
+    """(E, 2) rows (lane, its successor) by the successor rule alone (module docstring), sorted; for maps
+    whose own links miss some joins (INTERACTION's Lanelet2 maps)."""
+    if not centerlines:
+        return np.zeros((0, 2), dtype=np.int64)
+    h_start, h_end = end_headings(centerlines)
+    return _successor_edges(np.stack([c[0] for c in centerlines]), np.stack([c[-1] for c in centerlines]),
+                            h_start, h_end)
+
+
 def reconstruct_connectivity(
     centerlines: list[np.ndarray],
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -138,10 +148,7 @@ def reconstruct_connectivity(
     if not centerlines:
         empty = np.zeros((0, 2), dtype=np.int64)
         return empty, empty.copy(), np.zeros(0, np.int64), np.zeros(0, np.int64)
-    starts = np.stack([c[0] for c in centerlines])
-    ends = np.stack([c[-1] for c in centerlines])
-    h_start, h_end = end_headings(centerlines)
-    successors = _successor_edges(starts, ends, h_start, h_end)
+    successors = successor_edges(centerlines)
     predecessors = successors[:, ::-1]
     predecessors = predecessors[np.lexsort((predecessors[:, 1], predecessors[:, 0]))]
     left, right = _neighbours(centerlines)
