@@ -90,6 +90,28 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         "for one (the same windows; 0: each window when first drawn)",
     )
     p.add_argument(
+        "--mirror",
+        action="store_true",
+        help="mirror each training window across its x axis with probability 1/2 (left turns become "
+        "right turns; the model reads the side of the road from the lanes)",
+    )
+    p.add_argument(
+        "--turn-share",
+        type=float,
+        default=TrainConfig.turn_share,
+        metavar="P",
+        help="draw the windows where a vehicle turns by 45 degrees or more with total probability P "
+        "where they are rarer (0: every window alike)",
+    )
+    p.add_argument(
+        "--budget",
+        type=float,
+        default=None,
+        metavar="MIN",
+        help="stop at the first save after MIN minutes of this run; run again to resume (default: "
+        "train until --steps)",
+    )
+    p.add_argument(
         "--init-from",
         type=Path,
         default=None,
@@ -139,6 +161,12 @@ def run_train(args: argparse.Namespace) -> int:
         raise ValueError(f"--lr {args.lr}: expected a positive number")
     if not (math.isfinite(args.smooth) and args.smooth >= 0):
         raise ValueError(f"--smooth {args.smooth}: expected a number of seconds >= 0")
+    if not (math.isfinite(args.turn_share) and 0 <= args.turn_share < 1):
+        raise ValueError(f"--turn-share {args.turn_share}: expected a share at least 0 and below 1")
+    if args.budget is not None and not (math.isfinite(args.budget) and args.budget > 0):
+        raise ValueError(f"--budget {args.budget}: expected a positive number of minutes")
+    if args.mirror and args.model != "ctgpp":
+        raise ValueError(f"--mirror reflects ctgpp's windows; {args.model} trains on rasters")
     check_output_dir(args.out)
     model_config = model_config_of(args)
     if args.init_from is not None:  # checked before the data loads: names and shapes must match
@@ -158,15 +186,20 @@ def run_train(args: argparse.Namespace) -> int:
         init_from=None if args.init_from is None else str(args.init_from),
         smooth_s=args.smooth,
         workers=args.workers,
+        mirror=args.mirror,
+        turn_share=args.turn_share,
+        budget_s=None if args.budget is None else 60.0 * args.budget,
     )
     note = f"train {' + '.join(specs)} ({len(train_scenes)} scenes), val {args.val}, "
     note += f"variant {args.variant}" if args.model == "ctgpp" else f"model {args.model}"
     note += f", tracks smoothed over {args.smooth:g} s" if args.smooth > 0 else ", raw tracks"
+    note += ", mirrored windows" if args.mirror else ""
+    note += f", turning windows drawn {args.turn_share:.0%} of the time" if args.turn_share > 0 else ""
     record = train(train_scenes, val_scenes, model_config, config, args.out, data_note=note)
     if record["rank"] != 0:
         return 0
     print(
-        f"trained {record['steps']} steps in {record['wall_s']:.0f} s: "
+        f"trained to step {record['steps']} in {record['wall_s']:.0f} s: "
         f"train loss {record['final_train_loss']:.4f}, val loss {record['final_val_loss']:.4f}; "
         f"checkpoint in {args.out}"
     )

@@ -16,6 +16,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 import torch.distributed as dist
 from torch import nn
@@ -23,7 +24,9 @@ from tqdm import tqdm
 
 from ctgpp.baselines.config import BaselineConfig
 from ctgpp.baselines.kinds import LossFn, kind_of
-from ctgpp.data.batch import SceneBatch
+from ctgpp.data.batch import SceneBatch, WindowDataset
+from ctgpp.data.mirror import mirror_batch
+from ctgpp.data.sampling import is_turning, turn_weights, window_turns
 from ctgpp.data.smoothing import SMOOTH_SIGMA_S, smooth_scene
 from ctgpp.data.terms import terms_of
 from ctgpp.data.windows import WindowConfig
@@ -61,6 +64,14 @@ class TrainConfig:
     # processes that build every training window before the first step (0: each on first use); the
     # same windows either way, so a run may resume with another number
     workers: int = 0
+    # each batch window is mirrored across its scene's x axis with probability 1/2 (ctgpp.data.mirror)
+    mirror: bool = False
+    # windows where a vehicle turns (ctgpp.data.sampling) are drawn with this total probability, when
+    # they are rarer than that (0: every window alike)
+    turn_share: float = 0.0
+    # this invocation stops at the first save after this many seconds of training (None: at ``steps``);
+    # a later invocation resumes where it stopped
+    budget_s: float | None = None
 
 
 def _world() -> tuple[int, int]:
@@ -129,11 +140,18 @@ def train(
     val_set = kind.dataset(val_scenes, windows, config.stride, model_config)
     if len(train_set) == 0:
         raise ValueError("no training windows: the training scenes are too short or hold no vehicles")
+    if config.mirror and kind.name != "ctgpp":
+        raise ValueError(f"mirror augmentation reflects ctgpp's windows; {kind.name} trains on rasters")
+    weights, n_turning = _turn_weights(train_set, train_scenes, config.turn_share)
     if config.workers > 0:
         t0 = time.monotonic()
         train_set.prebuild(config.workers)
-        log.info("built %d training windows in %.0f s (%d processes)", len(train_set), time.monotonic() - t0,
-                 config.workers)
+        log.info(
+            "built %d training windows in %.0f s (%d processes)",
+            len(train_set),
+            time.monotonic() - t0,
+            config.workers,
+        )
     n_val = min(config.val_windows, len(val_set))
     val_idx = [round(i * (len(val_set) - 1) / max(n_val - 1, 1)) for i in range(n_val)]
     val_batches = [kind.collate([val_set[i] for i in val_idx[j : j + 4]]) for j in range(0, n_val, 4)]
@@ -145,7 +163,14 @@ def train(
     ema = copy.deepcopy(model).eval()
     optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
     schedule = kind.schedule(model_config)
-    state: dict[str, Any] = {"step": 0, "history": [], "wall_s": 0.0, "smooth_s": config.smooth_s}
+    state: dict[str, Any] = {
+        "step": 0,
+        "history": [],
+        "wall_s": 0.0,
+        "smooth_s": config.smooth_s,
+        "mirror": config.mirror,
+        "turn_share": config.turn_share,
+    }
     for pattern in STALE_TEMPORARY:  # temporary files of writes that a kill interrupted
         for stale in out.glob(pattern):
             if stale.is_file():
@@ -161,10 +186,19 @@ def train(
     show = progress and rank == 0
     bar = tqdm(total=config.steps, initial=state["step"], desc="training", unit="step", disable=not show)
     sizes = {"train_windows": len(train_set), "val_windows": len(val_set)}
+    if n_turning is not None:
+        sizes["turning_windows"] = n_turning
     recent: list[float] = []  # the state is saved right after this is emptied
+    invocation_start = time.monotonic()
     while state["step"] < config.steps:
-        idx = torch.randint(len(train_set), (config.batch_scenes,), generator=gen).tolist()
-        batch = kind.collate([train_set[i] for i in idx]).to(device)
+        if weights is None:
+            idx = torch.randint(len(train_set), (config.batch_scenes,), generator=gen).tolist()
+        else:
+            idx = torch.multinomial(weights, config.batch_scenes, replacement=True, generator=gen).tolist()
+        batch = kind.collate([train_set[i] for i in idx])
+        if config.mirror:
+            batch = mirror_batch(batch, torch.rand(config.batch_scenes, generator=gen) < 0.5)
+        batch = batch.to(device)
         loss, stats = kind.loss(ddp, schedule, batch, gen)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -194,6 +228,9 @@ def train(
                 plot_curve(state["history"], out / "curve.png", title=f"training: {data_note}")
             if world > 1:
                 dist.barrier()
+            if config.budget_s is not None and time.monotonic() - invocation_start >= config.budget_s:
+                log.info("stopping at step %d: the budget of %.0f s is spent", state["step"], config.budget_s)
+                break
     bar.close()
     record = {**_record(config, state, data_note, sizes, [*train_scenes, *val_scenes]), "rank": rank}
     if dist.is_initialized():
@@ -202,14 +239,38 @@ def train(
 
 
 def _check_resumable(out: Path, config: TrainConfig) -> None:
-    """A resumed run keeps its data: the tracks' smoothing must be the one the state was trained with
-    (states from before the smoothing existed were trained on the raw logs: 0)."""
-    saved = float(read_train_scalars(out).get("smooth_s", 0.0))
+    """A resumed run keeps its data: the tracks' smoothing, the mirroring and the turn share must be
+    those the state was trained with (states from before each existed: 0, off and 0)."""
+    scalars = read_train_scalars(out)
+    saved = float(scalars.get("smooth_s", 0.0))
     if not math.isclose(saved, config.smooth_s):
         raise ValueError(
             f"{out} holds a training state made with --smooth {saved:g}; resume it with --smooth {saved:g} "
             f"or start a new run in another directory"
         )
+    if bool(scalars.get("mirror", False)) != config.mirror:
+        flag = "--mirror" if scalars.get("mirror", False) else "no --mirror"
+        raise ValueError(f"{out} holds a training state made with {flag}; resume it so or start a new run")
+    share = float(scalars.get("turn_share", 0.0))
+    if not math.isclose(share, config.turn_share):
+        raise ValueError(
+            f"{out} holds a training state made with --turn-share {share:g}; resume it with "
+            f"--turn-share {share:g} or start a new run in another directory"
+        )
+
+
+def _turn_weights(
+    train_set: WindowDataset, scenes: list[Scene], share: float
+) -> tuple[torch.Tensor | None, int | None]:
+    """Sampling weights of the training windows that draw those where a vehicle turns with total
+    probability ``share``, and how many turn; (None, None) for ``share`` 0 (uniform draws)."""
+    if share <= 0:
+        return None, None
+    future = WindowConfig().future_steps
+    angles = np.array([window_turns(scenes[s], step, future) for s, step in train_set.items])
+    turning = is_turning(angles)
+    log.info("%d of %d training windows turn", int(turning.sum()), len(turning))
+    return turn_weights(turning, share), int(turning.sum())
 
 
 def _generator_states(gen: torch.Generator, world: int) -> list[torch.Tensor]:

@@ -1,0 +1,135 @@
+"""What training draws (issue 35): mirrored windows are the windows of the mirrored scene, turning
+windows are drawn with the chosen share, a time budget stops a run at a save it can resume from."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import fields, replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from ctgpp.data.batch import collate
+from ctgpp.data.mirror import mirror_batch, mirror_scene
+from ctgpp.data.sampling import is_turning, turn_weights, window_turns
+from ctgpp.data.windows import build_window
+from ctgpp.model.config import ModelConfig
+from ctgpp.scene.types import AgentTracks, Scene
+from ctgpp.train.loop import TrainConfig, train
+
+TINY = ModelConfig(d_model=32, heads=2, blocks=1, edge_dim=16, lane_hidden=32)
+
+
+@pytest.mark.parametrize("step", [30, 90, 150])
+def test_the_mirrored_window_is_the_window_of_the_mirrored_scene(scene_0103: Scene, step: int) -> None:
+    """Every array of the batch, lanes and drivable grid included, and the training draws (which
+    vehicles are held) alike: mirroring the batch needs no rebuilt window."""
+    config = ModelConfig().window_config(32)
+    original = collate([build_window(scene_0103, step, config)])
+    of_mirrored_scene = collate([build_window(mirror_scene(scene_0103), step, config)])
+    mirrored = mirror_batch(original, torch.tensor([True]))
+    assert original.num_agents > 4 and bool(original.lanes_valid.any()) and bool(original.ctx_mask.any())
+    for field in fields(original):
+        want, got = getattr(of_mirrored_scene, field.name), getattr(mirrored, field.name)
+        assert want.shape == got.shape, field.name
+        torch.testing.assert_close(got.double(), want.double(), atol=1e-4, rtol=0, msg=field.name)
+
+
+def test_mirroring_only_the_flagged_windows_and_twice_is_the_original(scene_0103: Scene) -> None:
+    config = ModelConfig().window_config(16)
+    batch = collate([build_window(scene_0103, step, config) for step in (40, 120)])
+    once = mirror_batch(batch, torch.tensor([True, False]))
+    twice = mirror_batch(once, torch.tensor([True, False]))
+    for field in fields(batch):
+        assert torch.equal(getattr(twice, field.name), getattr(batch, field.name)), field.name
+        assert torch.equal(getattr(once, field.name)[1], getattr(batch, field.name)[1]), field.name
+    assert torch.equal(once.hist[0, ..., 1], -batch.hist[0, ..., 1])  # the lateral position
+    assert torch.equal(once.drivable[0], batch.drivable[0].flip(-1))  # the grid's left is its right
+
+
+def test_the_mirrored_scene_reflects_the_map(scene_0103: Scene) -> None:
+    mirrored = mirror_scene(scene_0103)
+    rng = np.random.default_rng(0)
+    logged = scene_0103.agents.xy[scene_0103.agents.valid]
+    points = rng.uniform(logged.min(0), logged.max(0), size=(2000, 2))
+    reflected = points * np.array([1.0, -1.0])
+    assert np.array_equal(mirrored.drivable.is_drivable(reflected), scene_0103.drivable.is_drivable(points))
+    lanes = scene_0103.lanes
+    has_left = np.flatnonzero(lanes.left >= 0)
+    assert len(has_left) > 0
+    assert np.array_equal(mirrored.lanes.right[has_left], lanes.left[has_left])  # its left is now its right
+
+
+def _turning_agents() -> Scene:
+    """Three vehicles over 9 steps at 0.1 s: one turns left by 90°, one drives straight, one stands."""
+    steps = 9
+    yaw = np.zeros((3, steps))
+    yaw[0] = np.linspace(0.0, math.pi / 2, steps)
+    speed = np.array([[8.0] * steps, [8.0] * steps, [0.0] * steps])
+    xy = np.zeros((3, steps, 2))
+    xy[:, :, 1] = np.arange(3)[:, None] * 10.0
+    agents = AgentTracks(
+        ids=np.array(["a", "b", "c"]),
+        types=np.zeros(3, dtype=np.int8),
+        xy=xy,
+        yaw=yaw,
+        speed=speed,
+        extent=np.full((3, 2), [4.5, 1.9]),
+        valid=np.ones((3, steps), dtype=bool),
+    )
+    agents.yaw[2] = -2.0  # at rest: its heading never counts
+    return agents
+
+
+def test_a_window_turns_by_its_largest_heading_change(scene_0103: Scene) -> None:
+    scene = replace(scene_0103, agents=_turning_agents())
+    assert window_turns(scene, 0, 8) == pytest.approx(math.pi / 2)
+    assert window_turns(scene, 0, 4) == pytest.approx(math.pi / 4)
+    assert window_turns(scene, 4, 100) == pytest.approx(math.pi / 4)  # to the last logged step
+    assert list(is_turning(np.radians([44.9, 45.0, 120.0]))) == [False, True, True]
+
+
+def test_turning_windows_are_drawn_with_the_chosen_share() -> None:
+    turning = np.array([True, True] + [False] * 8)
+    weights = turn_weights(turning, 0.5)
+    assert weights.sum().item() == pytest.approx(1.0)
+    assert weights[:2].tolist() == pytest.approx([0.25, 0.25])
+    assert weights[2:].tolist() == pytest.approx([0.0625] * 8)
+    uniform = torch.full((10,), 0.1, dtype=torch.float64)
+    assert torch.equal(turn_weights(turning, 0.1), uniform)  # turns are 20 % already
+    assert torch.equal(turn_weights(np.zeros(10, dtype=bool), 0.5), uniform)  # no turn to favour
+    draws = torch.multinomial(weights, 20000, replacement=True, generator=torch.Generator().manual_seed(0))
+    assert (draws < 2).float().mean().item() == pytest.approx(0.5, abs=0.02)
+    with pytest.raises(ValueError, match="turn share"):
+        turn_weights(turning, 1.0)
+
+
+def test_a_time_budget_stops_at_a_save_and_the_run_resumes_to_the_same_end(
+    scene_0103: Scene, tmp_path: Path
+) -> None:
+    """Mirrored, turn-balanced training stopped by its budget and resumed ends exactly where one
+    uninterrupted run ends; a resume with other draws is refused."""
+    base = TrainConfig(
+        4,
+        batch_scenes=2,
+        lr=1e-3,
+        stride=20,
+        val_every=2,
+        val_windows=2,
+        max_agents=8,
+        mirror=True,
+        turn_share=0.5,
+    )
+    scenes = [scene_0103]
+    first = train(scenes, scenes, TINY, replace(base, budget_s=1e-9), tmp_path / "cut", progress=False)
+    assert first["steps"] == 2  # stopped at the first save once the budget was spent
+    again = train(scenes, scenes, TINY, base, tmp_path / "cut", progress=False)
+    whole = train(scenes, scenes, TINY, base, tmp_path / "whole", progress=False)
+    assert again["steps"] == 4 and again["history"] == whole["history"]
+    assert whole["turning_windows"] > 0
+    with pytest.raises(ValueError, match="--mirror"):
+        train(scenes, scenes, TINY, replace(base, mirror=False), tmp_path / "cut", progress=False)
+    with pytest.raises(ValueError, match="--turn-share"):
+        train(scenes, scenes, TINY, replace(base, turn_share=0.2), tmp_path / "cut", progress=False)
