@@ -324,7 +324,7 @@ def test_ade_fde_by_hand():
     assert math.isnan(o.ade[10.0][1]) and math.isnan(o.fde[10.0][1])
     m = compute_metrics(r, MOVING_METRICS)
     assert m["ade_5s"] == pytest.approx((0.255 + 2.0) / 2) and m["ade_10s"] == pytest.approx(0.505)
-    assert moving_counts(r) == {"moving": 2, "logged_5s": 2, "logged_10s": 1}
+    assert moving_counts(r) == {"moving": 2, "logged_5s": 2, "logged_10s": 1, "turns": 0}
 
 
 def test_no_moving_vehicle_leaves_the_figures_undefined():
@@ -352,7 +352,7 @@ def test_pooled_over_vehicles_not_episodes():
     assert s.mean["moving_fail"] == pytest.approx(0.5, abs=1e-6) and s.mean["ade_10s"] == pytest.approx(2.0)
     table = moving_table([s])
     assert "## Vehicles that move at the start" in table
-    row = "| none | constvel | 4 | 0.500 | - | - | - | - | - | - | - | - | 2.000 | - | - |"
+    row = "| none | constvel | 4 | 0 | 0.500 | - | - | - | - | - | - | - | - | 2.000 | - | - | - |"  # 0 turns
     assert row in table.splitlines()
 
 

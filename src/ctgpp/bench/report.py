@@ -69,7 +69,8 @@ def moving_pooled(result: PresetResult, metric: str) -> float:
 def moving_table(results: Sequence[PresetResult]) -> str:
     """Per preset, the figures over the vehicles that move at the start, pooled over its episodes'
     vehicles: fail / collision / off-road (beyond the map apart), first collision with a held vehicle,
-    lane-leave, stop, yaw-rate sign changes per 10 s, ADE / FDE (m) to the log at 10 s."""
+    lane-leave, stop, yaw-rate sign changes per 10 s, ADE / FDE (m) to the log at 10 s, and
+    the share of logged turns the simulation follows (``turn_follow``)."""
     lines = [
         "| preset | moving vehicles | " + " | ".join(h for _, h in MOVING_COLUMNS) + " |",
         "|---|---:|" + "---:|" * len(MOVING_COLUMNS),

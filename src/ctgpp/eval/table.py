@@ -40,6 +40,7 @@ MOVING_COLUMNS = (
     ("ade_10s", "ADE 10 s"),
     ("fde_10s", "FDE 10 s"),
     ("beyond_map", "beyond map"),
+    ("turn_follow", "turn follow"),
 )
 REFERENCE = "replay"  # the log itself: realism 0 by construction, so never ranked
 DECIMALS = 3
@@ -49,7 +50,8 @@ DECIMALS = 3
 class Summary:
     """One set × method × rule: ``episodes`` rows over ``seeds`` seeds; per metric of ``METRICS`` and
     of ``MOVING_METRICS`` the mean over seeds and the sample standard deviation over seeds (NaN for
-    one seed or no value); ``moving``: the vehicles moving at the start per seed (mean over seeds)."""
+    one seed or no value); ``moving``: the vehicles moving at the start per seed, ``turns``: their
+    logged turns per seed (means over seeds)."""
 
     set: str
     method: str
@@ -59,6 +61,7 @@ class Summary:
     mean: Mapping[str, float]
     std: Mapping[str, float]
     moving: float = math.nan
+    turns: float = math.nan
 
 
 def seed_value(rows: Iterable[dict[str, str]], metric: str) -> float:
@@ -93,8 +96,11 @@ def summarize(records: Iterable[dict[str, str]]) -> list[Summary]:
             mean[metric] = float(values.mean()) if len(values) else math.nan
             std[metric] = float(values.std(ddof=1)) if len(values) > 1 else math.nan
         episodes = sum(len(rows) for rows in by_seed.values())
-        moving = [sum(int(r.get("moving") or 0) for r in rows) for rows in by_seed.values()]
-        out.append(Summary(set_name, method, rule, episodes, len(by_seed), mean, std, float(np.mean(moving))))
+        moving, turns = (
+            float(np.mean([sum(int(r.get(count) or 0) for r in rows) for rows in by_seed.values()]))
+            for count in ("moving", "turns")
+        )
+        out.append(Summary(set_name, method, rule, episodes, len(by_seed), mean, std, moving, turns))
     return out
 
 
@@ -141,18 +147,21 @@ def moving_table(summaries: Sequence[Summary], sets: Sequence[str] = ()) -> str:
         "> 2 m from every centerline within 45° of its heading; stop: slower than 0.2 m/s at some "
         "step; yaw sign changes: of the yaw rate outside ±0.001 rad/s, per 10 s; ADE / FDE (m) to the "
         "log over the vehicles logged to the horizon; beyond map: its log leaves the mapped area or it "
-        "drives off the map's edge, reported apart and never counted as off-road.\n",
+        "drives off the map's edge, reported apart and never counted as off-road; turn follow: of the "
+        "moving vehicles whose logged heading changes by > 60° by their last logged step (turns: their "
+        "count per seed), the share whose simulated heading changes by > 45° the same way.\n",
     ]
     for set_name in order:
         rows = sorted((s for s in summaries if s.set == set_name), key=_row_order)
         lines = [
             f"### {set_name}\n",
-            "| rule | method | moving | " + " | ".join(h for _, h in MOVING_COLUMNS) + " |",
-            "|---|---|---:|" + "---:|" * len(MOVING_COLUMNS),
+            "| rule | method | moving | turns | " + " | ".join(h for _, h in MOVING_COLUMNS) + " |",
+            "|---|---|---:|---:|" + "---:|" * len(MOVING_COLUMNS),
         ]
         for s in rows:
             cells = [_cell(s, metric, math.nan) for metric, _ in MOVING_COLUMNS]
-            lines.append(f"| {s.rule} | {s.method} | {s.moving:.0f} | " + " | ".join(cells) + " |")
+            counts = f"{s.moving:.0f} | {s.turns:.0f}"
+            lines.append(f"| {s.rule} | {s.method} | {counts} | " + " | ".join(cells) + " |")
         parts.append("\n".join(lines) + "\n")
     return "\n".join(parts)
 

@@ -17,6 +17,10 @@ start (``outcomes``), each a share of them or a mean over them, per episode:
   10 s (``motion``);
 - ``ade_5s``, ``fde_5s``, ``ade_10s``, ``fde_10s``: displacement from the log (m), over the moving
   vehicles whose log lasts to the horizon.
+- ``turn_follow``: of the moving vehicles whose logged heading changes by more than 60° from the start
+  to their last logged step (a logged turn, at an intersection or a roundabout exit; their count is
+  ``turns``), the share whose simulated heading changes by more than 45° the same way by then
+  (``metrics.turns``): the log scores 1 by construction, constant velocity 0.
 
 Every metric is invalid in an episode without a vehicle it averages over. Over many episodes these
 figures are pooled over vehicles (:func:`pooled_mean`): each episode weighs by the count of vehicles
@@ -48,14 +52,16 @@ MOVING_METRICS = (
     "fde_5s",
     "ade_10s",
     "fde_10s",
+    "turn_follow",
 )
-MOVING_COUNTS = ("moving", "logged_5s", "logged_10s")
+MOVING_COUNTS = ("moving", "logged_5s", "logged_10s", "turns")
 # the count of vehicles each metric averages over (a key of :func:`moving_counts`)
 POOL_WEIGHT = {name: "moving" for name in MOVING_METRICS} | {
     "ade_5s": "logged_5s",
     "fde_5s": "logged_5s",
     "ade_10s": "logged_10s",
     "fde_10s": "logged_10s",
+    "turn_follow": "turns",
 }
 
 
@@ -165,12 +171,26 @@ def fde_10s(rollout: Rollout) -> MetricValue:
     return _mean(rollout, vehicle_outcomes(rollout).fde[10.0])
 
 
+@register_metric("turn_follow")
+def turn_follow(rollout: Rollout) -> MetricValue:
+    """Share of the moving vehicles' logged turns (> 60°) that the simulation follows (> 45°, same way)."""
+    o = vehicle_outcomes(rollout)
+    turned = o.moving & (o.turn != 0)
+    return MetricValue(float(o.turn_followed[turned].mean()), True) if turned.any() else MetricValue.invalid()
+
+
 def moving_counts(rollout: Rollout) -> dict[str, int]:
-    """The vehicles behind the metrics of one episode: ``moving``, and ``logged_5s`` / ``logged_10s``
-    (the moving vehicles whose log lasts to the horizon, behind ADE / FDE)."""
+    """The vehicles behind the metrics of one episode: ``moving``, ``logged_5s`` / ``logged_10s``
+    (the moving vehicles whose log lasts to the horizon, behind ADE / FDE) and ``turns`` (the moving
+    vehicles whose log turns, behind ``turn_follow``)."""
     o = vehicle_outcomes(rollout)
     logged = {h: int((o.moving & ~np.isnan(o.fde[h])).sum()) for h in (5.0, 10.0)}
-    return {"moving": int(o.moving.sum()), "logged_5s": logged[5.0], "logged_10s": logged[10.0]}
+    return {
+        "moving": int(o.moving.sum()),
+        "logged_5s": logged[5.0],
+        "logged_10s": logged[10.0],
+        "turns": int((o.moving & (o.turn != 0)).sum()),
+    }
 
 
 def pooled_mean(values_and_weights: Iterable[tuple[float, float]]) -> float:

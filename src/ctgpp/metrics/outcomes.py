@@ -21,6 +21,7 @@ from ctgpp.metrics.lane_keeping import lane_leave_steps
 from ctgpp.metrics.motion import HORIZONS_S, displacement_errors, rollout_yaw_sign_changes, stop_steps
 from ctgpp.metrics.offroad import beyond_map_steps, first_step, offroad_steps
 from ctgpp.metrics.realism import realism_vehicles
+from ctgpp.metrics.turns import followed_turns
 
 PARTNER_KINDS = ("held", "moving", "replayed")
 
@@ -38,6 +39,8 @@ class VehicleOutcomes:
     mapped road there are none to keep).
     stop_step: first step slower than 0.2 m/s. yaw_changes: yaw-rate sign changes per 10 s.
     ade / fde: {horizon s: (C,) m}, NaN where the log ends before the horizon (``motion``).
+    turn: the logged turn, +1 left, -1 right, 0 none (> 60° from the start to the last logged step);
+    turn_followed: the simulation turns the same way by > 45° (``turns``).
     """
 
     agents: np.ndarray
@@ -51,6 +54,8 @@ class VehicleOutcomes:
     yaw_changes: np.ndarray
     ade: dict[float, np.ndarray]
     fde: dict[float, np.ndarray]
+    turn: np.ndarray
+    turn_followed: np.ndarray
 
     def partner_kind(self, rollout: Rollout, c: int) -> str | None:
         """Whether vehicle ``c``'s first collision partner is ``held``, ``moving`` or ``replayed``
@@ -80,6 +85,7 @@ def vehicle_outcomes(rollout: Rollout) -> VehicleOutcomes:
     lane[moving] = lane_leave_steps(rollout, agents[moving])
     lane = np.where((beyond >= 0) & (lane >= beyond), -1, lane)  # beyond the map there is no lane to keep
     errors = {h: displacement_errors(rollout, agents, h) for h in HORIZONS_S}
+    turn, turn_followed = followed_turns(rollout, agents)
     out = VehicleOutcomes(
         agents=agents,
         moving=moving,
@@ -92,6 +98,8 @@ def vehicle_outcomes(rollout: Rollout) -> VehicleOutcomes:
         yaw_changes=rollout_yaw_sign_changes(rollout, agents),
         ade={h: e[0] for h, e in errors.items()},
         fde={h: e[1] for h, e in errors.items()},
+        turn=turn,
+        turn_followed=turn_followed,
     )
     _CACHE[rollout] = out
     return out
