@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from safetensors.torch import load_file
 
 from ctgpp.data.batch import collate
 from ctgpp.data.mirror import mirror_batch, mirror_scene
@@ -17,6 +18,7 @@ from ctgpp.data.sampling import is_turning, turn_weights, window_turns
 from ctgpp.data.windows import build_window
 from ctgpp.model.config import ModelConfig
 from ctgpp.scene.types import AgentTracks, Scene
+from ctgpp.train.batches import BatchDraws
 from ctgpp.train.loop import TrainConfig, train
 
 TINY = ModelConfig(d_model=32, heads=2, blocks=1, edge_dim=16, lane_hidden=32)
@@ -133,3 +135,28 @@ def test_a_time_budget_stops_at_a_save_and_the_run_resumes_to_the_same_end(
         train(scenes, scenes, TINY, replace(base, mirror=False), tmp_path / "cut", progress=False)
     with pytest.raises(ValueError, match="--turn-share"):
         train(scenes, scenes, TINY, replace(base, turn_share=0.2), tmp_path / "cut", progress=False)
+
+
+def test_batches_built_in_worker_processes_train_exactly_as_in_process(
+    scene_0103: Scene, tmp_path: Path
+) -> None:
+    """The batch of a step is drawn from the step alone, so workers building them ahead change nothing."""
+    base = TrainConfig(
+        4, batch_scenes=2, lr=1e-3, stride=20, val_every=2, val_windows=2, max_agents=8, mirror=True
+    )
+    here = train([scene_0103], [scene_0103], TINY, base, tmp_path / "here", progress=False)
+    ahead = train(
+        [scene_0103], [scene_0103], TINY, replace(base, loader_workers=2), tmp_path / "ahead", progress=False
+    )
+    assert here["history"] == ahead["history"]
+    want, got = (load_file(str(tmp_path / d / "model.safetensors")) for d in ("here", "ahead"))
+    assert all(torch.equal(want[k], got[k]) for k in want)
+
+
+def test_the_batch_of_a_step_depends_on_the_step_alone() -> None:
+    draws = BatchDraws(n_items=50, size=8, seed=3, mirror=True)
+    assert draws.at(7)[0] == draws.at(7)[0] and torch.equal(draws.at(7)[1], draws.at(7)[1])
+    assert draws.at(7)[0] != draws.at(8)[0]
+    assert BatchDraws(50, 8, seed=3, rank=1).at(7)[0] != BatchDraws(50, 8, seed=3).at(7)[0]
+    plain = BatchDraws(n_items=50, size=8, seed=3)
+    assert plain.at(7)[0] == draws.at(7)[0] and not plain.at(7)[1].any()  # mirroring draws after the windows

@@ -77,6 +77,12 @@ def add_model_args(parser: argparse.ArgumentParser) -> None:
         help="DDIM steps, spread evenly (default: the fast preset's 6: k = 99, 79, 59, 40, 20, 0)",
     )
     parser.add_argument(
+        "--grid",
+        default=None,
+        metavar="K,K,...",
+        help="the DDIM steps visited, from 99 (pure noise) down, e.g. 99,59,29,11,3,0 (instead of --steps)",
+    )
+    parser.add_argument(
         "--samples", type=int, default=SamplingConfig.num_samples, help="samples per plan (N)"
     )
     parser.add_argument(
@@ -188,8 +194,12 @@ def llm_config(args: argparse.Namespace) -> LLMConfig | None:
     """The ``--llm-*`` choice over the environment; None: the offline compiler."""
     from ctgpp.language.llm.client import LLMConfig
 
-    return LLMConfig.resolve(base_url=args.llm_base_url, model=args.llm_model, timeout_s=args.llm_timeout,
-                             max_tokens=args.llm_max_tokens)
+    return LLMConfig.resolve(
+        base_url=args.llm_base_url,
+        model=args.llm_model,
+        timeout_s=args.llm_timeout,
+        max_tokens=args.llm_max_tokens,
+    )
 
 
 def guard_config(args: argparse.Namespace) -> GuardConfig:
@@ -217,6 +227,8 @@ def guidance_config(args: argparse.Namespace) -> GuidanceConfig:
 
 
 def sampling_config(args: argparse.Namespace) -> SamplingConfig:
+    from ctgpp.diffusion.ddim import check_grid
+    from ctgpp.model.config import ModelConfig
     from ctgpp.policies.diffusion import SamplingConfig
 
     if (args.steps is not None and args.steps < 1) or args.samples < 1:
@@ -225,6 +237,16 @@ def sampling_config(args: argparse.Namespace) -> SamplingConfig:
         raise ValueError(f"--eta must lie in [0, 1] (got {args.eta:g})")
     if args.eta > 0.0 and args.sampler != "ddim":
         raise ValueError("--eta is DDIM's noise: it needs --sampler ddim (DDPM's noise is fixed)")
+    grid = getattr(args, "grid", None)
+    if grid is not None:
+        if args.steps is not None or args.sampler != "ddim":
+            raise ValueError("--grid names DDIM's steps: it takes neither --steps nor --sampler ddpm")
+        try:
+            steps = tuple(int(k) for k in grid.split(","))
+        except ValueError:
+            raise ValueError(f"--grid {grid}: expected diffusion steps such as 99,59,29,11,3,0") from None
+        check_grid(steps, len(steps), ModelConfig.diffusion_steps)  # the presets' K = 100
+        return SamplingConfig("ddim", len(steps), args.samples, steps, args.eta)
     if args.steps is None:
         return SamplingConfig(args.sampler, num_samples=args.samples, eta=args.eta)
     return SamplingConfig.evenly(args.sampler, args.steps, args.samples, args.eta)

@@ -90,6 +90,14 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         "for one (the same windows; 0: each window when first drawn)",
     )
     p.add_argument(
+        "--loader-workers",
+        type=int,
+        default=TrainConfig.loader_workers,
+        metavar="N",
+        help="processes that build the next steps' batches while the model trains (the same batches; "
+        "for a GPU, which otherwise waits on the CPU; 0: the training process builds them)",
+    )
+    p.add_argument(
         "--mirror",
         action="store_true",
         help="mirror each training window across its x axis with probability 1/2 (left turns become "
@@ -157,6 +165,8 @@ def run_train(args: argparse.Namespace) -> int:
         raise ValueError("--steps, --batch, --stride and --max-agents must be positive")
     if args.workers < 0:
         raise ValueError("--workers must be 0 (build each window when first drawn) or more")
+    if args.loader_workers < 0:
+        raise ValueError("--loader-workers must be 0 (build each batch in the training process) or more")
     if not (math.isfinite(args.lr) and args.lr > 0):
         raise ValueError(f"--lr {args.lr}: expected a positive number")
     if not (math.isfinite(args.smooth) and args.smooth >= 0):
@@ -186,6 +196,7 @@ def run_train(args: argparse.Namespace) -> int:
         init_from=None if args.init_from is None else str(args.init_from),
         smooth_s=args.smooth,
         workers=args.workers,
+        loader_workers=args.loader_workers,
         mirror=args.mirror,
         turn_share=args.turn_share,
         budget_s=None if args.budget is None else 60.0 * args.budget,

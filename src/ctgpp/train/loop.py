@@ -25,7 +25,6 @@ from tqdm import tqdm
 from ctgpp.baselines.config import BaselineConfig
 from ctgpp.baselines.kinds import LossFn, kind_of
 from ctgpp.data.batch import SceneBatch, WindowDataset
-from ctgpp.data.mirror import mirror_batch
 from ctgpp.data.sampling import is_turning, turn_weights, window_turns
 from ctgpp.data.smoothing import SMOOTH_SIGMA_S, smooth_scene
 from ctgpp.data.terms import terms_of
@@ -35,6 +34,7 @@ from ctgpp.model.checkpoint import load_weights, save_checkpoint
 from ctgpp.model.config import ModelConfig
 from ctgpp.model.loss import training_loss
 from ctgpp.scene.types import Scene
+from ctgpp.train.batches import BatchDraws, step_batches
 from ctgpp.train.plot import plot_curve
 from ctgpp.train.state import has_train_state, load_train_state, read_train_scalars, save_train_state
 
@@ -72,6 +72,9 @@ class TrainConfig:
     # this invocation stops at the first save after this many seconds of training (None: at ``steps``);
     # a later invocation resumes where it stopped
     budget_s: float | None = None
+    # processes that build the batches of the next steps (ctgpp.train.batches; 0: the training process
+    # builds each when it needs it); the same batches either way. More than 0 builds every window first
+    loader_workers: int = 0
 
 
 def _world() -> tuple[int, int]:
@@ -143,14 +146,14 @@ def train(
     if config.mirror and kind.name != "ctgpp":
         raise ValueError(f"mirror augmentation reflects ctgpp's windows; {kind.name} trains on rasters")
     weights, n_turning = _turn_weights(train_set, train_scenes, config.turn_share)
-    if config.workers > 0:
+    if config.workers > 0 or config.loader_workers > 0:  # loader processes share the built windows
         t0 = time.monotonic()
-        train_set.prebuild(config.workers)
+        train_set.prebuild(max(config.workers, 1))
         log.info(
             "built %d training windows in %.0f s (%d processes)",
             len(train_set),
             time.monotonic() - t0,
-            config.workers,
+            max(config.workers, 1),
         )
     n_val = min(config.val_windows, len(val_set))
     val_idx = [round(i * (len(val_set) - 1) / max(n_val - 1, 1)) for i in range(n_val)]
@@ -180,7 +183,8 @@ def train(
         log.info("resuming from step %d in %s", state["step"], out)
     ddp = nn.parallel.DistributedDataParallel(model) if world > 1 else model
     gen = torch.Generator().manual_seed(config.seed * 1000 + rank)
-    if "generator" in state:  # where the batches and noise of the stopped run would have gone on
+    if "generator" in state:  # where the noise of the stopped run would have gone on (the batches
+        # are drawn by step: ctgpp.train.batches)
         gen.set_state(state.pop("generator")[rank])
     start_wall = time.monotonic() - state["wall_s"]
     show = progress and rank == 0
@@ -190,15 +194,10 @@ def train(
         sizes["turning_windows"] = n_turning
     recent: list[float] = []  # the state is saved right after this is emptied
     invocation_start = time.monotonic()
+    draws = BatchDraws(len(train_set), config.batch_scenes, config.seed, rank, weights, config.mirror)
+    batches = step_batches(train_set, kind.collate, draws, state["step"], config.steps, config.loader_workers)
     while state["step"] < config.steps:
-        if weights is None:
-            idx = torch.randint(len(train_set), (config.batch_scenes,), generator=gen).tolist()
-        else:
-            idx = torch.multinomial(weights, config.batch_scenes, replacement=True, generator=gen).tolist()
-        batch = kind.collate([train_set[i] for i in idx])
-        if config.mirror:
-            batch = mirror_batch(batch, torch.rand(config.batch_scenes, generator=gen) < 0.5)
-        batch = batch.to(device)
+        batch = next(batches).to(device)
         loss, stats = kind.loss(ddp, schedule, batch, gen)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -274,8 +273,8 @@ def _turn_weights(
 
 
 def _generator_states(gen: torch.Generator, world: int) -> list[torch.Tensor]:
-    """Every process's batch and noise generator state (process 0 saves them all), so that a resumed
-    run draws what the uninterrupted one would have drawn."""
+    """Every process's noise generator state (process 0 saves them all), so that a resumed run draws
+    the noise the uninterrupted one would have drawn."""
     state = gen.get_state()
     if world == 1:
         return [state]
