@@ -23,9 +23,11 @@ class Observation:
     """What a policy sees when it re-plans.
 
     tracks: every agent over the whole (padded) scene time; controlled vehicles are valid only up
-    to ``step`` (their simulated past), other agents hold the log. controlled: (V,) agent indices in
-    displayed order. horizon_steps: how many future steps to plan. held: the controlled vehicles the
-    simulator keeps still whatever is planned for them (stationary at the start, with a policy that
+    to ``step`` (their simulated past), other agents hold the log, which the simulator replays; a
+    planner reads every agent only up to ``step`` and predicts the rest
+    (:mod:`ctgpp.guidance.prediction`). controlled: (V,) agent indices in displayed order.
+    horizon_steps: how many future steps to plan. held: the controlled vehicles the simulator keeps
+    still whatever is planned for them (stationary at the start, with a policy that
     ``hold_stationary``), agent indices: a policy may plan them as standing still and spend nothing on
     them. start_step: the episode's first simulated step (the step of its first re-plan; ``step`` at
     that re-plan), keyword only: what a rule fixes at the start of the episode ("within 5 s", "the

@@ -5,7 +5,9 @@ near them whose future the simulator knows:
 
 - held vehicles, stationary at the start of an episode: they stand still at their current pose;
 - replayed agents (pedestrians, cyclists, static obstacles, vehicles the simulator replays from the
-  log): their logged future.
+  log): their future as the scene's tracks hold it — the log in a training window; at inference the
+  policy builds the window on what a plan knows (:func:`ctgpp.guidance.prediction.known_tracks`: the
+  past, and from the current step a constant speed and yaw rate), never the logged future.
 
 Training presents the same kinds of scene (:func:`training_roles`): vehicles at rest at the window's
 start that the log keeps there over the window's future are held (standing still) half of the time
@@ -36,7 +38,7 @@ class Role(enum.IntEnum):
 
     SAMPLED = 0  # denoised: the model's output
     HELD = 1  # known: standing still at its current pose
-    REPLAYED = 2  # known: its logged future
+    REPLAYED = 2  # known: its future in the window's tracks (logged in training, predicted at inference)
 
 
 @dataclass(frozen=True)
@@ -137,7 +139,8 @@ def select_context(
     config: ContextConfig = ContextConfig(),
 ) -> ContextAgents:
     """The context of a window sampling ``sampled`` at ``step``: ``held`` vehicles stand still, every
-    other agent present at ``step`` follows ``scene``'s tracks (the log, or what a simulator put there).
+    other agent present at ``step`` follows ``scene``'s tracks (the log in training; at inference what
+    the policy gives: the simulated past and the predicted future).
     """
     a = scene.agents
     present = np.flatnonzero(a.valid[:, step])

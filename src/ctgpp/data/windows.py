@@ -5,7 +5,8 @@ each in its own frame (origin at its current position, x along its current headi
 that reproduce the logged future through the unicycle, each vehicle's map (lanes as resampled
 polylines in its frame, and with a :class:`~ctgpp.data.map_config.MapConfig` the drivable area
 around it), and the agents it is conditioned on (:mod:`ctgpp.data.context`): held vehicles and
-replayed agents with their known futures.
+replayed agents with their futures as the scene's tracks hold them (at inference, predicted: a policy
+builds its windows on :func:`ctgpp.guidance.prediction.known_tracks`).
 """
 
 from __future__ import annotations

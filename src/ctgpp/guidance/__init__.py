@@ -4,7 +4,9 @@ helpers generated code may import, and the realism guards.
 - :mod:`~ctgpp.guidance.base`: the paper's loss contract and the registry; :mod:`~ctgpp.guidance.scope`:
   which vehicles a loss addresses; :mod:`~ctgpp.guidance.constraints`: what a loss asks of the executed
   plan (speed caps, routes, pairs that may collide), read by the plan stages.
-- :mod:`~ctgpp.guidance.context`: :class:`GuidanceBatch`, the ``data_batch`` losses receive.
+- :mod:`~ctgpp.guidance.context`: :class:`GuidanceBatch`, the ``data_batch`` losses receive;
+  :mod:`~ctgpp.guidance.prediction`: what a plan knows of the agents it does not control (their past
+  and a constant speed and yaw rate from there, never the log's future).
 - :mod:`~ctgpp.guidance.helpers`: the paper's six helpers; :mod:`~ctgpp.guidance.lane_helpers`: the
   map-aware ones (adjacent / rightmost lanes, next intersection, turns); both are the API of generated
   code. :mod:`~ctgpp.guidance.lane_paths`: target lane polylines on the batch (the paths through the

@@ -17,9 +17,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ctgpp.guidance.prediction import predict_agents
 from ctgpp.interfaces import Observation
 from ctgpp.scene.map_ends import open_drivable
-from ctgpp.scene.types import DrivableArea, Scene
+from ctgpp.scene.types import AgentTracks, DrivableArea, Scene
 
 
 @dataclass(frozen=True, eq=False)
@@ -27,12 +28,14 @@ class GuidanceBatch:
     """One scene at one re-plan step, as the guidance losses see it.
 
     B = controlled vehicles (row i is "vehicle i" of the displayed numbering), O = replayed agents
-    (everything not controlled: pedestrians, cyclists, static objects, vehicles that appear later),
-    T = future steps (``future_steps``, steps ``step + 1 … step + T``).
+    present at ``step`` (everything not controlled: pedestrians, cyclists, static objects, vehicles
+    that entered later), T = future steps (``future_steps``, steps ``step + 1 … step + T``).
 
     pose: (B, 3) current x m, y m (local world frame), world yaw rad. speed: (B,) m/s.
     extent: (B, 2) length, width m. agent_index: (B,) numpy indices into ``scene.agents``.
-    obstacles_xy: (O, T, 2) m local world frame, logged future. obstacles_yaw: (O, T) rad.
+    obstacles_xy: (O, T, 2) m local world frame, their predicted future
+    (:func:`~ctgpp.guidance.prediction.predict_agents` from ``known``, never the logged future: issue
+    34, no peeking). obstacles_yaw: (O, T) rad.
     obstacles_extent: (O, 2) m. obstacles_valid: (O, T) bool. obstacles_index: (O,) numpy.
     sdf: (H, W) signed distance to the drivable boundary, m, positive off-road; cell (r, c) centre is
     ``sdf_origin + ((c + 0.5), (r + 0.5)) · sdf_resolution_m`` (local world frame).
@@ -40,6 +43,10 @@ class GuidanceBatch:
     numpy, lane i is ``lane_points[lane_offsets[i]:lane_offsets[i + 1]]``.
     scene, step, origin (2,) float64: for non-differentiable lane-graph lookups (world = local +
     origin). dt_s: step length s. ``memo`` caches per-batch lane choices of the helpers.
+
+    known: every agent as a plan at ``step`` knows it, the observation's tracks (the simulated scene:
+    the log, parked cars held where the log has not seen them, the controlled vehicles' simulated past)
+    up to ``step``, later steps cut off; the replayed agents are predicted from it.
 
     The episode's start, for what a rule fixes then (a time window's t = 0, the lane it changes to,
     the point ahead it drives to): start_step, the episode's first re-plan step; start_pose (B, 3)
@@ -70,6 +77,7 @@ class GuidanceBatch:
     start_step: int
     start_pose: np.ndarray
     start_speed: np.ndarray
+    known: AgentTracks
     memo: dict[Any, Any] = field(default_factory=dict, repr=False, compare=False)
 
     @property
@@ -97,17 +105,18 @@ class GuidanceBatch:
 
     def at_start(self) -> GuidanceBatch:
         """The batch of the episode's start step (itself at that step), bit for bit the one built at
-        the episode's first re-plan: the start poses and speeds in its local frame, the logged
-        futures from then (kept per batch, in ``memo``). What a rule fixes at the start of the episode
-        is computed on it, so that a loss needs no memory of earlier calls."""
+        the episode's first re-plan: the start poses and speeds in its local frame, the replayed
+        agents predicted from then (kept per batch, in ``memo``). What a rule fixes at the start of
+        the episode is computed on it, so that a loss needs no memory of earlier calls."""
         if self.step == self.start_step:
             return self
         start = self.memo.get(_AT_START)
         if start is None:
             start = _batch(
-                self.scene, self.start_step, self.agent_index, self.start_pose[:, :2], self.start_pose[:, 2],
-                self.start_speed, self.extent.detach().cpu().numpy(), self.future_steps, self.start_step,
-                self.start_pose, self.start_speed,
+                self.scene, _until(self.known, self.start_step), self.start_step, self.agent_index,
+                self.start_pose[:, :2], self.start_pose[:, 2], self.start_speed,
+                self.extent.detach().cpu().numpy(), self.future_steps, self.start_step, self.start_pose,
+                self.start_speed,
             )
             start = self.memo[_AT_START] = start if self.device.type == "cpu" else start.to(self.device)
         return start
@@ -136,25 +145,37 @@ def _sdf_tensor(drivable: DrivableArea) -> Tensor:
 
 def build_guidance_batch(obs: Observation, future_steps: int = 52) -> GuidanceBatch:
     """The guidance view of an observation: current states of the controlled vehicles (from the
-    simulated past in ``obs.tracks``), the logged future of every other agent (what replay will do,
-    from ``obs.scene.agents``), the drivable SDF and the lanes, in the local world frame; and the
-    episode's start (``obs.start_step``: the controlled vehicles' poses and speeds then)."""
+    simulated past in ``obs.tracks``), every other agent present at ``obs.step`` in ``obs.tracks``
+    (read up to ``obs.step`` only) with its predicted future
+    (:func:`~ctgpp.guidance.prediction.predict_agents`), the drivable SDF and the lanes, in the local
+    world frame; and the episode's start (``obs.start_step``: the controlled vehicles' poses and
+    speeds then)."""
     step, start, idx = int(obs.step), int(obs.start_step), np.asarray(obs.controlled, dtype=np.int64)
     tr = obs.tracks
     start_pose = np.concatenate([tr.xy[idx, start], tr.yaw[idx, start][:, None]], axis=-1).astype(np.float64)
     start_speed = np.asarray(tr.speed[idx, start], dtype=np.float64)
+    known = _until(tr, step)
     return _batch(
-        obs.scene, step, idx, tr.xy[idx, step], tr.yaw[idx, step], tr.speed[idx, step], tr.extent[idx],
+        obs.scene, known, step, idx, tr.xy[idx, step], tr.yaw[idx, step], tr.speed[idx, step], tr.extent[idx],
         future_steps, start, start_pose, start_speed,
     )
 
 
+def _until(tracks: AgentTracks, step: int) -> AgentTracks:
+    """``tracks`` up to ``step``, the later steps cut off (views, not copies)."""
+    s = slice(0, step + 1)
+    return AgentTracks(tracks.ids, tracks.types, tracks.xy[:, s], tracks.yaw[:, s], tracks.speed[:, s],
+                       tracks.extent, tracks.valid[:, s])
+
+
 def _batch(
-    scene: Scene, step: int, idx: np.ndarray, xy: np.ndarray, yaw: np.ndarray, speed: np.ndarray,
-    extent: np.ndarray, future_steps: int, start_step: int, start_pose: np.ndarray, start_speed: np.ndarray,
+    scene: Scene, known: AgentTracks, step: int, idx: np.ndarray, xy: np.ndarray, yaw: np.ndarray,
+    speed: np.ndarray, extent: np.ndarray, future_steps: int, start_step: int, start_pose: np.ndarray,
+    start_speed: np.ndarray,
 ) -> GuidanceBatch:
     """The batch of ``scene`` at ``step`` for the controlled agents ``idx`` (B,) whose states then are
-    xy (B, 2) world m, yaw (B,) rad, speed (B,) m/s, extent (B, 2) m."""
+    xy (B, 2) world m, yaw (B,) rad, speed (B,) m/s, extent (B, 2) m; the other agents present at
+    ``step`` in ``known`` (read up to ``step``) are its obstacles."""
     origin = xy[0].astype(np.float64) if len(idx) else np.zeros(2)
 
     def f32(a: np.ndarray) -> Tensor:
@@ -162,16 +183,16 @@ def _batch(
 
     pose = np.concatenate([xy - origin, yaw[:, None]], axis=-1)  # (B, 3)
 
-    log = scene.agents
-    steps = np.arange(step + 1, step + 1 + future_steps)
-    inside = steps < log.num_steps
-    t = np.clip(steps, 0, log.num_steps - 1)
-    others = np.ones(log.num_agents, dtype=bool)
+    others = np.ones(known.num_agents, dtype=bool)
     others[idx] = False
-    others &= (log.valid[:, t] & inside[None]).any(axis=1)  # (A,): present at some future step
-    obst = np.flatnonzero(others)
-    obst_valid = log.valid[obst][:, t] & inside[None]  # (O, T)
-    obst_xy = np.where(obst_valid[..., None], log.xy[obst][:, t] - origin, 0.0)  # (O, T, 2)
+    if step < known.num_steps:
+        others &= known.valid[:, step]
+    else:  # past the tracks' end: nothing is known to be there
+        others[:] = False
+    obst = np.flatnonzero(others)  # (O,): present now
+    obst_xy, obst_yaw, _ = predict_agents(known, obst, step, future_steps, scene.dt_s)  # (O, T, 2), (O, T)
+    obst_xy = obst_xy - origin
+    obst_valid = np.ones((len(obst), future_steps), dtype=bool)  # (O, T)
 
     drivable = open_drivable(scene)  # the road goes on where the map's crop cut its lanes
     return GuidanceBatch(
@@ -184,8 +205,8 @@ def _batch(
         extent=f32(extent),
         obstacles_index=obst,
         obstacles_xy=f32(obst_xy),
-        obstacles_yaw=f32(log.yaw[obst][:, t]),
-        obstacles_extent=f32(log.extent[obst]),
+        obstacles_yaw=f32(obst_yaw),
+        obstacles_extent=f32(known.extent[obst]),
         obstacles_valid=torch.from_numpy(obst_valid),
         sdf=_sdf_tensor(drivable),
         sdf_origin=f32(np.asarray(drivable.origin_xy, dtype=np.float64) - origin),
@@ -197,4 +218,5 @@ def _batch(
         start_step=start_step,
         start_pose=start_pose,
         start_speed=start_speed,
+        known=known,
     )

@@ -8,8 +8,9 @@ any other) and added to the rule's or query's loss by :func:`with_guards`:
   at the re-plan (one that is off it now — a car park beyond the mapped drivable area — is not
   dragged onto it across whatever lies between; the fail metric leaves such vehicles out too).
 - ``collision``: :class:`~ctgpp.guidance.rules.clearance.NoCollision` between every pair of
-  vehicles (moving or held still) and between every vehicle and every replayed agent (pedestrians,
-  cyclists, static objects, vehicles that appear later), each box traced by its capsule and its
+  vehicles (moving or held still) and between every vehicle and every replayed agent present at the
+  re-plan (pedestrians, cyclists, static objects, vehicles that appeared later) along its predicted
+  future (:mod:`ctgpp.guidance.prediction`), each box traced by its capsule and its
   four corners (:func:`~ctgpp.guidance.rules.common.outline_layout`): all that the guidance batch
   holds; and :class:`~ctgpp.guidance.rules.clearance.ClearAhead`: each moving vehicle keeps the
   road it covers in the next ``headway_s`` seconds clear of them, so that it brakes for what is

@@ -33,6 +33,7 @@ from ctgpp.dynamics import clip_actions, rollout
 from ctgpp.geometry import local_to_world
 from ctgpp.guidance.base import GuidanceLoss
 from ctgpp.guidance.context import build_guidance_batch
+from ctgpp.guidance.prediction import known_tracks
 from ctgpp.interfaces import Observation, Plan
 from ctgpp.model.checkpoint import CheckpointError
 
@@ -95,7 +96,8 @@ class BITSPolicy:
         """Goals, candidate trajectories, costs and the choice of every controlled vehicle."""
         cfg = self.model.config
         windows = WindowConfig(cfg.history_steps, cfg.future_steps, max_agents=len(obs.controlled))
-        seen = replace(obs.scene, agents=obs.tracks)  # the simulated past, never the logged future
+        # the simulated past, never the logged future: what a plan at obs.step knows (no peeking)
+        seen = replace(obs.scene, agents=known_tracks(obs.tracks, obs.step, obs.controlled, obs.scene.dt_s))
         window = build_window(seen, obs.step, windows, agent_index=obs.controlled)
         batch = with_raster(collate([window]), observation_raster(obs, cfg.raster()))
         ctx = self.model.encode(batch)

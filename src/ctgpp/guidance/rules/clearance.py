@@ -177,7 +177,7 @@ class ClearAhead(PairGuard):
     def _replayed(
         self, probe: Tensor, radius: Tensor, rep: ReplayedOutlines, moving: Tensor
     ) -> tuple[Tensor, Tensor, Tensor]:
-        """The same against the replayed agents' logged outlines."""
+        """The same against the replayed agents' predicted outlines."""
         with torch.no_grad():
             d2 = ((probe.detach()[:, None] - rep.xy[None, :, None]) ** 2).sum(-1)  # (A, O, N, T)
             limit = (radius[:, None] + rep.reach[None] + self.buffer_m)[..., None, None]

@@ -6,13 +6,14 @@ Peachtree "vehicle 11 should drive at 10 m/s" drove vehicle 11 into the back of 
 three of four seeds, its chosen plan overlapping the car in front 4 s on. A contact ahead is a
 constraint on the accelerations alone, so the executed plans are checked once chosen: a vehicle whose
 planned box touches, within ``horizon_s`` (:class:`~ctgpp.policies.stages.config.BrakeConfig`), the
-planned box of another vehicle or the logged box
-of a replayed agent that lies ahead of it brakes — its accelerations over that horizon blended toward
-the braking bound by the least share that clears every contact ahead (bisection: the distance driven
-by each step only shrinks as the share grows) — along the same path (each step keeps the curvature
-it was planned with). Vehicles behind one that brakes are checked again against its new plan, for a
-few rounds. A vehicle only answers for what is ahead of it (the other's centre in front of its own,
-along its heading), so of a rear-end pair the one behind brakes, and of a head-on pair both do.
+planned box of another vehicle or the predicted box of a replayed agent
+(:mod:`ctgpp.guidance.prediction`) that lies ahead of it brakes — its accelerations over that horizon
+blended toward the braking bound by the least share that clears every contact ahead (bisection: the
+distance driven by each step only shrinks as the share grows) — along the same path (each step keeps
+the curvature it was planned with). Vehicles behind one that brakes are checked again against its
+new plan, for a few rounds. A vehicle only answers for what is ahead of it (the other's centre in
+front of its own, along its heading), so of a rear-end pair the one behind brakes, and of a head-on
+pair both do.
 
 Pairs the loss may ask to collide (:attr:`~ctgpp.guidance.constraints.PlanConstraints.may_collide`)
 are left out, as the collision guard leaves them out; a plan that already touches nothing ahead is

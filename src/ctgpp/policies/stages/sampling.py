@@ -3,7 +3,8 @@ denoiser, guided by the loss (paper §3.4, Algorithm 2: :func:`~ctgpp.diffusion.
 
 Only the vehicles that move are sampled: those the simulator holds (``obs.held``) stand still in every
 sample, and the guidance loss sees them so, in their rows of x. A model with context
-(``ModelConfig.context``) is conditioned on them and on every replayed agent near the moving vehicles.
+(``ModelConfig.context``) is conditioned on them and on every replayed agent near the moving vehicles,
+along its predicted future (:mod:`ctgpp.guidance.prediction`: a plan reads no agent past its step).
 The denoiser runs in inference mode (its outputs cloned back to normal tensors, which the guidance
 steps may use: autograd refuses inference tensors); only the guidance steps enable gradients.
 """
@@ -20,11 +21,13 @@ from torch import Tensor
 
 from ctgpp.data.batch import collate
 from ctgpp.data.context import standing_vehicles
-from ctgpp.data.windows import build_window
+from ctgpp.data.windows import SceneWindow, build_window
 from ctgpp.diffusion import Sampler
 from ctgpp.diffusion.guided import GuidanceConfig, Objective, action_trajectories, guided_sample
 from ctgpp.dynamics import clip_actions
+from ctgpp.guidance.prediction import known_tracks
 from ctgpp.interfaces import Observation
+from ctgpp.model.config import ModelConfig
 from ctgpp.model.denoiser import Denoiser
 from ctgpp.policies.stages.base import PlanContext, PlanSet
 
@@ -52,14 +55,7 @@ class GuidedSampling:
         cfg = model.config
         n, f = self.num_samples, cfg.future_steps
         rows = torch.from_numpy(np.flatnonzero(moves))  # the moving vehicles' rows among the V
-        windows = cfg.window_config(max_agents=len(rows), with_future=False)
-        # the simulated past, never the logged future; the model is conditioned on the held vehicles
-        # (standing still) and on every replayed agent (the log the simulator will play)
-        seen = replace(obs.scene, agents=obs.tracks)
-        parked = standing_vehicles(seen, obs.step, obs.controlled, f)  # held, as in training
-        held = np.concatenate([obs.held, parked])
-        window = build_window(seen, obs.step, windows, agent_index=planned.controlled, held=held)
-        batch = collate([window])  # (1, M, ...): the N samples share one scene
+        batch = collate([model_window(obs, moves, cfg)])  # (1, M, ...): the N samples share one scene
         context = model.encode_context(batch).expand(n)  # encoded once, (N, M, ...) views
         gen = torch.Generator().manual_seed(int(obs.rng.integers(2**31)))
         moving = batch.hist[0, :, -1]  # (M, 4) current states of the sampled vehicles
@@ -93,4 +89,16 @@ class GuidedSampling:
         return replace(plans, actions=actions, current=current)
 
 
-__all__ = ["GuidedSampling"]
+def model_window(obs: Observation, moves: np.ndarray, cfg: ModelConfig) -> SceneWindow:
+    """The window the model samples the moving vehicles (``moves``, (V,) bool) of ``obs`` in: the
+    simulated past up to ``obs.step``, never a logged future (:func:`known_tracks`). The model is
+    conditioned on the held vehicles (standing still), on the vehicles the prediction keeps at rest
+    (held, as in training) and on every other agent present, along its predicted future."""
+    seen = replace(obs.scene, agents=known_tracks(obs.tracks, obs.step, obs.controlled, obs.scene.dt_s))
+    parked = standing_vehicles(seen, obs.step, obs.controlled, cfg.future_steps)
+    held = np.concatenate([obs.held, parked])
+    windows = cfg.window_config(max_agents=int(moves.sum()), with_future=False)
+    return build_window(seen, obs.step, windows, agent_index=obs.controlled[moves], held=held)
+
+
+__all__ = ["GuidedSampling", "model_window"]
