@@ -80,7 +80,8 @@ def add_model_args(parser: argparse.ArgumentParser) -> None:
         "--grid",
         default=None,
         metavar="K,K,...",
-        help="the DDIM steps visited, from 99 (pure noise) down, e.g. 99,59,29,11,3,0 (instead of --steps)",
+        help="the DDIM steps visited, from 99 (pure noise) down, e.g. 99,59,29,11,3,0, instead of --steps "
+        "(default: --steps spread evenly)",
     )
     parser.add_argument(
         "--samples", type=int, default=SamplingConfig.num_samples, help="samples per plan (N)"
