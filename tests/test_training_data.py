@@ -158,5 +158,9 @@ def test_the_batch_of_a_step_depends_on_the_step_alone() -> None:
     assert draws.at(7)[0] == draws.at(7)[0] and torch.equal(draws.at(7)[1], draws.at(7)[1])
     assert draws.at(7)[0] != draws.at(8)[0]
     assert BatchDraws(50, 8, seed=3, rank=1).at(7)[0] != BatchDraws(50, 8, seed=3).at(7)[0]
+    streams = {
+        tuple(BatchDraws(10**6, 4, seed=0, rank=r).at(s)[0]) for r in range(4) for s in range(0, 20000, 7)
+    }
+    assert len(streams) == 4 * len(range(0, 20000, 7))  # no process repeats another's batches later
     plain = BatchDraws(n_items=50, size=8, seed=3)
     assert plain.at(7)[0] == draws.at(7)[0] and not plain.at(7)[1].any()  # mirroring draws after the windows

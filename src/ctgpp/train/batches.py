@@ -16,13 +16,12 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
 import torch
 from torch.utils.data import DataLoader, Dataset
 
 from ctgpp.data.mirror import mirror_batch
 
-# distinct streams for (seed, rank, step): a large odd multiplier per field keeps them apart
-_SEED_MIX = (1_000_003, 7_919)
 # batches each worker builds ahead: enough to ride out a slow batch, few enough to bound memory
 PREFETCH_PER_WORKER = 4
 
@@ -41,7 +40,9 @@ class BatchDraws:
 
     def at(self, step: int) -> tuple[list[int], torch.Tensor]:
         """The windows of step ``step`` and (size,) bool which of them are mirrored."""
-        gen = torch.Generator().manual_seed(self.seed * _SEED_MIX[0] + self.rank * _SEED_MIX[1] + step)
+        # numpy's SeedSequence hashes the three numbers: no two (seed, rank, step) share a stream
+        key = int(np.random.SeedSequence([self.seed, self.rank, step]).generate_state(1, np.uint64)[0])
+        gen = torch.Generator().manual_seed(key)
         if self.weights is None:
             idx = torch.randint(self.n_items, (self.size,), generator=gen).tolist()
         else:
