@@ -56,3 +56,15 @@ def turn_weights(turning: np.ndarray, share: float) -> torch.Tensor:
 def is_turning(angles: np.ndarray) -> np.ndarray:
     """(N,) bool: heading changes (rad) of at least :data:`TURN_DEG`."""
     return np.asarray(angles) >= math.radians(TURN_DEG)
+
+
+def window_weights(
+    items: list[tuple[int, int]], scenes: list[Scene], share: float, future_steps: int = 52
+) -> tuple[torch.Tensor | None, int | None]:
+    """Sampling weights of the windows ``items`` ((scene, step) pairs into ``scenes``) that draw those
+    where a vehicle turns (:func:`window_turns` over ``future_steps``, :func:`is_turning`) with total
+    probability ``share``, and how many turn; (None, None) for ``share`` 0: uniform draws."""
+    if share <= 0:
+        return None, None
+    turning = is_turning(np.array([window_turns(scenes[s], step, future_steps) for s, step in items]))
+    return turn_weights(turning, share), int(turning.sum())

@@ -16,7 +16,6 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 import torch.distributed as dist
 from torch import nn
@@ -24,8 +23,8 @@ from tqdm import tqdm
 
 from ctgpp.baselines.config import BaselineConfig
 from ctgpp.baselines.kinds import LossFn, kind_of
-from ctgpp.data.batch import SceneBatch, WindowDataset
-from ctgpp.data.sampling import is_turning, turn_weights, window_turns
+from ctgpp.data.batch import SceneBatch
+from ctgpp.data.sampling import window_weights
 from ctgpp.data.smoothing import SMOOTH_SIGMA_S, smooth_scene
 from ctgpp.data.terms import terms_of
 from ctgpp.data.windows import WindowConfig
@@ -145,7 +144,9 @@ def train(
         raise ValueError("no training windows: the training scenes are too short or hold no vehicles")
     if config.mirror and kind.name != "ctgpp":
         raise ValueError(f"mirror augmentation reflects ctgpp's windows; {kind.name} trains on rasters")
-    weights, n_turning = _turn_weights(train_set, train_scenes, config.turn_share)
+    weights, n_turning = window_weights(
+        train_set.items, train_scenes, config.turn_share, windows.future_steps
+    )
     if config.workers > 0 or config.loader_workers > 0:  # loader processes share the built windows
         t0 = time.monotonic()
         train_set.prebuild(max(config.workers, 1))
@@ -256,20 +257,6 @@ def _check_resumable(out: Path, config: TrainConfig) -> None:
             f"{out} holds a training state made with --turn-share {share:g}; resume it with "
             f"--turn-share {share:g} or start a new run in another directory"
         )
-
-
-def _turn_weights(
-    train_set: WindowDataset, scenes: list[Scene], share: float
-) -> tuple[torch.Tensor | None, int | None]:
-    """Sampling weights of the training windows that draw those where a vehicle turns with total
-    probability ``share``, and how many turn; (None, None) for ``share`` 0 (uniform draws)."""
-    if share <= 0:
-        return None, None
-    future = WindowConfig().future_steps
-    angles = np.array([window_turns(scenes[s], step, future) for s, step in train_set.items])
-    turning = is_turning(angles)
-    log.info("%d of %d training windows turn", int(turning.sum()), len(turning))
-    return turn_weights(turning, share), int(turning.sum())
 
 
 def _generator_states(gen: torch.Generator, world: int) -> list[torch.Tensor]:
