@@ -82,8 +82,9 @@ def test_loaded_checkpoint_samples_the_same_plans(scene_0103: Scene, trained: tu
 
 
 def test_policy_never_sees_the_logged_future(scene_0103: Scene, trained: tuple[Path, dict]) -> None:
-    """Scrambling the log of the controlled vehicles after the current step changes nothing in the
-    plan; the replayed agents' logged future is what the simulator plays, and the model sees it."""
+    """Scrambling the log after the current step changes nothing in the plan, of the controlled
+    vehicles or of the replayed agents: the simulator plays the replayed agents' log, the model sees
+    only their predicted future (issue 34, ``ctgpp.guidance.prediction``)."""
     out, _ = trained
     policy = DiffusionPolicy.from_checkpoint(out, SamplingConfig.evenly("ddim", 3, 2))
     step = 40
@@ -103,7 +104,8 @@ def test_policy_never_sees_the_logged_future(scene_0103: Scene, trained: tuple[P
     plan = policy.plan(obs(scene_0103)).states
     np.testing.assert_array_equal(plan, policy.plan(obs(scrambled_log(controlled))).states)
     replayed = np.setdiff1d(np.flatnonzero(a.valid[:, step]), controlled)
-    assert not np.array_equal(plan, policy.plan(obs(scrambled_log(replayed))).states)
+    assert len(replayed) > 10
+    np.testing.assert_array_equal(plan, policy.plan(obs(scrambled_log(replayed))).states)
 
 
 def test_torchrun_two_process_training(tmp_path: Path) -> None:
