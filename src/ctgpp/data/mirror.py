@@ -19,7 +19,7 @@ import torch
 from torch import Tensor
 
 from ctgpp.data.batch import SceneBatch
-from ctgpp.scene.types import AgentTracks, DrivableArea, LaneGraph, Scene
+from ctgpp.scene.types import DrivableArea, Scene
 
 # per-agent state arrays (..., 4) = x, y, speed, yaw: y and yaw change sign
 _STATE_SIGN = (1.0, -1.0, 1.0, -1.0)
@@ -41,27 +41,17 @@ def mirror_scene(scene: Scene) -> Scene:
     driving direction of a centreline is kept, so its left becomes its right). Drivable area: rows
     reversed and the origin moved so that every cell covers the reflection of the one it covered.
     """
-    a = scene.agents
-    valid = a.valid
-    agents = AgentTracks(
-        ids=a.ids,
-        types=a.types,
-        xy=np.where(valid[..., None], a.xy * np.array([1.0, -1.0], dtype=a.xy.dtype), a.xy),
-        yaw=np.where(valid, -a.yaw, a.yaw),
-        speed=a.speed,
-        extent=a.extent,
-        valid=valid,
+    a, lanes = scene.agents, scene.lanes
+    agents = replace(
+        a,
+        xy=np.where(a.valid[..., None], a.xy * np.array([1.0, -1.0], dtype=a.xy.dtype), a.xy),
+        yaw=np.where(a.valid, -a.yaw, a.yaw),
     )
-    lanes = scene.lanes
-    mirrored_lanes = LaneGraph(
-        ids=lanes.ids,
+    mirrored_lanes = replace(
+        lanes,
         points=lanes.points * np.array([1.0, -1.0], dtype=lanes.points.dtype),
-        offsets=lanes.offsets,
-        successors=lanes.successors,
-        predecessors=lanes.predecessors,
         left=lanes.right,
         right=lanes.left,
-        intersection=lanes.intersection,
     )
     area = scene.drivable
     rows = area.mask.shape[0]
