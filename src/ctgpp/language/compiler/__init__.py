@@ -1,8 +1,10 @@
 """The offline query compiler: a sentence becomes a composition of the rules library, with no model
-and no network (:mod:`.compile`; where a query splits into clauses in :mod:`.segments`, the query
-families in :mod:`.families` with their wording in :mod:`.phrases` and the rules each becomes in
-:mod:`.handlers`, the lexicon in :mod:`.patterns`, whom a clause is about in :mod:`.subjects`, what is
-refused in :mod:`.refusals`, the compiled parts and their code in :mod:`.compiled`).
+and no network (:mod:`.compile`; what people write rewritten into its wording in :mod:`.normalise`,
+the paraphrase benchmark in :mod:`.paraphrases`; where a query splits into clauses in
+:mod:`.segments`, the query families in :mod:`.families` with their wording in :mod:`.phrases` and the
+rules each becomes in :mod:`.handlers`, the lexicon in :mod:`.patterns`, whom a clause is about in
+:mod:`.subjects`, what is refused in :mod:`.refusals`, the compiled parts and their code in
+:mod:`.compiled`).
 
 The public entry: :func:`compile_query` and what it returns or raises, importable from here."""
 

@@ -1,10 +1,13 @@
 """The offline query compiler (DESIGN.md, Language interface): a sentence becomes a composition of the
 rules library, with no model and no network.
 
-``compile_query("vehicle 3 should cut in ahead of vehicle 7 and no collisions", 12)`` splits the
-query into clauses at "and", ",", ";", "while", "then", "after that", "but" (not inside "between 10
-and 30 m", a point "(x, y)" or "one by one"; a piece that only names vehicles or times, such as
-"vehicle 1" in "vehicle 1 and vehicle 2 collide", is joined with the next one:
+``compile_query("vehicle 3 should cut in ahead of vehicle 7 and no collisions", 12)`` first rewrites the
+query into the compiler's wording (:mod:`ctgpp.language.compiler.normalise`: numbers in words, units,
+typos, "over one lane", "tell vehicle 3 to ...", lists; the parts keep the text as written, the
+compiled query says what it was read as), refuses a manoeuvre no behaviour is (overtaking, U-turns),
+then splits the query into clauses at "and", ",", ";", "while", "then", "after that", "but" (not
+inside "between 10 and 30 m", a point "(x, y)" or "one by one"; a piece that only names vehicles or
+times, such as "vehicle 1" in "vehicle 1 and vehicle 2 collide", is joined with the next one:
 :mod:`ctgpp.language.compiler.segments`), reads each clause
 (:mod:`ctgpp.language.compiler.patterns`: its subjects and objects, quantities in SI units, its
 times), recognises its family (:mod:`ctgpp.language.compiler.families`) and joins the rules in a
@@ -19,7 +22,8 @@ How a sentence is read:
   inherits the previous clause's subjects ("... and then stops"), "both" / "they" every vehicle
   the previous clause involved, "it" its object ("staying at most 12 m behind it").
 - Times (:mod:`ctgpp.behaviours.timing`): "within 5 s" (a behaviour that holds, from 5 s to the end;
-  an event, by 5 s: :attr:`Behaviour.deadline`), "after 3 s", "for the first 4 s", "until 4 s";
+  an event, by 5 s: :attr:`Behaviour.deadline`), "after 3 s", "for the first 4 s", "until 4 s", "stops
+  at 4 s" (stopped from 4 s, still moving before 3 s: :func:`~ctgpp.language.compiler.handlers.stop`);
   "at all times" is the behaviour's own window. The loss is the rule on the window's steps
   (:class:`~ctgpp.guidance.rules.timing.During`), the verdict the check on the window.
 - Sequences: "then", "after that" and "one by one" number the parts' ``stage`` (0, 1, ...).
@@ -30,7 +34,8 @@ A relation of one vehicle to another ("vehicle 2 stays within 25 m of vehicle 0"
 subject (:class:`SteerOnly`); the other keeps driving as sampled.
 Vehicles are displayed numbers: "vehicle 3", "car 3", "v3", "#3", "the ego" (= 0).
 Nothing is guessed or dropped: a clause no family recognises raises :class:`UnsupportedQuery` with
-the closest supported phrasings, a vehicle a clause names that no part would involve raises
+the closest supported phrasings, a number or a time of a clause that no part reads (a time gap, "at 3
+s" for a lane change) :class:`QueryError`, a vehicle a clause names that no part would involve raises
 :class:`QueryError`, a vehicle outside the scene :class:`VehicleOutOfRange`
 (:mod:`ctgpp.language.compiler.refusals`).
 """
@@ -44,11 +49,16 @@ from ctgpp.behaviours import get_behaviour
 from ctgpp.behaviours.timing import TimeWindow
 from ctgpp.guidance import CompositeLoss
 from ctgpp.language.compiler.compiled import CompiledQuery, QueryPart, render_code
+from ctgpp.language.compiler.normalise import normalise, original_span
 from ctgpp.language.compiler.patterns import Clause
 from ctgpp.language.compiler.refusals import (
     UnsupportedQuery,
+    check_manoeuvres,
+    check_negation,
     check_none_dropped,
+    check_numbers_used,
     check_quantities,
+    check_times,
     check_vehicles,
     part_vehicles,
     suggest,
@@ -124,12 +134,14 @@ def compile_query(query: str, num_vehicles: int) -> CompiledQuery:
     outside the scene and :class:`QueryError` when a clause lacks something (a second vehicle, ...)
     or a vehicle it names would be left out. All three are ValueErrors.
     """
+    original, query = query, normalise(query)
+    check_manoeuvres(query)
     parts: list[QueryPart] = []
     paces: list[QueryPart] = []
     refinable: set[int] = set()
     ctx = Context(num_vehicles=num_vehicles)
     stage = 0
-    for k, (clause, _family, handler) in enumerate(segments(query)):
+    for k, (clause, family, handler) in enumerate(segments(query)):
         joiner = query[: clause.start].lower().rstrip(" ,;")
         then = k > 0 and bool(re.search(r"(?:\bthen|after\s+that|afterwards)$", joiner))
         joined = k > 0 and bool(re.search(r"(?:\bwhile|\bwhilst|\bthen|after\s+that|afterwards)$", joiner))
@@ -137,8 +149,11 @@ def compile_query(query: str, num_vehicles: int) -> CompiledQuery:
             stage = max(p.stage for p in [*parts, *paces]) + 1
         ctx = replace(ctx, joined=joined)
         text = query[clause.start : clause.end]
+        check_negation(clause, family, text)
         specs = handler(clause, ctx)
         check_none_dropped(clause, specs, text)
+        check_times(clause, specs, text)
+        check_numbers_used(clause, specs, text)
         if clause.one_by_one:  # one part per vehicle, in turn
             specs = [one for s in specs for one in ([replace(s, only=(v,)) for v in s.only or ()] or [s])]
         order = list(clause.subjects or clause.vehicles or ctx.previous or ctx.subjects)  # "one by one"
@@ -148,7 +163,7 @@ def compile_query(query: str, num_vehicles: int) -> CompiledQuery:
             step = stage
             if clause.one_by_one and (v := _vehicle_of(spec)) is not None and v in order:
                 step = stage + order.index(v)
-            window = _window(clause, spec.rule, text) if spec.rule else None
+            window = spec.window or (_window(clause, spec.rule, text) if spec.rule else None)
             span = (clause.start, clause.end)
             part = QueryPart(spec.rule, dict(spec.params), text.strip(), span, spec.family, spec.only,
                              spec.steers, window, step, spec.steers_when_held)
@@ -178,5 +193,9 @@ def compile_query(query: str, num_vehicles: int) -> CompiledQuery:
     parts += _pair_paces(paces, query)
     if not parts:
         raise unsupported(query, query)
+    if query != original:  # the parts' spans and texts in the query as written
+        spans = [original_span(query, original, p.span) for p in parts]
+        parts = [replace(p, span=s, text=original[s[0] : s[1]].strip())
+                 for p, s in zip(parts, spans, strict=True)]
     loss = CompositeLoss([(part.build(), 1.0) for part in parts])
-    return CompiledQuery(query, loss, parts, render_code(parts))
+    return CompiledQuery(original, loss, parts, render_code(parts), query)

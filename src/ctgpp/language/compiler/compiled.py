@@ -70,12 +70,14 @@ class QueryPart:
 @dataclass(frozen=True, eq=False)
 class CompiledQuery:
     """A compiled query: the ``loss`` (a :class:`CompositeLoss` of every part, weight 1 each), its
-    ``parts`` and ``code``, a readable Python rendering of the composition."""
+    ``parts`` and ``code``, a readable Python rendering of the composition; ``read_as``: the query
+    after normalisation (:mod:`ctgpp.language.compiler.normalise`), which the parts' spans index."""
 
     query: str
     loss: GuidanceLoss
     parts: list[QueryPart] = field(default_factory=list)
     code: str = ""
+    read_as: str = ""
 
 
 def render_code(parts: list[QueryPart]) -> str:

@@ -22,8 +22,10 @@ from ctgpp.language.compiler.handlers import (
     follow_lane,
     follow_vehicle,
     goal,
+    has_target_distance,
     keep_lane,
     keep_range,
+    keep_target,
     keep_within,
     lane_change,
     min_speed,
@@ -106,6 +108,7 @@ FAMILIES: tuple[tuple[str, Callable[[Clause], bool], Handler], ...] = (
     ("target_speed", lambda c: bool(c.has(TARGET_SPEED)) and clause_speed(c) is not None
      and (bool(c.speeds) or bool(c.has(r"speed"))), target_speed),
     ("keep_distance", lambda c: bool(c.ranges) and _names_vehicle(c), keep_range),
+    ("keep_distance", lambda c: has_target_distance(c) and _names_vehicle(c), keep_target),
     ("stay_away", lambda c: bool(c.has(STAY_AWAY)) and _names_vehicle(c), stay_away),
     ("keep_within", lambda c: bool(c.has(WITHIN)) and _names_vehicle(c), keep_within),
     ("follow_vehicle", lambda c: bool(c.has(FOLLOW_VEHICLE)) and _names_vehicle(c), follow_vehicle),

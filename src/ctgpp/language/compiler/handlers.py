@@ -16,16 +16,21 @@ steer both: the pair meets halfway, and the vehicle cut in front of keeps its la
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
+from ctgpp.behaviours.timing import TimeWindow
 from ctgpp.language.compiler.patterns import Clause
 from ctgpp.language.compiler.phrases import (
     ACCELERATION,
+    BOUND,
+    FOLLOW_VEHICLE,
     LANE_CHANGE,
     PACE,
     REACH_BELOW,
     SIDE_OF,
     STRAIGHT,
+    TARGET_DISTANCE,
     TURN,
 )
 from ctgpp.language.compiler.subjects import Context, PartSpec, QueryError, pairs, scope, subjects
@@ -40,6 +45,9 @@ DISTANCE_MARGIN_M = 2.0  # a compiled distance band aims this far inside the ban
 # "drive at v" weighs step t by this**t: the executed near term counts most (a turn's speed to keep uses
 # 0.95, guidance/rules/turns.py: one idea, each value measured on its own query family)
 TARGET_SPEED_DECAY = 0.98
+TARGET_TOLERANCE_M = 3.0  # "at a distance of 10 m": the band 10 ± this (wider than twice DISTANCE_MARGIN_M)
+STOP_AT_TOLERANCE_S = 1.0  # "stops at 4 s": still moving until 3 s, stopped from 4 s
+MOVING_BEFORE_STOP_MPS = 1.0  # "still moving" before a stop at a time: at least this speed
 
 
 Handler = Callable[[Clause, Context], list[PartSpec]]
@@ -114,12 +122,23 @@ def same_direction(c: Clause, ctx: Context) -> list[PartSpec]:
 
 
 def stop(c: Clause, ctx: Context) -> list[PartSpec]:
+    """A stop; "at N s": stopped from N s on (held) and still moving over the second before N - 1 s
+    (:data:`STOP_AT_TOLERANCE_S`), so the stop happens in the last second before N s, not earlier."""
     if c.points:
         radius = _distance(c, DEFAULT_STOP_RADIUS_M)
         x, y = c.points[0]
         return [PartSpec("stop_region", "stop_region", {"vehicle": v, "x": x, "y": y, "radius_m": radius})
                 for v in subjects(c, ctx)]
-    return [PartSpec("stop", "stop", {}, scope(c, ctx))]
+    only = scope(c, ctx)
+    if c.at_s is None:
+        return [PartSpec("stop", "stop", {}, only)]
+    stopped = PartSpec("stop", "stop", {}, only, window=TimeWindow(c.at_s, None, hold=True))
+    moving_until = c.at_s - STOP_AT_TOLERANCE_S
+    if moving_until < 1.0:  # no full second of driving to judge before: a deadline
+        return [stopped]
+    moving = PartSpec("stop", "reach_speed", {"speed_mps": MOVING_BEFORE_STOP_MPS, "bound": "above"}, only,
+                      window=TimeWindow(0.0, moving_until))
+    return [moving, stopped]
 
 
 def reach(c: Clause, ctx: Context) -> list[PartSpec]:
@@ -130,12 +149,12 @@ def reach(c: Clause, ctx: Context) -> list[PartSpec]:
     return [PartSpec("reach", "reach_point", {"vehicle": v, **params}) for v in subjects(c, ctx)]
 
 
-def speed_limit(c: Clause, ctx: Context) -> list[PartSpec]:
+def _speed_limit(c: Clause, ctx: Context) -> list[PartSpec]:
     params = {"limit_mps": clause_speed(c), "margin_mps": SPEED_MARGIN_MPS}
     return [PartSpec("speed_limit", "speed_limit", params, scope(c, ctx))]
 
 
-def reach_speed(c: Clause, ctx: Context) -> list[PartSpec]:
+def _reach_speed(c: Clause, ctx: Context) -> list[PartSpec]:
     bound = "below" if c.has(REACH_BELOW) else "above"
     params = {"speed_mps": clause_speed(c), "bound": bound}
     return [PartSpec("reach_speed", "reach_speed", params, scope(c, ctx))]
@@ -161,7 +180,7 @@ def keep_lane(c: Clause, ctx: Context) -> list[PartSpec]:
     return [PartSpec("keep_lane", "keep_lane", {"vehicle": v}) for v in subjects(c, ctx)]
 
 
-def target_speed(c: Clause, ctx: Context) -> list[PartSpec]:
+def _target_speed(c: Clause, ctx: Context) -> list[PartSpec]:
     params = {"speed_mps": clause_speed(c), "decay": TARGET_SPEED_DECAY}
     return [PartSpec("target_speed", "target_speed", params, scope(c, ctx))]
 
@@ -191,7 +210,28 @@ def keep_within(c: Clause, ctx: Context) -> list[PartSpec]:
             for a, b in pairs(c, ctx, "staying close")]
 
 
+def _target_band(c: Clause, ctx: Context, family: str) -> list[PartSpec]:
+    """"At a distance of 10 m": the band 10 ± :data:`TARGET_TOLERANCE_M`."""
+    d = c.distances[0] if c.distances else float(c.bare[0])
+    lo, hi = max(d - TARGET_TOLERANCE_M, 0.0), d + TARGET_TOLERANCE_M
+    return [PartSpec(family, "keep_distance", _band(a, b, lo, hi), steers=(a,), steers_when_held=(b,),
+                     uses=(d,))
+            for a, b in pairs(c, ctx, "keeping a distance")]
+
+
+def keep_target(c: Clause, ctx: Context) -> list[PartSpec]:
+    return _target_band(c, ctx, "keep_distance")
+
+
+def has_target_distance(c: Clause) -> bool:
+    """Whether a clause names one distance as a target ("at a distance of 10 m", "10 m behind"), with
+    no bound ("at least", "within", ...)."""
+    return bool(c.has(TARGET_DISTANCE)) and not c.has(BOUND) and len(c.distances) + len(c.bare) == 1
+
+
 def follow_vehicle(c: Clause, ctx: Context) -> list[PartSpec]:
+    if c.distances and not c.has(BOUND):  # "follows vehicle 5 at 10 m"
+        return _target_band(c, ctx, "keep_distance")
     lo, hi = FOLLOW_RANGE_M
     return [PartSpec("keep_distance", "keep_distance", _band(a, b, lo, hi), steers=(a,), refinable=True,
                      steers_when_held=(b,))
@@ -222,13 +262,38 @@ def reach_ahead(c: Clause, ctx: Context) -> list[PartSpec]:
             for v in subjects(c, ctx)]
 
 
-def speed_range(c: Clause, ctx: Context) -> list[PartSpec]:
+def _speed_range(c: Clause, ctx: Context) -> list[PartSpec]:
     lo, hi = c.speed_ranges[0]
     only = scope(c, ctx)
     return [PartSpec("speed_limit", "speed_limit", {"limit_mps": hi, "margin_mps": SPEED_MARGIN_MPS}, only),
             PartSpec("reach_speed", "reach_speed", {"speed_mps": lo, "bound": "above"}, only)]
 
 
-def min_speed(c: Clause, ctx: Context) -> list[PartSpec]:
+def _min_speed(c: Clause, ctx: Context) -> list[PartSpec]:
     params = {"speed_mps": c.speeds[0], "bound": "above"}
     return [PartSpec("reach_speed", "reach_speed", params, scope(c, ctx))]
+
+
+def _with_follow(speed: Handler) -> Handler:
+    """A speed handler that also reads "vehicle 2 follows vehicle 1 at 10 m/s": the follow (its
+    default band) and the speed of the subjects only, never of the vehicle followed; a speed relative
+    to another vehicle ("5 km/h slower than vehicle 7") is refused, never read as a limit for both."""
+
+    def handler(c: Clause, ctx: Context) -> list[PartSpec]:
+        if c.subjects and c.objects and c.has(FOLLOW_VEHICLE):
+            specs = speed(c, ctx)
+            return follow_vehicle(c, ctx) + [replace(s, only=c.subjects) for s in specs]
+        if c.subjects and c.objects and c.has(r"\bthan\b|\bas\b|\brelative\s+to\b"):
+            raise QueryError(f"{c.text.strip()!r}: a speed relative to another vehicle is not supported; say "
+                             f"'drives faster than vehicle N' or a speed with its unit")
+        return speed(c, ctx)
+
+    handler.__doc__ = speed.__doc__
+    return handler
+
+
+speed_limit = _with_follow(_speed_limit)
+reach_speed = _with_follow(_reach_speed)
+target_speed = _with_follow(_target_speed)
+speed_range = _with_follow(_speed_range)
+min_speed = _with_follow(_min_speed)

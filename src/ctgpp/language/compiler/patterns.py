@@ -72,6 +72,10 @@ _START = re.compile(
 _END = re.compile(
     rf"\b(?:for|during)\s+the\s+first\s+({NUM})\s*{_SECONDS}|\b(?:until|till|up\s+to)\s+(?:t\s*=\s*)?({NUM})\s*{_SECONDS}"
 )
+_AT = re.compile(  # a time point: "stops at 4 s", "at t = 4 s", "at the 4 s mark", "4 s in"
+    rf"\b(?:at|around|about)\s+(?:t\s*=\s*|the\s+)?({NUM})\s*{_SECONDS}(?:\s+mark)?|\b({NUM})\s*{_SECONDS}\s+in\b"
+)
+_DURATION = re.compile(rf"(?<![\w.])({NUM})\s*{_SECONDS}")
 _ALWAYS = re.compile(
     r"\b(?:at\s+all\s+times|always|throughout(?:\s+the\s+(?:episode|scene|drive))?|the\s+whole\s+time"
     r"|all\s+the\s+time|for\s+the\s+whole\s+(?:episode|scene|drive))\b"
@@ -97,8 +101,9 @@ class Clause:
     of them (the clause's subject, "vehicles 1, 2 and 3 follow vehicle 4": 1, 2, 3) and objects the
     rest (4); speeds m/s; speed_ranges (lo, hi) m/s; distances m; ranges (lo, hi) m; points (x, y) m;
     bare: numbers without a unit (not vehicle numbers). Times (s from the episode start): deadline_s
-    ("within 5 s"), start_s ("after 3 s"), end_s ("for the first 4 s", "until 4 s"), always ("at all
-    times"). Flags: everyone, others ("every other car", "the others"), group ("both", "they"),
+    ("within 5 s"), start_s ("after 3 s"), end_s ("for the first 4 s", "until 4 s"), at_s ("at 4 s": a
+    time point), always ("at all times"); durations: times in seconds no time phrase reads ("a 2 s
+    gap"). Flags: everyone, others ("every other car", "the others"), group ("both", "they"),
     one_by_one, negated, pronoun, modal_start ("should ..."), verb_start ("stays below ...")."""
 
     text: str
@@ -120,6 +125,8 @@ class Clause:
     deadline_s: float | None = None
     start_s: float | None = None
     end_s: float | None = None
+    at_s: float | None = None
+    durations: tuple[float, ...] = ()
     always: bool = False
     others: bool = False
     group: bool = False
@@ -133,7 +140,8 @@ class Clause:
     @property
     def timed(self) -> bool:
         """Whether the clause names a time window."""
-        return self.deadline_s is not None or self.start_s is not None or self.end_s is not None
+        return (self.deadline_s is not None or self.start_s is not None or self.end_s is not None
+                or self.at_s is not None)
 
 
 def _mask(text: str, m: re.Match[str]) -> str:
@@ -195,9 +203,9 @@ def _groups(refs: list[tuple[int, int, int]], low: str) -> tuple[tuple[int, ...]
     return tuple(dict.fromkeys(lead)), tuple(dict.fromkeys(rest))
 
 
-def _times(low: str) -> tuple[str, float | None, float | None, float | None, bool]:
-    """The text with its time phrases blanked, and deadline_s, start_s, end_s, always."""
-    deadline = start = end = None
+def _times(low: str) -> tuple[str, float | None, float | None, float | None, float | None, bool]:
+    """The text with its time phrases blanked, and deadline_s, start_s, end_s, at_s, always."""
+    deadline = start = end = at = None
     m = _DEADLINE.search(low)
     if m:
         deadline, low = float(m.group(1)), _mask(low, m)
@@ -207,15 +215,18 @@ def _times(low: str) -> tuple[str, float | None, float | None, float | None, boo
     m = _END.search(low)
     if m:
         end, low = float(m.group(1) or m.group(2)), _mask(low, m)
+    m = _AT.search(low)
+    if m:
+        at, low = float(m.group(1) or m.group(2)), _mask(low, m)
     m = _ALWAYS.search(low)
     if m:
         low = _mask(low, m)
-    return low, deadline, start, end, m is not None
+    return low, deadline, start, end, at, m is not None
 
 
 def analyse(text: str, start: int) -> Clause:
     """The :class:`Clause` of ``text`` (any case), which starts at ``start`` in the query."""
-    low, deadline, start_s, end_s, always = _times(text.lower())
+    low, deadline, start_s, end_s, at_s, always = _times(text.lower())
     refs, rest = _vehicles(low)
     vehicles: list[int] = []
     for _, _, v in refs:
@@ -226,6 +237,10 @@ def analyse(text: str, start: int) -> Clause:
     for m in _POINT.finditer(rest):
         g = [v for v in m.groups() if v is not None]
         points.append((float(g[0]), float(g[1])))
+        rest = _mask(rest, m)
+    durations = []
+    for m in _DURATION.finditer(rest):  # a time no time phrase read: never a distance or a plain number
+        durations.append(float(m.group(1)))
         rest = _mask(rest, m)
     for m in _SPEED_RANGE.finditer(rest):
         lo, hi, unit = (m.group(1), m.group(2), m.group(3)) if m.group(1) else m.group(4, 5, 6)
@@ -265,6 +280,8 @@ def analyse(text: str, start: int) -> Clause:
         deadline_s=deadline,
         start_s=start_s,
         end_s=end_s,
+        at_s=at_s,
+        durations=tuple(durations),
         always=always,
         others=others,
         group=bool(_GROUP.search(low)),

@@ -107,5 +107,16 @@ AHEAD = (
 
 MIN_SPEED = (
     r"\bat\s+least|\bno\s+(?:less|slower)\s+than|\bnot\s+(?:less|slower)\s+than|\bminimum(?:\s+speed)?"
-    r"|(?:never|not|n't)\s+(?:drop|go|fall|get|slow)\w*\s+(?:down\s+)?(?:below|under)"
+    r"|(?:never|not|n't)\s+(?:drop|go|fall|get|slow|drive|travel|move|be)\w*\s+(?:down\s+)?(?:below|under)"
+)
+
+TARGET_DISTANCE = (
+    rf"(?:distance|gap|spacing|separation|headway)\s+of\s+(?:about\s+|around\s+|roughly\s+|approximately\s+"
+    rf"|exactly\s+)?{NUM}|\b(?:about|around|roughly|approximately|exactly)\s+{NUM}\s*(?:m|meters?|metres?|ft|feet)\b"
+    rf"|{NUM}\s*(?:m|meters?|metres?|ft|feet)\s+(?:behind|back\s+from)"
+)
+
+BOUND = (  # words that make a distance a bound, not a target
+    r"\bat\s+(?:least|most)\b|\bwithin\b|\b(?:less|more|closer|farther|further|nearer)\s+than\b|\bunder\b|\bover\b"
+    r"|\bminimum\b|\bmaximum\b|\bmin\b|\bmax\b|\bup\s+to\b|\bbetween\b|\bbeyond\b|\baway\b"
 )

@@ -1,7 +1,10 @@
 """What the offline query compiler refuses, and how it says so: a clause no family recognises
-(:class:`UnsupportedQuery`, with the closest supported phrasings), a vehicle outside the scene
-(:class:`VehicleOutOfRange`), a quantity out of physical range and a vehicle a clause names that no
-compiled part would involve (:class:`QueryError`). Nothing is guessed, clipped or dropped.
+(:class:`UnsupportedQuery`, with the closest supported phrasings), a manoeuvre the vocabulary does not
+have (overtaking, U-turns: :func:`check_manoeuvres`, with no suggestion), a vehicle outside the scene
+(:class:`VehicleOutOfRange`), a quantity out of physical range, a vehicle a clause names that no
+compiled part would involve, and a number or time of a clause that no compiled part reads
+(:func:`check_numbers_used`, :func:`check_times`: :class:`QueryError`). Nothing is guessed, clipped
+or dropped.
 """
 
 from __future__ import annotations
@@ -12,6 +15,7 @@ import re
 from ctgpp.behaviours import behaviours
 from ctgpp.guidance.composite import check_quantity
 from ctgpp.language.compiler.patterns import Clause
+from ctgpp.language.compiler.phrases import KEEP_LANE, STAY_AWAY
 from ctgpp.language.compiler.subjects import PartSpec, QueryError
 
 VEHICLE_PARAMS = {"vehicle", "vehicle_a", "vehicle_b", "follower", "leader", "other", "target", "ahead_of"}
@@ -96,3 +100,90 @@ def check_none_dropped(clause: Clause, specs: list[PartSpec], text: str) -> None
     if missing:
         raise QueryError(f"{text.strip()!r}: vehicle(s) {missing} would be left out of the compiled rules "
                          f"({', '.join(s.rule or s.family for s in specs)}); name each vehicle's part")
+
+
+# manoeuvres people ask for that no behaviour of the vocabulary is: refused by name, with no suggestion
+MANOEUVRES = (
+    (r"\bovertak\w*|\bpass(?:es|ed|ing)?\s+(?:each\s+other|one\s+another|by\b|vehicle|car|agent|truck|the\s+ego"
+     r"|v\d|#\d)|\bpass(?:es|ing)?\s*$|\bget\s+past\b|\bgo(?:es)?\s+past\b",
+     "overtaking or passing another vehicle"),
+    (r"\bu[- ]?turn\w*|\bturn\w*\s+around\b|\bturn\w*\s+back\b|\bthree[- ]point\s+turn|\b3[- ]point\s+turn",
+     "a U-turn"),
+    (r"\brevers\w*|\bback(?:s|ing)?\s+up\b|\bbackwards?\b", "driving in reverse"),
+    (r"\btwo\s+lanes\b|\b\d+\s+lanes\s+(?:over|to)\b", "changing more than one lane"),
+    (r"\bhonk\w*|\bsignal\w*|\bindicat\w*|\bblinker|\bheadlight", "signals and lights (not simulated)"),
+)
+
+SUPPORTED = ("the supported manoeuvres are: a lane change one lane to the left or right, moving to the "
+             "rightmost lane, turning left or right or going straight at the next intersection, cutting in "
+             "ahead of a vehicle, stopping (at, by or within a time, or at a point), following or keeping a "
+             "distance, staying beside a vehicle, colliding, speeds and reaching a point")
+
+
+def check_manoeuvres(query: str) -> None:
+    """Refuse a query that asks for a manoeuvre the vocabulary does not have, naming it (no
+    suggestions: the closest phrasings of other behaviours would be irrelevant)."""
+    for pattern, what in MANOEUVRES:
+        m = re.search(pattern, query, flags=re.IGNORECASE)
+        if m:
+            asked = m.group(0).strip()
+            raise UnsupportedQuery(f"cannot compile {query.strip()!r}: {asked!r} asks for {what}, "
+                                   f"which is not a supported manoeuvre; {SUPPORTED}", [])
+
+
+def _values(spec: PartSpec) -> list[float]:
+    vals = [float(v) for v in spec.params.values() if isinstance(v, int | float) and not isinstance(v, bool)]
+    return vals + list(spec.uses)
+
+
+def check_numbers_used(clause: Clause, specs: list[PartSpec], text: str) -> None:
+    """Every number of a clause (speeds, distances, ranges, points, bare numbers) is read by some
+    compiled part: a number no part reads is refused, never dropped."""
+    numbers = [*clause.speeds, *clause.distances, *clause.bare,
+               *(v for pair in (*clause.ranges, *clause.speed_ranges, *clause.points) for v in pair)]
+    used = [v for spec in specs for v in _values(spec)]
+    rules = ", ".join(dict.fromkeys(s.rule or s.family for s in specs))
+    for n in numbers:
+        if not any(abs(n - u) <= 1e-6 * max(1.0, abs(n)) for u in used):
+            raise QueryError(f"{text.strip()!r}: the number {n:g} is not read by what it compiled to "
+                             f"({rules}); it would be dropped, so the sentence is refused (say which "
+                             f"quantity it is, with its unit, or leave it out)")
+
+
+def check_times(clause: Clause, specs: list[PartSpec], text: str) -> None:
+    """A time of a clause that no time window reads is refused: a time gap ("a 2 s gap", not a
+    behaviour of the vocabulary) and a time point ("at 4 s") for anything but a stop."""
+    if clause.durations:
+        what = f"{clause.durations[0]:g} s"
+        if clause.has(r"\bgap\b|headway|\bbehind\b|\bfollow"):
+            raise QueryError(f"{text.strip()!r}: a time gap ({what}) is not supported: distances between "
+                             f"vehicles are in metres ('stays at least 20 m behind vehicle 0')")
+        raise QueryError(f"{text.strip()!r}: the time {what} is not read (times are read as 'within N s', "
+                         f"'by N s', 'after N s', 'for the first N s', 'until N s', and 'at N s' for a stop)")
+    if clause.at_s is not None and any(s.window is None for s in specs):
+        raise QueryError(f"{text.strip()!r}: a time point ('at {clause.at_s:g} s') is supported for a stop "
+                         f"only; say 'within {clause.at_s:g} s', 'after {clause.at_s:g} s' or "
+                         f"'until {clause.at_s:g} s'")
+
+
+# families whose meaning a "not" / "never" keeps ("never exceeds 10 m/s", "no collisions", "must not
+# accelerate more than 2 m/s²"), and those whose negative wording is their own phrase ("must not change
+# lanes", "should not get close to"): any other family negated would be read as its opposite
+NEGATION_KEEPS = frozenset({"collision", "no_offroad", "speed_limit", "min_speed", "acceleration_limit"})
+NEGATION_INSIDE = {"keep_lane": KEEP_LANE, "stay_away": STAY_AWAY}
+_NEGATIVE = r"\b(?:no|not|never|avoid\w*|without)\b|n't\b"
+
+
+def check_negation(clause: Clause, family: str, text: str) -> None:
+    """Refuse a negated clause whose family would read it as its opposite ("vehicle 1 should not follow
+    vehicle 2", "should not get within 10 m of", "should not rear-end"): never compiled as the positive."""
+    if not clause.negated or family in NEGATION_KEEPS:
+        return
+    inside = NEGATION_INSIDE.get(family)
+    if inside is not None:
+        m = clause.has(inside)
+        if m is not None and re.search(_NEGATIVE, m.group(0)):
+            return
+    what = family.replace("_", " ")
+    raise QueryError(f"{text.strip()!r}: a negated {what} is not supported (it would be read as its "
+                     f"opposite); say what the vehicle should do instead")

@@ -8,6 +8,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+from ctgpp.behaviours.timing import TimeWindow
 from ctgpp.language.compiler.patterns import Clause
 
 
@@ -22,7 +23,9 @@ class PartSpec:
     subject of a relation to another vehicle, which keeps driving as sampled), ``steers_when_held``
     (the vehicles steered instead when the subject is held still: the other of a distance) and the
     query ``family`` it came from; ``refinable``: a default a later clause on the same pair may refine
-    ("follows vehicle 1, staying at most 12 m behind it")."""
+    ("follows vehicle 1, staying at most 12 m behind it"); ``window``: the time window the handler set
+    itself (a stop "at 4 s"), None for the clause's; ``uses``: numbers of the clause the rule reads in
+    another form (a target distance that became a band), for the check that none is dropped."""
 
     family: str
     rule: str
@@ -31,6 +34,8 @@ class PartSpec:
     steers: tuple[int, ...] | None = None
     refinable: bool = False
     steers_when_held: tuple[int, ...] = ()
+    window: TimeWindow | None = None
+    uses: tuple[float, ...] = ()
 
 
 @dataclass(frozen=True)

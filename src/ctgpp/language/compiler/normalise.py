@@ -1,0 +1,302 @@
+"""The normalisation stage of the offline compiler: what people write, rewritten into the wording the
+query families read, before any family is tried (issue 36, item 5).
+
+In order (:func:`normalise`; each step a small function, case kept, text that is already canonical
+left unchanged):
+
+1. Typography: dashes and quotes to ASCII, "°"-free, runs of spaces to one.
+2. Typos (:func:`correct_typos`): a word of at least 5 letters that is not in :data:`VOCABULARY` and
+   is one edit away (insert, delete, substitute, or swap two neighbours) from exactly one word of it is
+   replaced by that word ("chnage" -> "change", "vehicel" -> "vehicle").
+3. Numbers in words (:func:`numbers_to_digits`): "thirty", "twenty-five", "one hundred", "two and a
+   half", "a dozen" -> digits, where a unit follows or a vehicle noun precedes ("thirty km/h", "vehicle
+   two", "a two-second gap"); "one lane over", "one by one" are left as words.
+4. Units (:func:`canonical_units`): "2-second" -> "2 seconds", "10-metre" -> "10 metres", "km/hr",
+   "kmph", "kilometres an hour" -> "km/h", "miles an hour" -> "mph", "meters per second" -> "m/s".
+5. Wording (:func:`canonical_wording`): bounds ("not more than", "no farther than" -> "at most"; "not
+   less than", "no closer than" -> "at least"), "over one lane to the left" -> "one lane over to the
+   left", "tell vehicle 3 to ..." / "I want vehicle 3 to ..." -> "vehicle 3 should ...", "keep
+   vehicles 1 & 2 in their lanes" -> "vehicles 1 & 2 keep their lanes".
+6. Lists (:func:`join_lists`): "vehicles 1, 2 and 3" -> "vehicles 1 & 2 & 3", so a list is never split
+   into clauses at its commas.
+"""
+
+from __future__ import annotations
+
+import difflib
+import re
+
+from ctgpp.behaviours import behaviours
+
+# --- typos -------------------------------------------------------------------------------------------
+
+_WORDS = """
+vehicle vehicles agent agents truck trucks should must would could always never
+change changes changing switch switches switching merge merges merging shift shifts lanes
+left right rightmost leftmost lane over into onto toward towards
+turn turns turning straight intersection junction crossing next
+collide collides colliding collision collisions crash crashes crashing smash accident accidents
+behind ahead front follow follows following followed tailgate tailing distance distances
+within close closer closest stay stays staying remain remains remaining keeps keeping
+away least most less more further farther than between about around roughly approximately exactly
+speed speeds limit limits exceed exceeds exceeding faster slower quickly slowly rapidly
+drive drives driving travel travels travelling traveling cruise cruises cruising moving
+accelerate accelerates accelerating acceleration decelerate decelerates decelerating brake brakes braking
+maintain maintains maintaining reach reaches reaching arrive arrives arriving point destination
+waypoint target stop stops stopping stopped standstill halt halts halting
+second seconds metres meters metre meter minutes
+everyone everybody others other every each their there where which while until after before
+should side direction heading parallel same ahead offroad drivable road street pavement
+avoid avoids avoiding without anything nothing everything nobody
+cut cuts cutting squeeze squeezes hits bumps rear-end rear-ends rear-ending
+velocity hundred thirty forty fifty sixty seventy eighty ninety twenty eleven twelve thirteen
+fourteen fifteen sixteen seventeen eighteen nineteen three seven eight
+goal spot along down forward their whole episode scene throughout first
+gradually eventually finally afterwards then later under below above beyond
+full complete
+"""
+
+
+def _vocabulary() -> frozenset[str]:
+    words = set(_WORDS.split())
+    for behaviour in behaviours().values():
+        for phrasing in behaviour.phrasings:
+            words.update(re.findall(r"[a-z]+", phrasing.lower()))
+    return frozenset(words)
+
+
+VOCABULARY = _vocabulary()
+"""Words the compiler knows: its own (:data:`_WORDS`) and every behaviour's phrasings' words."""
+
+_ENGLISH = """
+wants needs would like please there these those where while whilst which whose other another
+slowed slower sloww started starts starting moved moves mover drivers driver lanes turned
+wheels going heading coming comes leaves leave leaving enter enters entering street streets
+about around really quite rather little bigger smaller longer shorter ahead front meanwhile
+scene scenes seconds minute minutes episode during whole start begin begins beginning simply
+gently softly hardly quick quicker fastest slowest nearest farthest furthest behind beside
+together alongside across toward along because before after until since being doing having
+"""
+
+
+def _known() -> frozenset[str]:
+    known = set(VOCABULARY) | set(_ENGLISH.split())
+    for w in VOCABULARY:
+        stem = w[:-1] if w.endswith("e") else w
+        known.update({w + "s", w + "es", w + "d", w + "ed", stem + "ed", stem + "ing", w + "ing", w + "er",
+                      w + "ly"})
+    return frozenset(known)
+
+
+KNOWN = _known()
+"""Words never corrected: the vocabulary, their inflections and common English words."""
+
+
+def _one_edit(a: str, b: str) -> bool:
+    """Whether ``a`` and ``b`` differ by exactly one insertion, deletion, substitution or swap of two
+    neighbouring letters (optimal string alignment distance 1)."""
+    if a == b or abs(len(a) - len(b)) > 1:
+        return False
+    if len(a) == len(b):
+        diff = [i for i in range(len(a)) if a[i] != b[i]]
+        if len(diff) == 1:
+            return True
+        i, j = diff if len(diff) == 2 else (0, 0)
+        return len(diff) == 2 and j == i + 1 and a[i] == b[j] and a[j] == b[i]
+    short, long = (a, b) if len(a) < len(b) else (b, a)
+    i = 0
+    while i < len(short) and short[i] == long[i]:
+        i += 1
+    return short[i:] == long[i + 1 :]
+
+
+def correct_word(word: str) -> str:
+    """``word`` (lower case) corrected against :data:`VOCABULARY`: itself when known, shorter than 5
+    letters, or not one edit from exactly one known word."""
+    if len(word) < 5 or word in KNOWN:
+        return word
+    near = [w for w in VOCABULARY if len(w) >= 4 and _one_edit(word, w)]
+    return near[0] if len(near) == 1 else word
+
+
+def correct_typos(text: str) -> str:
+    """Every word of ``text`` corrected by :func:`correct_word` (case of the first letter kept)."""
+
+    def fix(m: re.Match[str]) -> str:
+        word = m.group(0)
+        fixed = correct_word(word.lower())
+        if fixed == word.lower():
+            return word
+        return fixed.capitalize() if word[0].isupper() else fixed
+
+    return re.sub(r"[A-Za-z]+", fix, text)
+
+
+# --- numbers in words --------------------------------------------------------------------------------
+
+_SMALL = {w: i for i, w in enumerate(
+    "zero one two three four five six seven eight nine ten eleven twelve thirteen fourteen fifteen "
+    "sixteen seventeen eighteen nineteen".split())}
+_TENS = {w: 10 * (i + 2)
+         for i, w in enumerate("twenty thirty forty fifty sixty seventy eighty ninety".split())}
+_NUMBER_WORD = r"(?:zero|one|two|three|four|five|six|seven|eight|nine|ten|eleven|twelve|thirteen|fourteen" \
+    r"|fifteen|sixteen|seventeen|eighteen|nineteen|twenty|thirty|forty|fifty|sixty|seventy|eighty|ninety" \
+    r"|hundred|dozen|a\s+half|half)"
+_NUMBER_PHRASE = rf"\b{_NUMBER_WORD}(?:(?:\s+and\s+|[\s-]+){_NUMBER_WORD})*\b"
+_VEHICLE_NUMBER = (  # a vehicle's number in words: "seven", "twenty-one", "twenty one"
+    r"\b(?:(?:twenty|thirty|forty|fifty|sixty|seventy|eighty|ninety)"
+    r"(?:[\s-](?:one|two|three|four|five|six|seven|eight|nine)\b)?"
+    r"|zero|one|two|three|four|five|six|seven|eight|nine|ten|eleven|twelve|thirteen|fourteen"
+    r"|fifteen|sixteen|seventeen|eighteen|nineteen)\b"
+)
+_UNIT_AFTER = (
+    r"(?=[\s-]*(?:m\b|m/s|mps|metres?|meters?|ft\b|feet|foot|km/?h|kph|kmph|kilomet|mph|miles?"
+    r"|s\b|secs?\b|seconds?\b))"
+)
+_VEHICLE_BEFORE = "|".join(rf"(?<=\b{noun}\s)"
+                           for noun in ("vehicle", "vehicles", "car", "cars", "agent", "truck"))
+_LIST_BEFORE = r"(?<=\d\s&\s)|(?<=\d,\s)|(?<=\d\sand\s)|(?<=\d,\sand\s)|(?<=\d\sor\s)"
+
+
+def words_value(phrase: str) -> float | None:
+    """The value of a number written in words ("twenty-five" 25, "one hundred" 100, "two and a half"
+    2.5, "a dozen" 12); None when it is not one number."""
+    tokens = re.split(r"[\s-]+", phrase.lower().replace("a half", "half").replace("a dozen", "dozen"))
+    total, current, seen = 0.0, 0.0, False
+    for tok in tokens:
+        if tok == "and":
+            continue
+        if tok in _SMALL:
+            if seen and current % 10 != 0 or (seen and current >= 10 and _SMALL[tok] >= 10):
+                return None
+            current += _SMALL[tok]
+        elif tok in _TENS:
+            if seen and current % 100 != 0:
+                return None
+            current += _TENS[tok]
+        elif tok == "hundred":
+            current = max(current, 1.0) * 100
+        elif tok == "dozen":
+            current = max(current, 1.0) * 12
+        elif tok == "half":
+            total += 0.5
+        else:
+            return None
+        seen = True
+    return total + current if seen else None
+
+
+def numbers_to_digits(text: str) -> str:
+    """Numbers in words before a unit or after a vehicle noun, as digits ("thirty km/h" -> "30 km/h",
+    "vehicle two" -> "vehicle 2", "two and a half seconds" -> "2.5 seconds")."""
+
+    def digits(m: re.Match[str]) -> str:
+        value = words_value(m.group(0))
+        if value is None:
+            return m.group(0)
+        return f"{value:g}"
+
+    text = re.sub(rf"(?:{_VEHICLE_BEFORE}){_VEHICLE_NUMBER}", digits, text, flags=re.IGNORECASE)
+    while True:  # the rest of a list: "vehicles two, three and four"
+        unit = r"(?!\s*(?:m\b|km|mph|s\b|sec|metre|meter|ft|feet))"
+        longer = re.sub(rf"(?:{_LIST_BEFORE}){_VEHICLE_NUMBER}{unit}", digits, text, flags=re.IGNORECASE)
+        if longer == text:
+            break
+        text = longer
+    return re.sub(rf"{_NUMBER_PHRASE}{_UNIT_AFTER}", digits, text, flags=re.IGNORECASE)
+
+
+# --- units and wording -------------------------------------------------------------------------------
+
+_UNITS = (  # (pattern, replacement), case-insensitive, in order
+    (r"(\d)-(seconds?|secs?|s|metres?|meters?|m|feet|foot|ft)\b", r"\1 \2"),
+    (r"(\d)\s*(?:foot)\b", r"\1 feet"),
+    (r"\bkm\s*/\s*hr?\b|\bkmph\b|\bkm\s+an\s+hour\b|\bkilomet(?:re|er)s?\s+an\s+hour\b", "km/h"),
+    (r"\bmiles?\s+an\s+hour\b|\bmi\s*/\s*h\b", "mph"),
+    (r"\b(?:metres?|meters?)\s*/\s*s(?:ec(?:ond)?)?\b|\bm\s*/\s*sec\b", "m/s"),
+    (r"\bm\s*/\s*s\s*(?:\^\s*2|2\b|/\s*s\b)|\bm\s*s-2\b"
+     r"|\b(?:metres?|meters?)\s+per\s+second\s+squared\b", "m/s²"),
+)
+
+_VEH = (  # a vehicle or a list of them
+    r"(?:(?:the\s+)?ego(?:[- ](?:vehicle|car))?"
+    r"|(?:vehicles?|cars?|agents?|trucks?)\s+#?\d+(?:\s*(?:,|&|and|or)\s*(?:and\s+)?#?\d+)*)"
+)
+
+_WORDING = (  # (pattern, replacement), case-insensitive, in order
+    (r"\b(?:not|no)\s+more\s+than\b|\bno\s+(?:farther|further)\s+than\b|\bnot\s+(?:farther|further)\s+than\b",
+     "at most"),
+    (r"\b(?:not|no)\s+(?:less|closer|nearer)\s+than\b", "at least"),
+    (r"\bover\s+(one|a)\s+lane\b", r"\1 lane over"),
+    (r"\bto\s+(?:its|his|her|their)\s+(left|right)\b", r"to the \1"),
+    (r"\b(into|in|to|onto)\s+the\s+lane\s+(?:on|to)\s+(?:its|his|her|their|the)\s+(left|right)\b",
+     r"\1 the \2 lane"),
+    (r"\binfront\b", "in front"),
+    (r"\b(?:one|a)\s+lane\s+(?:to\s+)?(?:the\s+)?(left|right)\b", r"one lane over to the \1"),
+    (rf"^\s*(?:please\s+)?(?:i\s+want|i'd\s+like|i\s+would\s+like|we\s+want|we'd\s+like|tell|ask|get|make"
+     rf"|have|let|force|i\s+need|we\s+need)\s+({_VEH})\s+to\s+", r"\1 should "),
+    (rf"\bkeep\s+({_VEH})\s+in\s+(?:its|their|the)\s+(?:own\s+|current\s+)?lanes?\b",
+     r"\1 keep their lanes"),
+    (rf"^\s*(?:please\s+)?({_VEH})\s*[,:]\s*(?!(?:and|or|{_NUMBER_WORD})\b)(?=[a-z])",
+     r"\1 should "),
+)
+
+
+def canonical_units(text: str) -> str:
+    """Hyphenated quantities split, speed units in the spelling the compiler reads."""
+    for pattern, repl in _UNITS:
+        text = re.sub(pattern, repl, text, flags=re.IGNORECASE)
+    return text
+
+
+def canonical_wording(text: str) -> str:
+    """Bounds, "over one lane" and imperatives in the compiler's wording (module docstring, step 5)."""
+    for pattern, repl in _WORDING:
+        text = re.sub(pattern, repl, text, flags=re.IGNORECASE)
+    return text
+
+
+_LIST = re.compile(
+    r"\b((?:vehicles|cars|agents|trucks)\s+)(#?\d+(?:\s*(?:,\s*(?:and\s+)?|and\s+|&\s*)#?\d+)+)",
+    re.IGNORECASE,
+)
+
+
+def join_lists(text: str) -> str:
+    """"vehicles 1, 2 and 3" -> "vehicles 1 & 2 & 3": a list of vehicles is one subject, not clauses."""
+
+    def joined(m: re.Match[str]) -> str:
+        return m.group(1) + " & ".join(re.findall(r"#?\d+", m.group(2)))
+
+    return _LIST.sub(joined, text)
+
+
+def normalise(query: str) -> str:
+    """``query`` rewritten into the compiler's wording (module docstring); already canonical text is
+    returned unchanged."""
+    text = query
+    for fancy, plain in (("–", "-"), ("—", "-"), ("’", "'"), ("‘", "'"), ("\u00a0", " ")):
+        text = text.replace(fancy, plain)
+    text = correct_typos(text)
+    text = numbers_to_digits(text)
+    text = canonical_units(text)
+    text = canonical_wording(text)
+    text = join_lists(text)
+    return re.sub(r"[ \t]{2,}", " ", text).strip()
+
+
+def original_span(read_as: str, query: str, span: tuple[int, int]) -> tuple[int, int]:
+    """The span of ``query`` that ``span`` of its normalised form ``read_as`` came from (a rewritten
+    piece maps to the whole piece it replaced)."""
+    start, end = span
+    ops = difflib.SequenceMatcher(None, read_as, query, autojunk=False).get_opcodes()
+    lo, hi = 0, len(query)
+    for tag, i1, i2, j1, _ in ops:
+        if i1 <= start < i2 or (start == i2 == len(read_as)):
+            lo = j1 + (start - i1) if tag == "equal" else j1
+            break
+    for tag, i1, i2, j1, j2 in ops:
+        if i1 < end <= i2:
+            hi = j1 + (end - i1) if tag == "equal" else j2
+            break
+    return lo, max(hi, lo)

@@ -1,0 +1,112 @@
+"""The compiler's normalisation stage (issue 36, item 5): numbers in words, units, wording, lists and
+typos rewritten into the wording the query families read; hand cases and invariances."""
+
+from __future__ import annotations
+
+import pytest
+
+from ctgpp.behaviours import behaviours
+from ctgpp.language.compiler.normalise import (
+    _one_edit,
+    correct_word,
+    normalise,
+    original_span,
+    words_value,
+)
+from ctgpp.language.compiler.paraphrases import load
+
+
+@pytest.mark.parametrize(("words", "value"), [
+    ("thirty", 30), ("twenty-five", 25), ("twenty five", 25), ("one hundred", 100), ("two and a half", 2.5),
+    ("a dozen", 12), ("zero", 0), ("nineteen", 19), ("ninety nine", 99),
+])
+def test_words_value(words: str, value: float) -> None:
+    assert words_value(words) == value
+
+
+@pytest.mark.parametrize("words", ["three and four", "five twenty", "fifteen twelve", "lane"])
+def test_words_value_refuses_what_is_not_one_number(words: str) -> None:
+    assert words_value(words) is None
+
+
+@pytest.mark.parametrize(("a", "b", "one"), [
+    ("chnage", "change", True),  # two neighbours swapped
+    ("vehicel", "vehicle", True),
+    ("colide", "collide", True),  # a letter left out
+    ("stopp", "stop", True),  # one too many
+    ("rigth", "right", True),
+    ("lefft", "left", True),
+    ("cahnge", "change", True),
+    ("chaneg", "change", True),
+    ("chnaeg", "change", False),  # two swaps
+    ("change", "change", False),  # equal: no edit
+    ("stop", "stopped", False),
+])
+def test_one_edit(a: str, b: str, one: bool) -> None:
+    assert _one_edit(a, b) is one
+    assert _one_edit(b, a) is one
+
+
+@pytest.mark.parametrize(("word", "fixed"), [
+    ("chnage", "change"), ("vehicel", "vehicle"), ("shoudl", "should"), ("intersecton", "intersection"),
+    ("colide", "collide"), ("exceeed", "exceed"),
+    # left alone: known words and their inflections, short words, words two edits from any known one,
+    # and words one edit from two known ones ("slowe": slow, slower)
+    ("slowed", "slowed"), ("brakes", "brakes"), ("lanes", "lanes"), ("tunr", "tunr"), ("raod", "raod"),
+    ("cxhangx", "cxhangx"), ("slowe", "slowe"),
+])
+def test_correct_word(word: str, fixed: str) -> None:
+    assert correct_word(word) == fixed
+
+
+@pytest.mark.parametrize(("query", "read_as"), [
+    ("vehicle 2 drives at thirty km/h", "vehicle 2 drives at 30 km/h"),
+    ("tell car 3 to slow down to twenty-five mph", "car 3 should slow down to 25 mph"),
+    ("vehicle 1 stops within two and a half seconds", "vehicle 1 stops within 2.5 seconds"),
+    ("Vehicle two should chnage to the left lane", "Vehicle 2 should change to the left lane"),
+    ("vehicles two, three and four stop", "vehicles 2 & 3 & 4 stop"),
+    ("vehicles one and two stop", "vehicles 1 & 2 stop"),
+    ("keep vehicles 1, 2 and 3 in their lanes", "vehicles 1 & 2 & 3 keep their lanes"),
+    ("vehicle 4 should move over one lane to the left", "vehicle 4 should move one lane over to the left"),
+    ("vehicle 5 goes one lane to the right", "vehicle 5 goes one lane over to the right"),
+    ("vehicle 2 should get into the lane on its left", "vehicle 2 should get into the left lane"),
+    ("vehicle 2 stays not more than 15 m back from vehicle 3",
+     "vehicle 2 stays at most 15 m back from vehicle 3"),
+    ("vehicle 6 stays no closer than 12 m to vehicle 2", "vehicle 6 stays at least 12 m to vehicle 2"),
+    ("vehicle 2 keeps a two-second gap", "vehicle 2 keeps a 2 second gap"),
+    ("vehicle 4 drives at 40 km/hr", "vehicle 4 drives at 40 km/h"),
+    ("vehicle 4 drives at 20 miles an hour", "vehicle 4 drives at 20 mph"),
+    ("acceleration under 1.5 m/s^2", "acceleration under 1.5 m/s²"),
+    ("vehicle 3: stop", "vehicle 3 should stop"),
+    ("I want the ego to turn left at the next intersection",
+     "the ego should turn left at the next intersection"),
+    ("vehicle 4 should cut infront of vehicle 8", "vehicle 4 should cut in front of vehicle 8"),
+    # words that are not numbers stay words
+    ("vehicles 1, 2 and 3 change to the left lane one by one",
+     "vehicles 1 & 2 & 3 change to the left lane one by one"),
+    ("vehicle 3 should move one lane over to the right", "vehicle 3 should move one lane over to the right"),
+    ("vehicle 1 should come to a stop", "vehicle 1 should come to a stop"),
+    ("everyone stays on the road", "everyone stays on the road"),
+])
+def test_normalise_hand_cases(query: str, read_as: str) -> None:
+    assert normalise(query) == read_as
+
+
+def test_registry_phrasings_and_the_set_are_fixed_points() -> None:
+    """Normalising twice changes nothing (every behaviour's phrasings and every sentence of the
+    paraphrase set)."""
+    sentences = [p for b in behaviours().values() for p in b.phrasings] + [r["query"] for r in load()]
+    for s in sentences:
+        once = normalise(s)
+        assert normalise(once) == once, s
+
+
+def test_original_span_maps_a_rewritten_clause_back() -> None:
+    query = "vehicle two stops and vehicle 3 drives at thirty km/h"
+    read_as = normalise(query)
+    assert read_as == "vehicle 2 stops and vehicle 3 drives at 30 km/h"
+    second = read_as.index("vehicle 3")
+    lo, hi = original_span(read_as, query, (second, len(read_as)))
+    assert query[lo:hi] == "vehicle 3 drives at thirty km/h"
+    lo, hi = original_span(read_as, query, (0, read_as.index(" and")))
+    assert query[lo:hi] == "vehicle two stops"

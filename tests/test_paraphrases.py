@@ -1,0 +1,145 @@
+"""The paraphrase set (issue 36, items 4 and 5): the compiler alone reads what people write, never
+wrongly, and refuses what it cannot honour by name. Compile only (no simulation): seconds."""
+
+from __future__ import annotations
+
+import pytest
+
+from ctgpp.behaviours import behaviours
+from ctgpp.language.compiler import QueryError, UnsupportedQuery, compile_query
+from ctgpp.language.compiler.paraphrases import load, score, shares, structure
+
+N = 12
+
+
+@pytest.fixture(scope="module")
+def outcomes() -> list:
+    return [score(r) for r in load()]
+
+
+def test_the_set_covers_every_behaviour_in_two_halves() -> None:
+    rows = load()
+    assert len(rows) >= 400
+    halves = {r["half"] for r in rows}
+    assert halves == {"dev", "heldout"}
+    dev = sum(r["half"] == "dev" for r in rows)
+    assert abs(dev - (len(rows) - dev)) <= 1
+    named = {p["rule"] for r in rows if r["expect"] != "refuse" for p in r["expect"]}
+    assert named == set(behaviours())
+
+
+def test_never_wrong_and_heldout_understood(outcomes: list) -> None:
+    every = shares(outcomes)
+    held = shares(o for o in outcomes if o.half == "heldout")
+    wrong = [(o.query, o.got) for o in outcomes if o.verdict == "wrong"]
+    assert every["wrong"] <= 0.01, wrong
+    assert held["understood"] >= 0.85
+
+
+def _row(query: str, expect: object) -> dict:
+    return {"query": query, "half": "dev", "expect": expect}
+
+
+STOP_5 = {"rule": "stop", "params": {}, "vehicles": [5], "window": None, "stage": 0}
+
+
+def test_score_counts_a_changed_qualifier_as_wrong() -> None:
+    assert score(_row("vehicle 5 stops", [STOP_5])).verdict == "understood"
+    assert score(_row("vehicle 5 stops within 4 s", [STOP_5])).verdict == "wrong"  # a window dropped
+    assert score(_row("vehicle 4 stops", [STOP_5])).verdict == "wrong"  # another vehicle
+    assert score(_row("vehicle 5 stops", "refuse")).verdict == "wrong"  # compiled where it must refuse
+    assert score(_row("vehicle 5 overtakes vehicle 4", [STOP_5])).verdict == "refused"
+    assert score(_row("vehicle 5 overtakes vehicle 4", "refuse")).verdict == "understood"
+
+
+def test_a_stop_at_a_time_is_a_stop_then_not_before() -> None:
+    """"Comes to a full stop at 4 seconds" (scene-0103, issue 36): stopped from 4 s on, and still
+    moving (at least 1 m/s) over the second before 3 s, so the stop happens in the last second before
+    4 s, not at 2.7 s."""
+    got = structure("vehicle 5 comes to a full stop at 4 seconds", N)
+    assert got == [
+        {"rule": "reach_speed", "params": {"speed_mps": 1.0, "bound": "above"}, "vehicles": [5],
+         "window": [0.0, 3.0], "stage": 0},
+        {"rule": "stop", "params": {}, "vehicles": [5], "window": [4.0, None], "stage": 0},
+    ]
+    held = compile_query("vehicle 5 comes to a full stop at 4 seconds", N).parts[1].window
+    assert held is not None and held.hold
+    by = structure("vehicle 5 stops by 4 seconds", N)  # "by": a deadline, no lower bound
+    assert by == [{"rule": "stop", "params": {}, "vehicles": [5], "window": [4.0, None], "stage": 0}]
+
+
+def test_a_distance_of_is_a_target_with_a_tolerance() -> None:
+    got = structure("the ego follows vehicle 5 at a distance of 10 m", N)
+    band = {"follower": 0, "leader": 5, "min_m": 7.0, "max_m": 13.0}  # 10 m ± 3 m
+    assert got == [{"rule": "keep_distance", "params": band, "vehicles": None, "window": None, "stage": 0}]
+    bound = structure("vehicle 2 stays not more than 15 m back from vehicle 3", N)
+    assert bound[0]["params"] == {"follower": 2, "leader": 3, "min_m": 0.0, "max_m": 15.0}
+
+
+def test_a_time_gap_is_refused_by_name() -> None:
+    with pytest.raises(QueryError, match="time gap"):
+        compile_query("vehicle 2 keeps at least a 2 second gap behind vehicle 0", N)
+
+
+@pytest.mark.parametrize(("query", "named"), [
+    ("vehicle 3 overtakes vehicle 2", "overtak"),
+    ("vehicles 1 and 2 pass each other", "pass each other"),
+    ("vehicle 4 makes a U-turn", "U-turn"),
+])
+def test_an_unsupported_manoeuvre_is_refused_by_name_without_suggestions(query: str, named: str) -> None:
+    with pytest.raises(UnsupportedQuery, match="not a supported manoeuvre") as info:
+        compile_query(query, N)
+    assert named in str(info.value)
+    assert info.value.suggestions == []
+
+
+@pytest.mark.parametrize("query", [
+    "vehicle 1 moves 2 lanes to the left",  # a number no rule reads
+    "vehicle 2 drives at 5 m/s for 4 seconds",  # a time no window reads
+    "vehicle 5 changes to the left lane at 3 seconds",  # a time point for a manoeuvre
+    "vehicle 3 keeps its lane 4 m",
+])
+def test_a_number_or_time_no_part_reads_is_refused(query: str) -> None:
+    with pytest.raises(QueryError):
+        compile_query(query, N)
+
+
+@pytest.mark.parametrize("query", [
+    "vehicle 1 should not follow vehicle 2",
+    "vehicle 3 should not get within 10 m of vehicle 4",
+    "vehicle 2 should not rear-end vehicle 4",
+    "vehicle 2 should not keep its lane",
+    "vehicle 3 should not turn left at the next intersection",
+    "vehicle 6 drives 5 km/h slower than vehicle 7",  # a relative speed, not a limit for both
+])
+def test_a_negated_or_relative_reading_is_refused_never_reversed(query: str) -> None:
+    with pytest.raises(QueryError):
+        compile_query(query, N)
+
+
+@pytest.mark.parametrize(("query", "rule", "params"), [
+    ("vehicle 2 must not change lanes", "keep_lane", {"vehicle": 2}),  # the negation is the phrase
+    ("vehicle 9 should not get close to vehicle 10", "stay_away", {"vehicle": 9, "other": 10, "min_m": 10.0}),
+    ("vehicle 2 should never exceed 10 m/s", "speed_limit", {"limit_mps": 10.0}),
+    ("vehicle 2 should not drive below 10 m/s", "reach_speed", {"speed_mps": 10.0, "bound": "above"}),
+])
+def test_negations_that_keep_their_meaning(query: str, rule: str, params: dict) -> None:
+    (got,) = structure(query, N)
+    assert (got["rule"], got["params"]) == (rule, params)
+
+
+def test_follow_at_a_speed_keeps_both_and_steers_only_the_follower() -> None:
+    got = structure("vehicle 2 follows vehicle 1 at 10 m/s", N)
+    rules = {p["rule"]: p for p in got}
+    assert rules["keep_distance"]["params"]["follower"] == 2
+    assert rules["target_speed"]["vehicles"] == [2]
+
+
+def test_spans_and_texts_are_the_query_as_written() -> None:
+    query = "keep vehicles 1, 2 and 3 in their lanes and vehicle four drives at thirty km/h"
+    compiled = compile_query(query, N)
+    assert compiled.query == query
+    assert compiled.read_as == "vehicles 1 & 2 & 3 keep their lanes and vehicle 4 drives at 30 km/h"
+    for part in compiled.parts:
+        assert query[part.span[0] : part.span[1]].strip() == part.text
+    assert compiled.parts[-1].text == "vehicle four drives at thirty km/h"
