@@ -35,7 +35,8 @@ def main() -> None:
     args = parser.parse_args()
     scene = Catalog.open().load(args.scene)
     obs = initial_observation(scene, args.start)
-    obs = replace(obs, held=obs.controlled[held_numbers(obs.tracks, obs.step, obs.controlled, True)])
+    held = held_numbers(obs.scene, obs.tracks, obs.step, obs.controlled, True)
+    obs = replace(obs, held=obs.controlled[held])
     guards = RealismGuards(GuardConfig())
     batch = build_guidance_batch(obs, 52)
     model = load_checkpoint(args.checkpoint)[0]

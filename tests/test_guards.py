@@ -202,7 +202,8 @@ def test_the_guarded_plan_costs_the_guards_less() -> None:
     samples keeps the ones it helped.) The vehicles parked at the start are held, as the simulator
     holds them."""
     obs = real_observation()
-    obs = replace(obs, held=obs.controlled[held_numbers(obs.tracks, obs.step, obs.controlled, True)])
+    held = held_numbers(obs.scene, obs.tracks, obs.step, obs.controlled, True)
+    obs = replace(obs, held=obs.controlled[held])
     guards = RealismGuards(GuardConfig())
     model = load_checkpoint(default_checkpoint())[0]
     data_batch = build_guidance_batch(obs, 52)

@@ -255,6 +255,40 @@ def lane_scene() -> Rollout:
     return rollout_of(tracks(xy, [AgentType.VEHICLE] * 4, [CAR] * 4), lanes=lanes)
 
 
+def test_vehicles_at_rest_that_the_log_or_the_simulation_moves_count_as_moving():
+    """A (0) waits at the start and the log drives it off 10 steps later, 1 m per step (90 m); B (1)
+    stands the whole log; C (2) drives from the start. A simulation that freezes A and B, and one
+    that moves A 3 m and B 1.5 m."""
+    log = tracks(np.stack([path(0, 0, 1, start=20), path(0, 10, 0), path(0, 20, 1)]),
+                 [AgentType.VEHICLE] * 3, [CAR] * 3)
+    frozen = tracks(np.stack([path(0, 0, 0), path(0, 10, 0), path(0, 20, 1)]),
+                    [AgentType.VEHICLE] * 3, [CAR] * 3)
+    creep = tracks(np.stack([np.minimum(path(0, 0, 0.1, start=CURRENT + 1), [3.0, 0.0]),
+                             np.minimum(path(0, 10, 0.1, start=CURRENT + 1), [1.5, 10.0]), path(0, 20, 1)]),
+                   [AgentType.VEHICLE] * 3, [CAR] * 3)
+    r = rollout_of(log, frozen)
+    o = vehicle_outcomes(r)
+    assert o.at_rest.tolist() == [True, True, False]
+    assert o.moving.tolist() == [True, False, True]  # A moves in the log; B in neither
+    assert o.log_moved_m[0] == pytest.approx(90.0) and o.sim_moved_m[0] == 0.0
+    counts = moving_counts(r)
+    assert (counts["moving"], counts["rest_log_moves"], counts["rest_log_still"]) == (2, 1, 1)
+    m = compute_metrics(r, ["rest_moved", "rest_kept", "stop_rate"])
+    assert m["rest_moved"] == 0.0 and m["rest_kept"] == 1.0
+    assert m["stop_rate"] == 0.5  # A stands (0 m/s) in the frozen simulation, C never stops
+    m = compute_metrics(rollout_of(log, creep), ["rest_moved", "rest_kept"])
+    assert m["rest_moved"] == 1.0  # 3 m > 2 m
+    assert m["rest_kept"] == 0.0  # 1.5 m > 1 m
+    replay = compute_metrics(rollout_of(log), ["rest_moved", "rest_kept"])
+    assert replay == {"rest_moved": 1.0, "rest_kept": 1.0}  # the log scores 1 on both
+
+
+def test_no_vehicle_at_rest_leaves_the_rest_figures_undefined():
+    r = rollout_of(tracks(np.stack([path(0, 0, 1)]), [AgentType.VEHICLE], [CAR]))
+    m = compute_metrics(r, ["rest_moved", "rest_kept"])
+    assert math.isnan(m["rest_moved"]) and math.isnan(m["rest_kept"])
+
+
 def test_lane_leave_by_distance_and_direction():
     r = lane_scene()
     m = compute_metrics(r, ("lane_leave",))
@@ -324,12 +358,14 @@ def test_ade_fde_by_hand():
     assert math.isnan(o.ade[10.0][1]) and math.isnan(o.fde[10.0][1])
     m = compute_metrics(r, MOVING_METRICS)
     assert m["ade_5s"] == pytest.approx((0.255 + 2.0) / 2) and m["ade_10s"] == pytest.approx(0.505)
-    assert moving_counts(r) == {"moving": 2, "logged_5s": 2, "logged_10s": 1, "turns": 0}
+    assert moving_counts(r) == {"moving": 2, "logged_5s": 2, "logged_10s": 1, "turns": 0, "rest_log_moves": 0,
+                               "rest_log_still": 0}
 
 
 def test_no_moving_vehicle_leaves_the_figures_undefined():
     xy = np.stack([path(0, 0, 0)])
     m = compute_metrics(rollout_of(tracks(xy, [AgentType.VEHICLE], [CAR])), MOVING_METRICS)
+    assert m.pop("rest_kept") == 1.0  # the one vehicle stands, as its log does: the only figure of it
     assert all(math.isnan(v) for v in m.values())
 
 
@@ -384,8 +420,14 @@ def test_log_never_fails_and_constant_velocity_never_weaves(catalog: Catalog):
         assert log["moving_fail"] == 0.0 and log["beyond_map"] == 0.0
         assert log["ade_10s"] == 0.0 and log["fde_5s"] == 0.0
         weave.append(log["yaw_sign_changes"])
-        constvel = compute_metrics(simulate(scene, ConstantVelocityPolicy(), start), MOVING_METRICS)
-        assert constvel["yaw_sign_changes"] == 0.0 and constvel["stop_rate"] == 0.0
+        rollout = simulate(scene, ConstantVelocityPolicy(), start)
+        constvel = compute_metrics(rollout, MOVING_METRICS)
+        o = vehicle_outcomes(rollout)
+        assert constvel["yaw_sign_changes"] == 0.0
+        # constant velocity keeps each vehicle at its start speed: the ones that stop are those that
+        # counted (the log moves them) while standing (< 0.2 m/s) at the start, and only those
+        start_speed = rollout.sim.speed[o.agents[o.moving], rollout.current]
+        assert constvel["stop_rate"] == pytest.approx((start_speed < 0.2).mean())
     assert 4.0 < np.mean(weave) < 10.0  # the log weaves: ~7 sign changes per 10 s on nuScenes
 
 

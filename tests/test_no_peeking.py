@@ -43,7 +43,7 @@ def _observation(later: int = 0) -> Observation:
         past = slice(obs.step + 1, step + 1)
         for name in ("xy", "yaw", "speed", "valid"):
             getattr(tracks, name)[obs.controlled, past] = getattr(log, name)[obs.controlled, past]
-    held = obs.controlled[held_numbers(tracks, obs.step, obs.controlled, True)]
+    held = obs.controlled[held_numbers(obs.scene, tracks, obs.step, obs.controlled, True)]
     return replace(obs, step=step, held=held)
 
 

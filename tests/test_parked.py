@@ -6,9 +6,10 @@ import numpy as np
 
 from ctgpp.metrics.collision import collision_steps
 from ctgpp.policies.factory import make_policy
-from ctgpp.scene.parked import fill_parked, parked_agents
-from ctgpp.scene.types import AgentTracks, AgentType, Scene
+from ctgpp.scene.parked import PARKED_OFF_LANE_M, fill_parked, parked_agents, parked_at_start
+from ctgpp.scene.types import AgentTracks, AgentType, LaneGraph, Scene
 from ctgpp.sim.closed_loop import initial_observation, simulate
+from tests.support.rollouts import no_lanes
 
 CAR = np.array([4.0, 2.0])
 
@@ -92,3 +93,56 @@ def test_scene_0103_parked_cars_stand_from_the_start_and_the_log_misses_them(sce
     with_parked = collision_steps(replay.sim, agents, replay.future).sum()
     as_logged = collision_steps(replay.log, agents, replay.future).sum()
     assert with_parked == as_logged
+
+
+# ---------------------------------------------------------------- parked at the start: past and map only
+
+
+def _lane_along_x() -> LaneGraph:
+    """One centerline along +x from x = -50 to 50 at y = 0."""
+    edges = np.zeros((0, 2), dtype=np.int64)
+    return LaneGraph(np.array(["0"]), np.array([[-50.0, 0.0], [50.0, 0.0]]), np.array([0, 2]), edges, edges,
+                     np.full(1, -1), np.full(1, -1))
+
+
+def _at_rest(cars: list[tuple[float, float, float]], n_steps: int = 40) -> AgentTracks:
+    """Cars standing at (x, y, yaw) over ``n_steps``."""
+    n = len(cars)
+    xy = np.broadcast_to(np.array([[c[0], c[1]] for c in cars])[:, None], (n, n_steps, 2)).copy()
+    yaw = np.broadcast_to(np.array([c[2] for c in cars])[:, None], (n, n_steps)).copy()
+    return AgentTracks(np.array([f"c{i}" for i in range(n)]), np.zeros(n, dtype=np.int8), xy, yaw,
+                       np.zeros((n, n_steps)), np.array([CAR] * n), np.ones((n, n_steps), dtype=bool))
+
+
+def test_parked_at_start_is_off_the_travelled_path_and_at_rest_through_the_history() -> None:
+    # 0 waits in the lane; 1 stands 3.5 m beside it (a kerbside car); 2 stands 2.5 m beside it (still
+    # within PARKED_OFF_LANE_M: it may be waiting); 3 stands in the lane facing against it (no
+    # centerline runs its way); 4 stands beside the lane but drove there within the history.
+    t = _at_rest([(0.0, 0.0, 0.0), (10.0, 3.5, 0.0), (20.0, 2.5, 0.0), (30.0, 0.0, np.pi), (40.0, 3.5, 0.0)])
+    t.speed[4, :25] = 5.0
+    t.xy[4, :25, 0] -= 0.5 * (25 - np.arange(25))  # came from 12.5 m back
+    parked = parked_at_start(t, _lane_along_x(), 30, np.arange(5), history_steps=31)
+    assert parked.tolist() == [False, True, False, True, False]
+    assert PARKED_OFF_LANE_M == 3.0
+
+
+def test_parked_at_start_reads_no_log_after_the_start_and_no_map_parks_nobody() -> None:
+    t = _at_rest([(10.0, 3.5, 0.0), (0.0, 0.0, 0.0)])
+    before = parked_at_start(t, _lane_along_x(), 30, np.arange(2), history_steps=31)
+    t.xy[:, 31:, 0] += np.arange(9) * 2.0  # the log drives both off after the start
+    t.speed[:, 31:] = 20.0
+    assert parked_at_start(t, _lane_along_x(), 30, np.arange(2), history_steps=31).tolist() == before.tolist()
+    assert before.tolist() == [True, False]
+    assert not parked_at_start(t, no_lanes(), 30, np.arange(2), history_steps=31).any()
+
+
+def test_a_track_that_ends_while_it_moves_is_never_parked() -> None:
+    """Issue 34: a car logged for two steps at 19 m/s lies within 1 m of its median, but it is driving."""
+    log = _two_agents()
+    log.valid[0] = False
+    log.valid[0, 8:10] = True
+    log.xy[0, 8:10] = [[0.0, 0.0], [1.9, 0.0]]
+    log.speed[0, 8:10] = 19.0
+    assert parked_agents(log, np.array([-1, 0])).agents.tolist() == []
+    log.speed[0, 8:10] = 0.0  # the same two steps at rest: parked
+    assert parked_agents(log, np.array([-1, 0])).agents.tolist() == [0]

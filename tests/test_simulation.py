@@ -10,6 +10,7 @@ from ctgpp.interfaces import Observation, Plan
 from ctgpp.io.rollout_table import write_rollout
 from ctgpp.metrics import compute_metrics
 from ctgpp.policies.simple import ConstantVelocityPolicy, ReplayPolicy
+from ctgpp.scene.parked import parked_at_start
 from ctgpp.scene.types import Scene
 from ctgpp.sim.closed_loop import EpisodeError, episode_starts, simulate
 
@@ -39,20 +40,26 @@ def test_constant_velocity_keeps_speed_and_heading(scene_0103: Scene) -> None:
     c = np.flatnonzero(r.controlled)
     assert len(c) == r.controlled.sum() and r.sim.valid[c][:, r.future].all()
     speed0 = r.sim.speed[c, r.current]
-    moving = c[speed0 >= 0.5]
+    held = _parked(scene_0103, r.first_step + r.current, np.sort(c))
+    assert 0 < len(held) < (speed0 < 0.5).sum()  # some at rest are parked, the others planned
+    moving = np.setdiff1d(c, held)
     np.testing.assert_allclose(r.sim.speed[moving, -1], r.sim.speed[moving, r.current])
     np.testing.assert_allclose(r.sim.yaw[moving, -1], r.sim.yaw[moving, r.current])
     # Distance covered in 10 s equals speed × 10 s.
     dist = np.linalg.norm(r.sim.xy[moving, -1] - r.sim.xy[moving, r.current], axis=-1)
     np.testing.assert_allclose(dist, r.sim.speed[moving, r.current] * 10.0, rtol=1e-9)
-    # Vehicles stationary at the start stay exactly where they are.
-    still = c[speed0 < 0.5]
-    np.testing.assert_array_equal(r.sim.xy[still, -1], r.sim.xy[still, r.current])
+    # Vehicles parked at the start stay exactly where they are.
+    np.testing.assert_array_equal(r.sim.xy[held, -1], r.sim.xy[held, r.current])
     # Other agents are replayed from the log.
     others = ~r.controlled
     np.testing.assert_array_equal(
         r.sim.xy[others][r.log.valid[others]], r.log.xy[others][r.log.valid[others]]
     )
+
+
+def _parked(scene: Scene, step: int, agents: np.ndarray) -> np.ndarray:
+    """The ``agents`` (vehicles present at ``step``) parked there, from the log up to ``step``."""
+    return agents[parked_at_start(scene.agents, scene.lanes, step, agents, history_steps=31)]
 
 
 class Recording:
@@ -72,14 +79,14 @@ class Recording:
 
 @pytest.mark.parametrize("hold", [True, False])
 def test_the_policy_is_told_which_vehicles_are_held(scene_0103: Scene, hold: bool) -> None:
-    """Every re-plan names the vehicles stationary at the start as held (none when the policy does
-    not hold them), so that a policy need not plan them."""
+    """Every re-plan names the vehicles parked at the start as held (none when the policy does not
+    hold them), so that a policy need not plan them; the other vehicles at rest are planned."""
     policy = Recording(hold)
     r = simulate(scene_0103, policy, 4.0)
     c = np.flatnonzero(r.controlled)
-    speed0 = r.sim.speed[c, r.current]
-    want = c[speed0 < 0.5] if hold else c[:0]
-    assert len(policy.held) == 20 and len(c[speed0 < 0.5]) > 0
+    parked = _parked(scene_0103, r.first_step + r.current, c)
+    want = parked if hold else c[:0]
+    assert len(policy.held) == 20 and len(parked) > 0
     for held in policy.held:
         np.testing.assert_array_equal(np.sort(held), np.sort(want))
 
@@ -91,8 +98,8 @@ def test_vehicles_to_drive_are_planned_although_stationary(scene_0103: Scene) ->
     base = simulate(scene_0103, base_policy, 4.0)
     order = np.argsort(np.where(base.number >= 0, base.number, np.iinfo(np.int64).max))
     agents = order[: base.controlled.sum()]  # (V,) agent indices in displayed order
-    speed0 = base.sim.speed[agents, base.current]
-    parked, moving = np.flatnonzero(speed0 < 0.5), np.flatnonzero(speed0 >= 0.5)
+    is_parked = np.isin(agents, _parked(scene_0103, base.first_step + base.current, agents))
+    parked, moving = np.flatnonzero(is_parked), np.flatnonzero(~is_parked)
     assert len(parked) > 1 and len(moving) > 0
     for drive in ((), [int(moving[0])], [int(moving[0]), 999]):
         same = simulate(scene_0103, Recording(True), 4.0, drive=drive)

@@ -120,20 +120,26 @@ def test_a_logged_left_turn_followed_or_not(sim_turn_deg: float, expected: float
     assert turn_follow(r) == expected
 
 
-def test_small_turns_and_cars_at_rest_at_the_start_are_not_counted():
+def test_small_turns_are_not_counted_and_cars_that_move_off_from_rest_are():
     # Car 0 turns left 90° as logged, and so does its simulation (followed).
     # Car 1's log turns left only 50° (< 60°: not a logged turn), though its simulation turns 90°.
-    # Car 2 turns right 90° but stands until step 15, after the start: held, not moving, not counted.
+    # Car 2 turns right 90° but stands until step 15, after the start: it moves off from rest in the
+    # log (and the simulation), so it counts (issue 34: every vehicle that moves), followed.
     # Car 3 turns right 90° in the log, goes straight in the simulation (not followed).
     log = tracks([headings(90.0), headings(50.0), headings(-90.0), headings(-90.0)], moves_from=[0, 0, 15, 0])
     sim = tracks([headings(90.0), headings(90.0), headings(-90.0), headings(0.0)], moves_from=[0, 0, 15, 0])
     r = rollout_of(log, sim)
     o = vehicle_outcomes(r)
-    assert o.moving.tolist() == [True, True, False, True]
-    assert o.turn.tolist() == [1, 0, -1, -1]  # the log of car 2 turns, but car 2 does not count
+    assert o.at_rest.tolist() == [False, False, True, False]
+    assert o.moving.tolist() == [True, True, True, True]
+    assert o.turn.tolist() == [1, 0, -1, -1]
     assert o.turn_followed.tolist() == [True, False, True, False]
-    assert moving_counts(r)["turns"] == 2  # cars 0 and 3
-    assert turn_follow(r) == 0.5
+    assert moving_counts(r)["turns"] == 3  # cars 0, 2 and 3
+    assert turn_follow(r) == pytest.approx(2 / 3)
+    # standing in the simulation instead, car 2 still counts (its log moves) and misses its turn
+    frozen = tracks([headings(90.0), headings(90.0), headings(0.0), headings(0.0)],
+                    moves_from=[0, 0, STEPS, 0])
+    assert turn_follow(rollout_of(log, frozen)) == pytest.approx(1 / 3)
 
 
 def test_no_logged_turn_leaves_the_figure_undefined():

@@ -60,7 +60,7 @@ def guards_record(
         guarded = ", ".join(GUARDED_POLICIES)
         return {"ran": [], "note": f"policy {name} takes no guards (only the diffusion policies {guarded})"}
     controlled = controlled_vehicles(scene, step)
-    held = held_numbers(scene.agents, step, controlled, policy.hold_stationary, scope.moves)
+    held = held_numbers(scene, scene.agents, step, controlled, policy.hold_stationary, scope.moves)
     return guard_report(guards, scope, len(controlled), [int(v) for v in held])
 
 

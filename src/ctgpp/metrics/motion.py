@@ -14,6 +14,8 @@
   valid at h, the mean distance (m) between its simulated and logged centres over the future steps
   up to h where both are valid, and the distance at h. Undefined (NaN) for a vehicle whose log ends
   before h.
+- Distance from the start: the farthest a vehicle's centre gets from where it is at the start, over
+  the future steps where its track is valid (NaN with none), in the simulation or in the log.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ import numpy as np
 
 from ctgpp.geometry import wrap_angle
 from ctgpp.interfaces import Rollout
+from ctgpp.scene.types import AgentTracks
 
 # A standstill, what stop_rate counts (EVALUATION.md): a near-zero speed at one step. Not the
 # moving threshold (ctgpp.scene.vehicles.MOVING_SPEED_MPS, 0.5 m/s), which decides who is at rest at
@@ -30,6 +33,15 @@ from ctgpp.interfaces import Rollout
 STANDSTILL_SPEED_MPS = 0.2
 YAW_RATE_DEAD_BAND_RADPS = 1e-3
 HORIZONS_S = (5.0, 10.0)
+
+
+def farthest_from_start(tracks: AgentTracks, agents: np.ndarray, current: int, future: slice) -> np.ndarray:
+    """(C,) m: the farthest each of ``agents`` gets from its position at window step ``current``
+    over the ``future`` steps of ``tracks`` where it is valid; NaN where it is valid at none."""
+    gap = np.linalg.norm(tracks.xy[agents, future] - tracks.xy[agents, current][:, None], axis=-1)
+    seen = tracks.valid[agents, future]  # (C, T)
+    far = np.where(seen, gap, -np.inf).max(axis=1, initial=-np.inf)
+    return np.where(seen.any(axis=1), far, np.nan)
 
 
 def stop_steps(rollout: Rollout, agents: np.ndarray) -> np.ndarray:

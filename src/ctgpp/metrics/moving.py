@@ -1,8 +1,9 @@
-"""The figures users see (DESIGN.md, Metrics), over the vehicles that move at the start.
+"""The figures users see (DESIGN.md, Metrics), over the vehicles that move.
 
-``fail`` averages over every controlled vehicle, most of them parked and held still, which hides how
-the moving ones fare. These metrics are over the controlled vehicles faster than 0.5 m/s at the
-start (``outcomes``), each a share of them or a mean over them, per episode:
+``fail`` averages over every controlled vehicle, most of them parked and standing still, which hides
+how the moving ones fare. These metrics are over the controlled vehicles that move (``outcomes``:
+faster than 0.5 m/s at the start, or carried more than 2 m from their start in the log or in the
+simulation), each a share of them or a mean over them, per episode:
 
 - ``moving_fail``: collides or goes off-road; ``moving_collision_rate``; ``moving_offroad_rate``
   (centre off the drivable area), leaving out the vehicles beyond the map;
@@ -22,6 +23,13 @@ start (``outcomes``), each a share of them or a mean over them, per episode:
   ``turns``), the share whose simulated heading changes by more than 45° the same way by then
   (``metrics.turns``): the log scores 1 by construction, constant velocity 0.
 
+Two more are over the vehicles at rest (slower than 0.5 m/s) at the start, against what the log does
+with them: ``rest_moved``, of those the log carries more than ``LOG_MOVES_M`` (5 m) from their start
+(a queue discharging, a car pulling out; their count is ``rest_log_moves``), the share the
+simulation carries more than ``MOVED_M`` (2 m): the log scores 1, a simulator that freezes them 0;
+``rest_kept``, of those the log keeps within ``KEPT_M`` (1 m) (``rest_log_still``), the share the
+simulation keeps within 1 m.
+
 Every metric is invalid in an episode without a vehicle it averages over. Over many episodes these
 figures are pooled over vehicles (:func:`pooled_mean`): each episode weighs by the count of vehicles
 behind its value (:func:`moving_counts`, named by :data:`POOL_WEIGHT`).
@@ -34,7 +42,7 @@ from collections.abc import Iterable
 import numpy as np
 
 from ctgpp.interfaces import Rollout
-from ctgpp.metrics.outcomes import vehicle_outcomes
+from ctgpp.metrics.outcomes import MOVED_M, VehicleOutcomes, vehicle_outcomes
 from ctgpp.metrics.registry import MetricValue, register_metric
 
 MOVING_METRICS = (
@@ -53,8 +61,12 @@ MOVING_METRICS = (
     "ade_10s",
     "fde_10s",
     "turn_follow",
+    "rest_moved",
+    "rest_kept",
 )
-MOVING_COUNTS = ("moving", "logged_5s", "logged_10s", "turns")
+MOVING_COUNTS = ("moving", "logged_5s", "logged_10s", "turns", "rest_log_moves", "rest_log_still")
+LOG_MOVES_M = 5.0  # a vehicle at rest at the start that the log carries this far has clearly moved off
+KEPT_M = 1.0  # one that the log keeps this close stands (a creep of a queue is under it)
 # the count of vehicles each metric averages over (a key of :func:`moving_counts`)
 POOL_WEIGHT = {name: "moving" for name in MOVING_METRICS} | {
     "ade_5s": "logged_5s",
@@ -62,6 +74,8 @@ POOL_WEIGHT = {name: "moving" for name in MOVING_METRICS} | {
     "ade_10s": "logged_10s",
     "fde_10s": "logged_10s",
     "turn_follow": "turns",
+    "rest_moved": "rest_log_moves",
+    "rest_kept": "rest_log_still",
 }
 
 
@@ -112,7 +126,7 @@ def beyond_map(rollout: Rollout) -> MetricValue:
 
 @register_metric("first_partner_held")
 def first_partner_held(rollout: Rollout) -> MetricValue:
-    """Share of the moving vehicles whose first collision is with a held (stationary at start) vehicle."""
+    """Share of the moving vehicles whose first collision is with a held vehicle (one that never moves)."""
     return _share(rollout, _partner_is(rollout, "held"))
 
 
@@ -179,10 +193,43 @@ def turn_follow(rollout: Rollout) -> MetricValue:
     return MetricValue(float(o.turn_followed[turned].mean()), True) if turned.any() else MetricValue.invalid()
 
 
+def _log_moves(o: VehicleOutcomes) -> np.ndarray:
+    """(C,) at rest at the start and carried more than LOG_MOVES_M by the log."""
+    return o.at_rest & (np.nan_to_num(o.log_moved_m) > LOG_MOVES_M)
+
+
+def _log_still(o: VehicleOutcomes) -> np.ndarray:
+    """(C,) at rest at the start and kept within KEPT_M by the log (over a logged future)."""
+    return o.at_rest & (np.nan_to_num(o.log_moved_m, nan=np.inf) <= KEPT_M)
+
+
+@register_metric("rest_moved")
+def rest_moved(rollout: Rollout) -> MetricValue:
+    """Of the vehicles at rest at the start that the log moves more than 5 m, the share the
+    simulation moves more than 2 m."""
+    o = vehicle_outcomes(rollout)
+    rows = _log_moves(o)
+    if not rows.any():
+        return MetricValue.invalid()
+    return MetricValue(float((np.nan_to_num(o.sim_moved_m[rows]) > MOVED_M).mean()), True)
+
+
+@register_metric("rest_kept")
+def rest_kept(rollout: Rollout) -> MetricValue:
+    """Of the vehicles at rest at the start that the log keeps within 1 m, the share the simulation
+    keeps within 1 m."""
+    o = vehicle_outcomes(rollout)
+    rows = _log_still(o)
+    if not rows.any():
+        return MetricValue.invalid()
+    return MetricValue(float((np.nan_to_num(o.sim_moved_m[rows]) <= KEPT_M).mean()), True)
+
+
 def moving_counts(rollout: Rollout) -> dict[str, int]:
     """The vehicles behind the metrics of one episode: ``moving``, ``logged_5s`` / ``logged_10s``
     (the moving vehicles whose log lasts to the horizon, behind ADE / FDE) and ``turns`` (the moving
-    vehicles whose log turns, behind ``turn_follow``)."""
+    vehicles whose log turns, behind ``turn_follow``), ``rest_log_moves`` / ``rest_log_still``
+    (the vehicles at rest at the start the log moves / keeps, behind ``rest_moved`` / ``rest_kept``)."""
     o = vehicle_outcomes(rollout)
     logged = {h: int((o.moving & ~np.isnan(o.fde[h])).sum()) for h in (5.0, 10.0)}
     return {
@@ -190,6 +237,8 @@ def moving_counts(rollout: Rollout) -> dict[str, int]:
         "logged_5s": logged[5.0],
         "logged_10s": logged[10.0],
         "turns": int((o.moving & (o.turn != 0)).sum()),
+        "rest_log_moves": int(_log_moves(o).sum()),
+        "rest_log_still": int(_log_still(o).sum()),
     }
 
 

@@ -2,10 +2,14 @@
 over the vehicles moving at the start (``metrics.moving``), the per-vehicle events
 (``metrics.events``) and the failure marks on pictures (``viz.events``).
 
-Kinds of vehicles, fixed at the simulation start: *moving* — controlled and faster than 0.5 m/s
-(the vehicles of ``real``); *held* — controlled and slower (parked or waiting; the simulator keeps
-them still under the policies that hold stationary vehicles). Every other agent is *replayed* from
-the log (pedestrians, cyclists, static obstacles, and vehicles that appear after the start).
+Kinds of vehicles: *moving* — controlled, and faster than 0.5 m/s at the start or carried more than
+``MOVED_M`` (2 m) from where it starts in the log or in the simulation: every vehicle that moves in
+either counts, so a queue the simulation leaves standing where the log's discharges counts against
+it, and so does a parked car it sets off; *held* — controlled and neither (parked, or waiting the
+whole episode; the simulator holds the parked ones still under the policies that hold them, the
+others it plans). Every other agent is *replayed* from the log (pedestrians, cyclists, static
+obstacles, and vehicles that appear after the start). ``real`` keeps its own vehicles: those moving
+at the start (``metrics.realism``).
 """
 
 from __future__ import annotations
@@ -18,19 +22,29 @@ import numpy as np
 from ctgpp.interfaces import Rollout
 from ctgpp.metrics.collision import controlled_vehicle_indices, first_contacts
 from ctgpp.metrics.lane_keeping import lane_leave_steps
-from ctgpp.metrics.motion import HORIZONS_S, displacement_errors, rollout_yaw_sign_changes, stop_steps
+from ctgpp.metrics.motion import (
+    HORIZONS_S,
+    displacement_errors,
+    farthest_from_start,
+    rollout_yaw_sign_changes,
+    stop_steps,
+)
 from ctgpp.metrics.offroad import beyond_map_steps, first_step, offroad_steps
 from ctgpp.metrics.realism import realism_vehicles
 from ctgpp.metrics.turns import followed_turns
 
 PARTNER_KINDS = ("held", "moving", "replayed")
+MOVED_M = 2.0  # carried this far from its start, a vehicle at rest at the start has moved off
 
 
 @dataclass(frozen=True, eq=False)
 class VehicleOutcomes:
     """Per controlled vehicle (C, in agent order): window step indices, -1 where the event never happens.
 
-    agents (C,) agent indices; moving (C,) bool. hit_step / partner: the first collision (with any
+    agents (C,) agent indices; moving (C,) bool (the module's note). at_rest (C,) bool: slower than
+    0.5 m/s at the start. log_moved_m / sim_moved_m (C,) m: the farthest the log / the simulation
+    carries it from its start position (``motion.farthest_from_start``; NaN when the log holds no
+    future step of it). hit_step / partner: the first collision (with any
     agent, replayed ones included) and the agent hit then. offroad_step: the first off-road step of
     a vehicle that stays on the map (-1 for one beyond the map: it is reported by ``beyond_step``,
     see ``offroad.beyond_map_steps``). lane_step: first step > 2 m from every same-direction
@@ -45,6 +59,9 @@ class VehicleOutcomes:
 
     agents: np.ndarray
     moving: np.ndarray
+    at_rest: np.ndarray
+    log_moved_m: np.ndarray
+    sim_moved_m: np.ndarray
     hit_step: np.ndarray
     partner: np.ndarray
     offroad_step: np.ndarray
@@ -77,7 +94,10 @@ def vehicle_outcomes(rollout: Rollout) -> VehicleOutcomes:
     if cached is not None:
         return cached
     agents = controlled_vehicle_indices(rollout)
-    moving = np.isin(agents, realism_vehicles(rollout))
+    at_rest = ~np.isin(agents, realism_vehicles(rollout))
+    log_moved = farthest_from_start(rollout.log, agents, rollout.current, rollout.future)
+    sim_moved = farthest_from_start(rollout.sim, agents, rollout.current, rollout.future)
+    moving = ~at_rest | (np.nan_to_num(log_moved) > MOVED_M) | (np.nan_to_num(sim_moved) > MOVED_M)
     hit_step, partner = first_contacts(rollout.sim, agents, rollout.future)
     beyond = beyond_map_steps(rollout, agents)
     offroad = first_step(offroad_steps(rollout, agents), rollout.future, rollout.sim.num_steps)
@@ -89,6 +109,9 @@ def vehicle_outcomes(rollout: Rollout) -> VehicleOutcomes:
     out = VehicleOutcomes(
         agents=agents,
         moving=moving,
+        at_rest=at_rest,
+        log_moved_m=log_moved,
+        sim_moved_m=sim_moved,
         hit_step=hit_step,
         partner=partner,
         offroad_step=np.where(beyond >= 0, -1, offroad),

@@ -9,9 +9,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from ctgpp.interfaces import Observation, Policy, Rollout, StageChange
-from ctgpp.scene.parked import fill_parked, parked_agents
+from ctgpp.scene.parked import fill_parked, parked_agents, parked_at_start
 from ctgpp.scene.types import AgentTracks, Scene
-from ctgpp.scene.vehicles import MOVING_SPEED_MPS, controlled_vehicles
+from ctgpp.scene.vehicles import controlled_vehicles
 
 
 class EpisodeError(ValueError):
@@ -109,7 +109,7 @@ def simulate(
 
     Every ``replan_every`` steps the policy plans ``horizon_steps`` from the simulated history; the
     first ``replan_every`` planned states are executed. Vehicles present at the start are controlled;
-    with ``policy.hold_stationary`` those slower than 0.5 m/s at the start stay where they are, except
+    with ``policy.hold_stationary`` the parked ones (:func:`held_numbers`) stay where they are, except
     ``drive`` (displayed numbers: the vehicles a rule or query steers, which the policy plans).
     ``on_replan(done, total)`` reports progress.
     """
@@ -117,7 +117,7 @@ def simulate(
     step0, tracks, controlled = obs.step, obs.tracks, obs.controlled
     first = step0 - (config.history_steps - 1)
     window = config.history_steps + config.duration_steps
-    still = controlled[held_numbers(tracks, step0, controlled, policy.hold_stationary, drive)]
+    still = controlled[held_numbers(scene, tracks, step0, controlled, policy.hold_stationary, drive)]
     rng = np.random.default_rng(seed)
     n_replans = -(-config.duration_steps // config.replan_every)
     changes: list[tuple[float, StageChange]] = []  # what the plan stages did, re-plan by re-plan
@@ -150,15 +150,22 @@ def simulate(
 
 
 def held_numbers(
-    tracks: AgentTracks, step: int, controlled: np.ndarray, hold_stationary: bool, drive: Iterable[int] = ()
+    scene: Scene,
+    tracks: AgentTracks,
+    step: int,
+    controlled: np.ndarray,
+    hold_stationary: bool,
+    drive: Iterable[int] = (),
 ) -> np.ndarray:
     """The displayed numbers (H,) of the ``controlled`` vehicles (V,) the simulator holds still: with
-    ``hold_stationary``, those slower than ``MOVING_SPEED_MPS`` at ``step`` and not in ``drive``."""
+    ``hold_stationary``, those parked at ``step`` (:func:`~ctgpp.scene.parked.parked_at_start`: from
+    ``tracks`` up to ``step`` over the model's 3 s history and ``scene``'s lanes) and not in ``drive``."""
     if not hold_stationary:
         return np.zeros(0, dtype=np.int64)
-    slow = tracks.speed[controlled, step] < MOVING_SPEED_MPS  # (V,)
-    slow[np.asarray(sorted({int(v) for v in drive} & set(range(len(controlled)))), dtype=np.int64)] = False
-    return np.flatnonzero(slow)
+    history = int(round(HISTORY_S / scene.dt_s)) + 1
+    parked = parked_at_start(tracks, scene.lanes, step, controlled, history)  # (V,)
+    parked[np.asarray(sorted({int(v) for v in drive} & set(range(len(controlled)))), dtype=np.int64)] = False
+    return np.flatnonzero(parked)
 
 
 def initial_observation(scene: Scene, start_s: float, config: SimConfig = SimConfig()) -> Observation:
