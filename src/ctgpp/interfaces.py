@@ -29,8 +29,9 @@ class Observation:
     horizon_steps: how many future steps to plan. held: the controlled vehicles the simulator keeps
     still whatever is planned for them (parked at the start,
     :func:`~ctgpp.scene.parked.parked_at_start`, with a policy that ``hold_stationary``), agent
-    indices: a policy may plan them as standing still and spend nothing on them. start_step: the episode's first simulated step (the step of its first re-plan; ``step`` at
-    that re-plan), keyword only: what a rule fixes at the start of the episode ("within 5 s", "the
+    indices: a policy may plan them as standing still and spend nothing on them. start_step: the
+    episode's first simulated step (the step of its first re-plan; ``step`` at that re-plan),
+    keyword only: what a rule fixes at the start of the episode ("within 5 s", "the
     point 20 m ahead of it", the lane it changes to) is read at this step of ``tracks``.
     """
 
