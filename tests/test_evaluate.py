@@ -238,6 +238,19 @@ def test_split_specs_name_the_evaluation_sets(tmp_path: Path) -> None:
     assert EvalSet.of(Path("data/ngsim/"), "heldout").name == "ngsim:heldout"
 
 
+def test_every_kth_scene_of_a_split_is_a_fixed_subset(catalog: Catalog) -> None:
+    """``SPLIT/K``: the 1st, (K+1)-th ... scene of SPLIT in id order, the written-down validation
+    subsets (docs/decisions/evaluation-sets.md); a K that is not a positive integer is refused."""
+    every = catalog.ids("mini_train")
+    assert len(every) == 8
+    assert catalog.ids("mini_train/3") == [every[0], every[3], every[6]]
+    assert catalog.ids("mini_train/1") == every
+    assert catalog.ids("mini_train/99") == every[:1]
+    for bad in ("mini_train/0", "mini_train/x", "mini_train/-2"):
+        with pytest.raises(ValueError, match="positive integer"):
+            catalog.ids(bad)
+
+
 def test_ablation_checkpoints_are_named_per_method(tmp_path: Path) -> None:
     factory = PolicyFactory(checkpoints={"ctgpp-scene_centric": tmp_path / "none"})
     factory.check(["replay", "ctgpp"])  # the shipped ctgpp checkpoint exists

@@ -59,7 +59,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         default=None,
         metavar="[DIR:]SPLIT",
         help="an evaluation set: a split of --data (default: the embedded data) or DIR:SPLIT "
-        "(repeatable; default: mini_val)",
+        "(repeatable; default: mini_val); SPLIT/K takes every K-th scene of SPLIT (val/6)",
     )
     p.add_argument("--seeds", type=int, default=1, help="number of seeds (0, 1, ...)")
     p.add_argument("--spacing", type=float, default=1.0, metavar="SEC", help="seconds between episode starts")

@@ -76,7 +76,14 @@ class Catalog:
         return cls(root, entries)
 
     def ids(self, split: str | None = None) -> list[str]:
-        """Scene ids, optionally of one split."""
+        """Scene ids, optionally of one split; ``SPLIT/K`` takes every K-th scene of SPLIT in id order
+        from the first (``val/6``: the 1st, 7th, 13th ...), a fixed subset for a quick, written-down
+        validation set. ValueError for a K that is not a positive integer."""
+        if split is not None and "/" in split:
+            split, _, every = split.rpartition("/")
+            if not every.isdigit() or int(every) < 1:
+                raise ValueError(f"{split}/{every}: expected SPLIT/K with K a positive integer (val/6)")
+            return self.ids(split)[:: int(every)]
         return [e.id for e in self.entries if split is None or e.split == split]
 
     def splits(self) -> list[str]:
