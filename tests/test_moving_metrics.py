@@ -279,8 +279,11 @@ def test_vehicles_at_rest_that_the_log_or_the_simulation_moves_count_as_moving()
     m = compute_metrics(rollout_of(log, creep), ["rest_moved", "rest_kept"])
     assert m["rest_moved"] == 1.0  # 3 m > 2 m
     assert m["rest_kept"] == 0.0  # 1.5 m > 1 m
-    replay = compute_metrics(rollout_of(log), ["rest_moved", "rest_kept"])
-    assert replay == {"rest_moved": 1.0, "rest_kept": 1.0}  # the log scores 1 on both
+    replay = compute_metrics(rollout_of(log), ["rest_moved", "rest_kept", "speed_ratio"])
+    assert replay == {"rest_moved": 1.0, "rest_kept": 1.0, "speed_ratio": 1.0}  # the log scores 1
+    # frozen: A stands where the log drives it at 10 m/s over steps 20..110 (91 of the 100 future
+    # steps; speeds are forward differences), C drives as logged (10 m/s over 100 steps)
+    assert compute_metrics(r, ["speed_ratio"])["speed_ratio"] == pytest.approx(1000 / (1000 + 910))
 
 
 def test_no_vehicle_at_rest_leaves_the_rest_figures_undefined():

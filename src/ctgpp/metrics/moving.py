@@ -18,6 +18,9 @@ simulation), each a share of them or a mean over them, per episode:
   10 s (``motion``);
 - ``ade_5s``, ``fde_5s``, ``ade_10s``, ``fde_10s``: displacement from the log (m), over the moving
   vehicles whose log lasts to the horizon.
+- ``speed_ratio``: the moving vehicles' mean simulated speed over the mean logged speed, both over
+  the future steps where the simulation and the log hold the vehicle (vehicle-steps pooled; the log
+  scores 1; timid traffic below 1);
 - ``turn_follow``: of the moving vehicles whose logged heading changes by more than 60° from the start
   to their last logged step (a logged turn, at an intersection or a roundabout exit; their count is
   ``turns``), the share whose simulated heading changes by more than 45° the same way by then
@@ -61,6 +64,7 @@ MOVING_METRICS = (
     "ade_10s",
     "fde_10s",
     "turn_follow",
+    "speed_ratio",
     "rest_moved",
     "rest_kept",
 )
@@ -74,6 +78,7 @@ POOL_WEIGHT = {name: "moving" for name in MOVING_METRICS} | {
     "ade_10s": "logged_10s",
     "fde_10s": "logged_10s",
     "turn_follow": "turns",
+    "speed_ratio": "moving",
     "rest_moved": "rest_log_moves",
     "rest_kept": "rest_log_still",
 }
@@ -191,6 +196,22 @@ def turn_follow(rollout: Rollout) -> MetricValue:
     o = vehicle_outcomes(rollout)
     turned = o.moving & (o.turn != 0)
     return MetricValue(float(o.turn_followed[turned].mean()), True) if turned.any() else MetricValue.invalid()
+
+
+@register_metric("speed_ratio")
+def speed_ratio(rollout: Rollout) -> MetricValue:
+    """Mean simulated over mean logged speed of the moving vehicles, over the future steps where both
+    hold them."""
+    o = vehicle_outcomes(rollout)
+    agents, f = o.agents[o.moving], rollout.future
+    log = rollout.log
+    n = min(rollout.sim.num_steps, log.num_steps)
+    f = slice(f.start, n)
+    both = rollout.sim.valid[agents, f] & log.valid[agents, f]  # (M, T)
+    logged = float(log.speed[agents, f][both].sum())
+    if not both.any() or logged <= 0.0:
+        return MetricValue.invalid()
+    return MetricValue(float(rollout.sim.speed[agents, f][both].sum()) / logged, True)
 
 
 def _log_moves(o: VehicleOutcomes) -> np.ndarray:
