@@ -38,6 +38,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "evaluate_cmd",
         "closed-loop metrics of methods × rules over evaluation sets (the paper's Table 1)",
     ),
+    "realism": (
+        "realism_cmd",
+        "the field's realism meta-metric (WOSAC): R rollouts per scenario scored against the log",
+    ),
     "evaluate-queries": (
         "queries_cmd",
         "query benchmark: is each query satisfied guided vs unguided, with fail rates",
@@ -54,7 +58,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
 
 # commands that import torch before their first output (seconds; more on a busy machine): they say so
 # in one line first
-SLOW_START = ("simulate", "rules", "evaluate", "evaluate-queries", "train", "bench")
+SLOW_START = ("simulate", "rules", "evaluate", "realism", "evaluate-queries", "train", "bench")
 
 
 class DefaultsFormatter(argparse.HelpFormatter):
