@@ -556,17 +556,24 @@ class Canned:
         return self.replies.pop(0)
 
 
-def test_repair_message_asks_for_defaults(checker: LossChecker, scene_0103) -> None:
+def test_a_parameter_without_default_takes_the_sentences_value(checker: LossChecker, scene_0103) -> None:
+    """The paper instantiates AccLimitLoss(acc_limit) with the sentence's value (issue 36): where the
+    sentence gives it, the program runs with it; where it does not, the repair message names it."""
     batch, x = scene_0103
+    llm = Canned([f"```python\n{NEEDS_ARGUMENTS}```"])
+    result = generate_loss("vehicle 1 should accelerate below 2 m/s²", llm, batch, x * 3.0, cache=False,
+                           checker=checker, time_limit_s=TIME_LIMIT_S)
+    assert result.rounds == 1 and "def __init__(self, acc_limit=2, target_ind=1):" in result.code
     fixed = NEEDS_ARGUMENTS.replace("self, acc_limit, target_ind=1", "self, acc_limit=2.0, target_ind=1")
     llm = Canned([f"```python\n{NEEDS_ARGUMENTS}```", f"```python\n{fixed}```"])
-    result = generate_loss("vehicle 1 should accelerate below 2 m/s²", llm, batch, x * 3.0, cache=False,
+    result = generate_loss("vehicle 1 should accelerate gently", llm, batch, x * 3.0, cache=False,
                            checker=checker, time_limit_s=TIME_LIMIT_S)
     assert result.rounds == 2 and loss_class_name(result.code) == "AccLimitLoss"
     repair = llm.seen[1][-1]
     assert repair["role"] == "user"
-    assert "give every parameter of __init__ a default value" in repair["content"]
-    assert "acc_limit" in result.errors[0]
+    assert "no default value for its parameter 'acc_limit'" in repair["content"]
+    assert "the value the query states as its default" in repair["content"]
+    assert "acc_limit" in result.errors[0] and "target_ind" not in result.errors[0]
 
 
 # ---- several classes open no door ---------------------------------------------------------------

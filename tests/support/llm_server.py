@@ -28,8 +28,8 @@ def reply(code: str) -> str:
 
 
 class CannedServer:
-    """POST /v1/chat/completions answers the queued replies in order (text, or (status, message)),
-    each after ``delay_s`` seconds."""
+    """POST /v1/chat/completions answers the queued replies in order (text, (status, message), or
+    bytes sent as the body itself), each after ``delay_s`` seconds."""
 
     def __init__(self) -> None:
         self.replies: list[Any] = []
@@ -43,6 +43,14 @@ class CannedServer:
                 server.requests.append(body)
                 time.sleep(server.delay_s)
                 item = server.replies.pop(0) if server.replies else (500, "no canned reply left")
+                if isinstance(item, bytes):  # a body that is not a chat completion, sent as is
+                    self.send_response(200)
+                    kind = "text/html" if item.startswith(b"<") else "application/json"
+                    self.send_header("Content-Type", kind)
+                    self.send_header("Content-Length", str(len(item)))
+                    self.end_headers()
+                    self.wfile.write(item)
+                    return
                 if isinstance(item, tuple):
                     error = {"message": item[1], "type": "invalid_request_error"}
                     status, payload = item[0], {"error": error}

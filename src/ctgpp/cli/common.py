@@ -21,6 +21,29 @@ if TYPE_CHECKING:
     from ctgpp.policies.stages import StageConfig
 
 
+MAX_QUERY_CHARS = 300  # the playground's limit too (ctgpp.serve.schema.MAX_SENTENCE_CHARS)
+
+
+def check_query(query: str | None, option: str = "query") -> None:
+    """Raise a one-line ValueError naming ``option`` for a query longer than :data:`MAX_QUERY_CHARS`
+    or one with no words."""
+    if query is None:
+        return
+    if not query.strip():
+        raise ValueError(f"the {option} is empty: say what the traffic should do, e.g. "
+                         "\"vehicle 1 should collide with vehicle 2\"")
+    if len(query) > MAX_QUERY_CHARS:
+        raise ValueError(f"the {option} is {len(query)} characters long, more than the {MAX_QUERY_CHARS} "
+                         "allowed: say what the traffic should do in a sentence or two")
+
+
+def check_seed(seed: int, option: str = "--seed") -> None:
+    """Raise a one-line ValueError naming ``option`` unless ``seed`` is a non-negative integer that numpy
+    and torch accept (below 2**32)."""
+    if not 0 <= seed < 2**32:
+        raise ValueError(f"{option} must be an integer from 0 to {2**32 - 1} (got {seed})")
+
+
 def add_data_arg(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--data",

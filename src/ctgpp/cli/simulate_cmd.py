@@ -18,6 +18,8 @@ from ctgpp.cli.common import (
     add_llm_args,
     add_model_args,
     add_stage_args,
+    check_query,
+    check_seed,
     guard_config,
     guidance_config,
     llm_config,
@@ -99,7 +101,9 @@ def run_simulate(args: argparse.Namespace) -> int:
     from ctgpp.api.episode import default_scene_id, simulate
     from ctgpp.metrics import MOVING_METRICS
 
-    check_output_dir(args.out)  # every bad input is reported before any work starts
+    check_seed(args.seed)  # every bad input is reported before any work starts
+    check_query(args.query)
+    check_output_dir(args.out)
     for kind in args.export:
         check_export_kind(kind)  # commonroad-io missing: one line, before the episode runs
     catalog = open_catalog(args)

@@ -46,6 +46,12 @@ def check_output_dir(path: Path, option: str = "--out") -> None:
         raise NotADirectoryError(f"{option} {path}: {parent} is a file, not a directory")
     if not os.access(parent, os.W_OK | os.X_OK):
         raise PermissionError(f"{option} {path}: {parent} is not writable")
+    try:  # what os.access cannot tell (a read-only mount, root, ACLs): a file really created there
+        fd, probe = tempfile.mkstemp(prefix=".ctgpp-write-check-", dir=parent)
+    except OSError as err:
+        raise PermissionError(f"{option} {path}: cannot write into {parent} ({err.strerror})") from None
+    os.close(fd)
+    os.unlink(probe)
 
 
 class StagedFiles:

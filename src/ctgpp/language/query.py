@@ -2,7 +2,8 @@
 
 Offline by default: the project's query compiler. With a language model configured: the model's
 program, sandboxed and tried on the episode's real scene batch, then run for every call of sampling in
-its limited worker process (:class:`ctgpp.language.llm.remote.RemoteLoss`); when every round of it is
+its limited worker process (:class:`ctgpp.language.llm.remote.RemoteLoss`), all of them within the
+episode's :class:`~ctgpp.language.llm.budget.LifetimeBudget`; when every round of it is
 refused (or the model cannot be reached) the compiler takes over, and the user is told. A program
 stopped during sampling is evicted from the cache and :func:`fall_back` gives the compiler's loss.
 """
@@ -23,6 +24,7 @@ from ctgpp.guidance.context import build_guidance_batch
 from ctgpp.guidance.scope import LossScope
 from ctgpp.interfaces import Observation
 from ctgpp.language.compiler import CompiledQuery, QueryError, compile_query
+from ctgpp.language.llm.budget import LifetimeBudget
 from ctgpp.language.llm.cache import LossCache
 from ctgpp.language.llm.client import LLMClient, LLMConfig, LLMError
 from ctgpp.language.llm.generate import GenerationFailed, generate_loss
@@ -107,7 +109,8 @@ def resolve_query(query: str, obs: Observation, llm: LLMConfig | None, max_repai
     try:
         generated = generate_loss(query, LLMClient(llm), build_guidance_batch(obs), probe_x(obs), max_repairs,
                                   checker=checker, reference=compiled)
-        loss = generated.build(checker)  # every call of sampling runs in the worker, limited
+        budget = LifetimeBudget(compiled.loss if compiled is not None else None)
+        loss = generated.build(checker, budget=budget)  # every call of sampling runs in the worker, limited
     except (GenerationFailed, LLMError, GeneratedLossError) as err:
         checker.close()
         if compiled is None:

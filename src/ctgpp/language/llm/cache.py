@@ -72,14 +72,24 @@ class LossCache:
         code = entry.get("code") if isinstance(entry, dict) else None
         return code if isinstance(code, str) else None
 
-    def put(self, query: str, model: str, code: str, rounds: int) -> None:
-        """Remember an accepted program."""
+    def put(self, query: str, model: str, code: str, rounds: int,
+            cpu_s_per_call: float | None = None) -> None:
+        """Remember an accepted program and its measured CPU seconds per call (its trial's)."""
         entries = self._entries()
         entries[self.key(query, model)] = {
             "query": query, "model": model, "prompt_version": self.prompt_version, "code": code,
             "rounds": int(rounds), "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         }
+        if cpu_s_per_call is not None:
+            entries[self.key(query, model)]["cpu_s_per_call"] = float(cpu_s_per_call)
         self._write(entries)
+
+    def cost(self, query: str, model: str) -> float | None:
+        """The CPU seconds per call measured when the program for (query, model) was cached (None:
+        no entry, or an entry without it)."""
+        entry = self._entries().get(self.key(query, model))
+        value = entry.get("cpu_s_per_call") if isinstance(entry, dict) else None
+        return float(value) if isinstance(value, int | float) else None
 
     def discard(self, query: str, model: str) -> None:
         """Forget the entry for (query, model) (e.g. when it no longer passes the checks)."""

@@ -164,7 +164,18 @@ class LLMClient:
             raise LLMError(f"{where} answered HTTP {e.status_code}: {_message(e)}") from None
         except err.APIError as e:  # malformed responses and the like
             raise LLMError(f"{where} gave an unusable answer: {_message(e)}") from None
-        choices = getattr(response, "choices", None) or []
+        except ValueError as e:  # a body that says it is JSON and is not
+            raise LLMError(f"{where} answered with a body that is not JSON ({e}); is --llm-base-url the "
+                           "server's OpenAI-compatible /v1 address?") from None
+        if isinstance(response, str | bytes):  # the openai package hands back a body that is not JSON as is
+            text = response.decode(errors="replace") if isinstance(response, bytes) else response
+            raise LLMError(f"{where} answered with something that is not JSON ({len(text)} characters: "
+                           f"{_snippet(text)}); is --llm-base-url the server's OpenAI-compatible /v1 "
+                           "address?")
+        choices = getattr(response, "choices", None)
+        if choices is None:
+            raise LLMError(f"{where} answered JSON that is not a chat completion (no 'choices'); is "
+                           "--llm-base-url the server's OpenAI-compatible /v1 address?")
         content = choices[0].message.content if choices else None
         if not content or not content.strip():
             raise LLMError(f"{where} returned an empty reply for model {cfg.model!r}")
@@ -179,6 +190,12 @@ class _Retryable(Exception):
 def _message(e: BaseException) -> str:
     text = str(getattr(e, "message", "") or e)
     return text if len(text) <= 300 else text[:297] + "..."
+
+
+def _snippet(text: str, limit: int = 80) -> str:
+    """The start of ``text`` on one line, quoted."""
+    flat = " ".join(text.split())
+    return repr(flat if len(flat) <= limit else flat[: limit - 3] + "...")
 
 
 def _cause(e: BaseException) -> str:

@@ -177,6 +177,10 @@ REPAIR_HINTS: tuple[tuple[str, str], ...] = (
     ("without arguments", "give every parameter of __init__ a default value, e.g. "
      "def __init__(self, target_ind=1, speed_mps=10.0)."),
     ("no Python program", "reply with the whole program in one ```python code block."),
+    ("changed data_batch.memo", "never assign into what a helper returns: copy it first (lane * 1.0)."),
+    ("reads the wrong vehicles", "use exactly the vehicle numbers of the query as indices of x."),
+    ("no default value for its parameter", "give every parameter of __init__ the value the query "
+     "states as its default, e.g. def __init__(self, acc_limit=2.0)."),
     ("no class deriving from GuidanceLoss", "define exactly one class MyLoss(GuidanceLoss) with "
      "forward(self, x, data_batch, agt_mask=None)."),
 )

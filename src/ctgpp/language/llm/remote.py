@@ -9,6 +9,11 @@ sends back the cost and its gradient with respect to x, which a ``torch.autograd
 autograd. The worker holds its own copy of ``data_batch`` (the scene once, the rest once per re-plan), so
 nothing the program does reaches the main process or the other losses.
 
+Over the whole episode, the worker's CPU time in the program is bounded too
+(:class:`ctgpp.language.llm.budget.LifetimeBudget`, when one is given): each call's time limit is the
+per-call limit or what is left of the budget, whichever is less. ``rows`` restricts a per-vehicle
+cost (B, N) to the vehicles the sentence names (the paper's ``agt_mask``).
+
 The first breach stops the loss: the worker is killed, and this call and every later one raise
 :class:`GeneratedLossError` with the reason in one line. The caller decides what follows (``ctgpp
 simulate`` falls back to the offline compiler's loss, or stops with exit code 2 before writing).
@@ -25,6 +30,7 @@ from torch import Tensor
 
 from ctgpp.guidance.base import GuidanceLoss
 from ctgpp.guidance.context import GuidanceBatch
+from ctgpp.language.llm.budget import LifetimeBudget
 from ctgpp.language.sandbox.checks import GRACE_S, LossChecker, LossCheckError
 
 __all__ = ["CALL_TIME_LIMIT_S", "GeneratedLossError", "RemoteLoss"]
@@ -66,22 +72,28 @@ class RemoteLoss(GuidanceLoss):
     worker: a :class:`LossChecker` (None starts one); with ``own_worker`` this loss takes it over and
     stops it when the loss is stopped or closed, else it leaves it running for a next loss (the
     worker drops a failed loss's instance itself, and was killed when it did not answer in time).
-    call_time_limit_s: the time limit of each call. The program is loaded and its instance built
-    here (within ``TRANSFER_TIME_LIMIT_S``); a program that fails to load raises GeneratedLossError.
+    call_time_limit_s: the time limit of each call. rows: the vehicles a per-vehicle cost is
+    restricted to (None: all). budget: the episode's :class:`LifetimeBudget` (None: none). The
+    program is loaded and its instance built here (within ``TRANSFER_TIME_LIMIT_S``); a program that
+    fails to load raises GeneratedLossError.
     """
 
     def __init__(self, code: str, worker: LossChecker | None = None,
-                 call_time_limit_s: float = CALL_TIME_LIMIT_S, own_worker: bool = True) -> None:
+                 call_time_limit_s: float = CALL_TIME_LIMIT_S, own_worker: bool = True,
+                 rows: tuple[int, ...] | None = None, budget: LifetimeBudget | None = None) -> None:
         super().__init__()
         self.code = code
         self.call_time_limit_s = float(call_time_limit_s)
+        self.budget = budget
+        self.cpu_s = 0.0  # the worker's CPU time in this loss's calls
         self.worker = LossChecker() if worker is None else worker
         self.own_worker = own_worker or worker is None
         self.failure: str | None = None
         self.calls = 0
         self._scene: tuple[weakref.ref[Any], weakref.ref[Any]] | None = None
         self._batch: weakref.ref[Any] | None = None
-        header = self._request(("load", code, TRANSFER_TIME_LIMIT_S), TRANSFER_TIME_LIMIT_S)
+        rows = None if rows is None else tuple(int(r) for r in rows)
+        header = self._request(("load", code, rows, TRANSFER_TIME_LIMIT_S), TRANSFER_TIME_LIMIT_S)
         self.name = str(header.get("name", "generated loss"))
         self._couples = bool(header.get("couples_agents", False))
 
@@ -153,8 +165,23 @@ class RemoteLoss(GuidanceLoss):
         w = None if weights is None else weights.detach().cpu()
         size = DTYPES[x.dtype]
         limit = (x.shape[0] * x.shape[1] + (x.numel() if want_grad else 0)) * size
-        header, payload = self._exchange(("call", xc, mask, w, bool(want_grad), self.call_time_limit_s),
-                                         self.call_time_limit_s + GRACE_S, max(limit, 1))
+        time_limit = self.call_time_limit_s
+        if self.budget is not None:
+            self.budget.admit(x, batch, want_grad)
+            time_limit = self.budget.call_limit_s(self.call_time_limit_s)
+        try:
+            header, payload = self._exchange(("call", xc, mask, w, bool(want_grad), time_limit),
+                                             time_limit + GRACE_S, max(limit, 1))
+        except GeneratedLossError as err:
+            if (self.budget is not None and time_limit < self.call_time_limit_s
+                    and "did not finish within" in str(err)):
+                self.budget.charge(time_limit)  # stopped at what was left of the budget
+                self.failure = None
+                raise self._stop(self.budget.overrun()) from None
+            raise
+        self.cpu_s += float(header.get("cpu_s", 0.0))
+        if self.budget is not None and (overrun := self.budget.charge(float(header.get("cpu_s", 0.0)))):
+            raise self._stop(overrun)
         shape = tuple(int(d) for d in header.get("shape", ()))
         n_out = int(torch.Size(shape).numel())
         expected = (n_out + (x.numel() if want_grad else 0)) * size

@@ -52,7 +52,7 @@ class LossCheckError(ValueError):
 @dataclass(frozen=True)
 class CheckReport:
     """A passed check: output shape, wall time of the trial in s, |grad|₁ on the probe that moved,
-    the loss class's name and the number of calls the trial made."""
+    the loss class's name, the number of calls the trial made and the CPU seconds per call."""
 
     output_shape: tuple[int, ...]
     seconds: float
@@ -60,6 +60,7 @@ class CheckReport:
     probe: str
     name: str = ""
     calls: int = 0
+    cpu_s_per_call: float = 0.0
 
 
 class LossChecker:
@@ -198,19 +199,21 @@ class LossChecker:
         return True
 
     def check(self, loss: type[GuidanceLoss] | str, batch: GuidanceBatch, x: Tensor,
-              time_limit_s: float = 5.0) -> CheckReport:
+              time_limit_s: float = 5.0, rows: tuple[int, ...] | None = None) -> CheckReport:
         """Run the trial of :mod:`ctgpp.language.sandbox.trial` on ``loss`` — generated source code
         (loaded only in the worker) or a library class — with ``batch`` and x (B, N, T, 6), all within
-        ``time_limit_s``; returns a :class:`CheckReport` or raises :class:`LossCheckError` with the reason."""
+        ``time_limit_s``, a per-vehicle cost restricted to ``rows`` when given; returns a
+        :class:`CheckReport` or raises :class:`LossCheckError` with the reason."""
         source = loss if isinstance(loss, str) else getattr(loss, "_ctgpp_source", None)
         job = ("source", source) if isinstance(source, str) else ("class", loss)
-        reply, _ = self.request(("check", job, batch, x.detach().cpu(), float(time_limit_s)),
+        rows = None if rows is None else tuple(int(r) for r in rows)
+        reply, _ = self.request(("check", job, batch, x.detach().cpu(), rows, float(time_limit_s)),
                                 time_limit_s + GRACE_S)
         if not reply.get("ok"):
             raise LossCheckError(str(reply.get("error", "unknown error")))
         return CheckReport(tuple(int(d) for d in reply["shape"]), float(reply["seconds"]),
                            float(reply["grad_abs_sum"]), str(reply["probe"]), str(reply.get("name", "")),
-                           int(reply.get("calls", 0)))
+                           int(reply.get("calls", 0)), float(reply.get("cpu_s_per_call", 0.0)))
 
 
 def check_loss(cls: type[GuidanceLoss], batch: GuidanceBatch, x: Tensor, time_limit_s: float = 5.0,

@@ -77,15 +77,21 @@ def _gradient_probes(session: LossSession, x: Tensor) -> tuple[float, str]:
         if total > 0.0:
             return total, name
     raise LossCheckError("the gradient with respect to x is zero for every probe (" + ", ".join(probes)
-                         + "): the loss cannot steer the trajectories (a lane, turn or vehicle "
-                         "that this scene lacks also gives zero gradients)")
+                         + "): guidance moves the plans only along the gradient, so this loss would "
+                         "steer nothing, whatever it computes. Check that the cost is computed from x "
+                         "through differentiable operations (no .detach(), argmax, rounding or "
+                         "comparisons alone), that it reads the vehicles the query names (rows of x "
+                         "within B), and that a hinge can become active on these probes; a lane, "
+                         "turn or vehicle that this scene lacks also gives zero gradients")
 
 
-def run_trial(cls: type[GuidanceLoss], batch: Any, x: Tensor) -> dict[str, Any]:
-    """The trial of the module docstring on ``batch`` and x (B, N, T, 6): a JSON-able report
-    (output shape on x, seconds, |grad|₁ and the probe that moved, number of calls), or LossCheckError."""
-    start = time.monotonic()
-    session = LossSession.build(cls, batch)
+def run_trial(cls: type[GuidanceLoss], batch: Any, x: Tensor,
+              rows: tuple[int, ...] | None = None) -> dict[str, Any]:
+    """The trial of the module docstring on ``batch`` and x (B, N, T, 6), a per-vehicle cost restricted
+    to ``rows`` when given: a JSON-able report (output shape on x, seconds, CPU seconds per call,
+    |grad|₁ and the probe that moved, number of calls), or LossCheckError."""
+    start, cpu0 = time.monotonic(), time.process_time()
+    session = LossSession.build(cls, batch, rows)
     out, _ = session.call(x, want_grad=False)
     shape = list(out.shape)
     total, probe = _gradient_probes(session, x)
@@ -97,9 +103,11 @@ def run_trial(cls: type[GuidanceLoss], batch: Any, x: Tensor) -> dict[str, Any]:
     for _ in range(REPEATS):
         session.call(xs, want_grad=True, name="x called again")
     wide_batch, wide_x = widen(batch, _samples(x, 3, gen), EXTRA_VEHICLES)
-    wide = LossSession.build(cls, wide_batch)
+    wide = LossSession.build(cls, wide_batch, rows)
     for _ in range(2):
         wide.call(wide_x, want_grad=True, name=f"x with B = {wide_x.shape[0]} vehicles")
+    calls = session.calls + wide.calls
     return {"ok": True, "shape": shape, "seconds": time.monotonic() - start, "grad_abs_sum": total,
-            "probe": probe, "calls": session.calls + wide.calls, "name": cls.__name__,
+            "cpu_s_per_call": (time.process_time() - cpu0) / max(calls, 1),
+            "probe": probe, "calls": calls, "name": cls.__name__,
             "couples_agents": bool(getattr(cls, "couples_agents", False))}

@@ -4,16 +4,19 @@
 It imports torch, caps its own address space (``RLIMIT_AS``), says it is ready, then answers one
 message at a time, each a pickled tuple from the parent whose first item names the kind:
 
-- ``("check", job, batch, x, time_limit_s)``: the trial (:func:`ctgpp.language.sandbox.trial.run_trial`) of
+- ``("check", job, batch, x, rows, time_limit_s)``: the trial
+  (:func:`ctgpp.language.sandbox.trial.run_trial`) of
   ``job`` = ("source", generated code, checked and loaded again here by the sandbox) or ("class", a
   library class);
-- ``("load", source, time_limit_s)``: load the program and build the instance that sampling calls;
+- ``("load", source, rows, time_limit_s)``: load the program and build the instance that sampling
+  calls (``rows``: the vehicles a per-vehicle cost is restricted to, None for all);
 - ``("scene", scene, sdf)`` then ``("batch", batch)``: the ``data_batch`` of the next calls (the scene
   and its SDF are sent once, the batch once per re-plan without them);
 - ``("call", x, agt_mask, weights, want_grad, time_limit_s)``: one call of the instance, checked by
   :class:`ctgpp.language.sandbox.session.LossSession`.
 
-Answers are JSON bytes; a successful call adds one raw message: the cost, then the gradient, as
+Answers are JSON bytes (a call's header carries the CPU seconds it used, ``cpu_s``, measured here);
+a successful call adds one raw message: the cost, then the gradient, as
 x's dtype (the parent never unpickles anything from here). Python code of a job is interrupted by
 ``SIGPROF`` when it has used its time limit in CPU seconds; a job that fails leaves no instance behind.
 """
@@ -25,6 +28,7 @@ import pickle
 import resource
 import signal
 import sys
+import time
 import traceback
 from dataclasses import replace
 from multiprocessing.connection import Connection
@@ -106,11 +110,13 @@ class Worker:
         signal.setitimer(signal.ITIMER_PROF, max(limit, 0.01))
         try:
             if kind == "check":
-                return self._check(message[1], message[2], message[3]), None
+                return self._check(message[1], message[2], message[3], message[4]), None
             if kind == "load":
-                return self._load(message[1]), None
+                return self._load(message[1], message[2]), None
             if kind == "call":
-                return self._call(*message[1:5])
+                cpu0 = time.process_time()
+                header, payload = self._call(*message[1:5])
+                return header | {"cpu_s": time.process_time() - cpu0}, payload
             return {"ok": False, "error": f"unknown message {kind!r}"}, None
         except BaseException as err:  # anything the loss raised: reported back, the worker lives on
             if kind != "check":
@@ -119,21 +125,21 @@ class Worker:
         finally:
             signal.setitimer(signal.ITIMER_PROF, 0.0)
 
-    def _check(self, job: tuple[str, Any], batch: Any, x: Any) -> dict[str, Any]:
+    def _check(self, job: tuple[str, Any], batch: Any, x: Any, rows: Any) -> dict[str, Any]:
         from ctgpp.language.sandbox.program import load_loss_class
         from ctgpp.language.sandbox.trial import run_trial
 
         kind, payload = job
         cls = load_loss_class(payload) if kind == "source" else payload
-        return run_trial(cls, batch, x)
+        return run_trial(cls, batch, x, rows)
 
-    def _load(self, source: str) -> dict[str, Any]:
+    def _load(self, source: str, rows: Any) -> dict[str, Any]:
         from ctgpp.language.sandbox.program import load_loss_class
         from ctgpp.language.sandbox.session import LossSession
 
         self.session = None
         cls = load_loss_class(source)
-        self.session = LossSession.build(cls, None)
+        self.session = LossSession.build(cls, None, rows)
         couples = bool(getattr(cls, "couples_agents", False))
         return {"ok": True, "name": cls.__name__, "couples_agents": couples}
 
