@@ -125,7 +125,7 @@ def run_bench(args: argparse.Namespace) -> int:
         results = time_presets(jobs, runs)
         report["scenarios"] = [asdict(r) for r in results]
         text += ["## Guided 10-s closed-loop scenarios\n", scenario_table(results)]
-        text += ["### Vehicles that move at the start (pooled over vehicles)\n", moving_table(results)]
+        text += ["### Vehicles that move (pooled over vehicles)\n", moving_table(results)]
 
     if agents or sizes:
         busiest = _busiest_windows(catalog, args.split, model.config)

@@ -41,6 +41,9 @@ MOVING_COLUMNS = (
     ("fde_10s", "FDE 10 s"),
     ("beyond_map", "beyond map"),
     ("turn_follow", "turn follow"),
+    ("speed_ratio", "speed / log's"),
+    ("rest_moved", "at rest, moved as logged"),
+    ("rest_kept", "at rest, kept as logged"),
 )
 REFERENCE = "replay"  # the log itself: realism 0 by construction, so never ranked
 DECIMALS = 3
@@ -50,7 +53,7 @@ DECIMALS = 3
 class Summary:
     """One set × method × rule: ``episodes`` rows over ``seeds`` seeds; per metric of ``METRICS`` and
     of ``MOVING_METRICS`` the mean over seeds and the sample standard deviation over seeds (NaN for
-    one seed or no value); ``moving``: the vehicles moving at the start per seed, ``turns``: their
+    one seed or no value); ``moving``: the vehicles that move per seed, ``turns``: their
     logged turns per seed (means over seeds)."""
 
     set: str
@@ -134,22 +137,26 @@ def markdown_table(summaries: Sequence[Summary], sets: Sequence[str] = ()) -> st
 
 
 def moving_table(summaries: Sequence[Summary], sets: Sequence[str] = ()) -> str:
-    """The second table: per set, rows (rule, method), the figures over the vehicles that move at the
-    start (``MOVING_COLUMNS``) as mean ± std over seeds of the per-seed means over vehicles."""
+    """The second table: per set, rows (rule, method), the figures over the vehicles that move
+    (``MOVING_COLUMNS``) as mean ± std over seeds of the per-seed means over vehicles."""
     present = list(dict.fromkeys(s.set for s in summaries))
     order = [s for s in sets if s in present] + [s for s in present if s not in sets]
     parts = [
-        "## Vehicles that move at the start\n",
-        "Controlled vehicles faster than 0.5 m/s at the start (moving: their count per seed), pooled "
-        "over vehicles: per seed, the share (or mean) over all the moving vehicles of its episodes; "
-        "mean ± sample std over seeds. fail: collides (with any agent) or goes off-road; hit held "
-        "first: its first collision is with a held (stationary at the start) vehicle; lane-leave: "
-        "> 2 m from every centerline within 45° of its heading; stop: slower than 0.2 m/s at some "
-        "step; yaw sign changes: of the yaw rate outside ±0.001 rad/s, per 10 s; ADE / FDE (m) to the "
-        "log over the vehicles logged to the horizon; beyond map: its log leaves the mapped area or it "
-        "drives off the map's edge, reported apart and never counted as off-road; turn follow: of the "
-        "moving vehicles whose logged heading changes by > 60° by their last logged step (turns: their "
-        "count per seed), the share whose simulated heading changes by > 45° the same way.\n",
+        "## Vehicles that move\n",
+        "Controlled vehicles that move: faster than 0.5 m/s at the start, or carried more than 2 m from "
+        "their start in the log or in the simulation (moving: their count per seed), pooled over "
+        "vehicles: per seed, the share (or mean) over all the moving vehicles of its episodes; mean ± "
+        "sample std over seeds. fail: collides (with any agent) or goes off-road; hit held first: its "
+        "first collision is with a held vehicle (one that moves in neither); lane-leave: > 2 m from "
+        "every centerline within 45° of its heading; stop: slower than 0.2 m/s at some step; yaw sign "
+        "changes: of the yaw rate outside ±0.001 rad/s, per 10 s; ADE / FDE (m) to the log over the "
+        "vehicles logged to the horizon; beyond map: its log leaves the mapped area or it drives off "
+        "the map's edge, reported apart and never counted as off-road; turn follow: of the moving "
+        "vehicles whose logged heading changes by > 60° by their last logged step (turns: their count "
+        "per seed), the share whose simulated heading changes by > 45° the same way; speed / log's: "
+        "mean simulated over mean logged speed on the same steps. The last two are over the vehicles "
+        "at rest at the start: of those the log carries > 5 m, the share the simulation carries > 2 m; "
+        "of those the log keeps within 1 m, the share the simulation keeps within 1 m.\n",
     ]
     for set_name in order:
         rows = sorted((s for s in summaries if s.set == set_name), key=_row_order)
