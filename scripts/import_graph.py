@@ -23,7 +23,8 @@ layer to a higher one is an "arrow that runs back up"). Nodes on one line share 
       __version__                     the version string: no ctgpp imports
     scene                           scene and map types, lane maths, which vehicles move
     interfaces                      Observation, Plan, Policy, Rollout (built on scene types)
-    io                              atomic writes, strict JSON, map edges, exporters of a Rollout
+    io, ray_cluster                 atomic writes, strict JSON, map edges, exporters of a Rollout; Ray,
+                                      optional, for --engine ray (no ctgpp imports)
     dynamics                        the unicycle model (pure functions of state, action, dt)
     data                            datasets, batches, training windows (actions by inverse dynamics)
     diffusion                       schedules and samplers (a denoiser is a callable they are given)
@@ -37,7 +38,8 @@ layer to a higher one is an "arrow that runs back up"). Nodes on one line share 
     sim                             the closed-loop simulator
     viz                             plots and animations of a rollout
     api, ctgpp                      the Python API and the package façade over it
-    eval                            evaluation runs and tables (every episode through api.simulate)
+    eval, generate                  evaluation runs and tables, scenario libraries (every episode
+                                      through api.simulate)
     bench                           benchmarks
     serve                           the web app
     cli                             the command line
@@ -72,7 +74,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("geometry", "rule_params", "__version__"),
     ("scene",),
     ("interfaces",),
-    ("io",),
+    ("io", "ray_cluster"),
     ("dynamics",),
     ("data",),
     ("diffusion",),
@@ -86,7 +88,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("sim",),
     ("viz",),
     ("api", "ctgpp"),
-    ("eval",),
+    ("eval", "generate"),
     ("bench",),
     ("serve",),
     ("cli",),

@@ -71,7 +71,13 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         help="simulated seconds per episode; the history before the start shrinks from 3 s to 1 s where "
         "a scene is short, shorter scenes are left out (one duration per --out directory)",
     )
-    p.add_argument("--workers", type=int, default=1, help="worker processes that run episodes (default: 1)")
+    p.add_argument("--workers", type=int, default=1,
+                   help="worker processes that run episodes, or the CPUs of the Ray instance --engine ray "
+                   "starts here (default: 1)")
+    p.add_argument("--engine", choices=["local", "ray"], default="local",
+                   help="local: this machine; ray: a Ray cluster (pip install \"ctgpp[ray]\")")
+    p.add_argument("--ray-address", default=None, metavar="ADDR",
+                   help="with --engine ray: join the running Ray cluster at ADDR (default: start one here)")
     p.add_argument(
         "--out",
         type=Path,
@@ -130,12 +136,19 @@ def run_evaluate(args: argparse.Namespace) -> int:
         stages=stage_config(args),
     )
     factory.check(methods)  # a missing checkpoint fails now, not in the middle of the run
+    if args.ray_address and args.engine != "ray":
+        raise ValueError("--ray-address joins a Ray cluster: it needs --engine ray")
+    if args.engine == "ray":
+        from ctgpp.ray_cluster import import_ray
+
+        import_ray()  # not installed: one line, before any work
     sets = evaluation_sets(args.split, args.data)
     if not (math.isfinite(args.duration) and args.duration > 0):
         raise ValueError(f"--duration must be positive (got {args.duration:g})")
     episodes, catalogs = plan_sets(sets, methods, range(args.seeds), args.spacing, rules, args.duration)
     results, histograms = args.out / "episodes.csv", args.out / "realism.jsonl"
-    records = run_episodes(catalogs, episodes, factory, results, workers=args.workers, realism=histograms)
+    records = run_episodes(catalogs, episodes, factory, results, workers=args.workers, realism=histograms,
+                           engine=args.engine, address=args.ray_address)
     names = [s.name for s in sets]
     summaries = summarize(records)
     table = markdown_table(summaries, names) + "\n" + moving_table(summaries, names)

@@ -33,6 +33,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "scenes": ("scenes_cmd", "list the scenes of a data directory"),
     "show": ("scenes_cmd", "draw a scene with every vehicle's number (the numbers queries use)"),
     "simulate": ("simulate_cmd", "simulate a scene in closed loop (10 s, re-plan at 2 Hz)"),
+    "generate": (
+        "generate_cmd",
+        "a scenario library: sentences × scenes × starts × seeds as ScenarioNet files with a Parquet index",
+    ),
     "rules": ("rules_cmd", "list the guidance rules with their parameters, defaults and units"),
     "evaluate": (
         "evaluate_cmd",
@@ -58,7 +62,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
 
 # commands that import torch before their first output (seconds; more on a busy machine): they say so
 # in one line first
-SLOW_START = ("simulate", "rules", "evaluate", "realism", "evaluate-queries", "train", "bench")
+SLOW_START = ("simulate", "generate", "rules", "evaluate", "realism", "evaluate-queries", "train", "bench")
 
 
 class DefaultsFormatter(argparse.HelpFormatter):

@@ -139,6 +139,8 @@ def run_episodes(
     progress: bool = True,
     workers: int = 1,
     realism: Path | None = None,
+    engine: str = "local",
+    address: str | None = None,
 ) -> list[dict[str, str]]:
     """Simulate every episode not yet in ``results`` and append its metrics; return all records.
 
@@ -146,7 +148,9 @@ def run_episodes(
     makes each episode's policy (:func:`~ctgpp.eval.episode.run_episode`); with ``workers`` > 1 each
     worker process gets its own pickled copy. ``realism``, when given, is the JSON-lines file of the
     episodes' realism histograms (:func:`ctgpp.eval.episode.realism_histograms`), keyed like the rows.
-    Episodes run seed by seed (seed 0 of every method, rule and scene first).
+    Episodes run seed by seed (seed 0 of every method, rule and scene first). ``engine`` "ray": on
+    the Ray cluster at ``address`` (None: a Ray instance started here with ``workers`` CPUs),
+    :mod:`ctgpp.eval.ray_engine`; the rows are written here all the same.
     """
     if workers < 1:
         raise ValueError(f"--workers must be at least 1, got {workers}")
@@ -158,12 +162,15 @@ def run_episodes(
     unknown = sorted({e.set for e in todo} - set(catalogs))
     if unknown:
         raise ValueError(f"no catalog for the evaluation sets {unknown}")
-    workers = min(workers, len(todo))
-    stream = (
-        parallel_results(todo, {name: c.root for name, c in catalogs.items()}, policies, workers)
-        if workers > 1
-        else _sequential_results(todo, catalogs, policies)
-    )
+    if engine == "ray" and todo:
+        from ctgpp.eval.ray_engine import ray_results
+
+        stream = ray_results(todo, catalogs, policies, workers, address)
+    elif workers > 1 and len(todo) > 1:
+        roots = {name: c.root for name, c in catalogs.items()}
+        stream = parallel_results(todo, roots, policies, min(workers, len(todo)))
+    else:
+        stream = _sequential_results(todo, catalogs, policies)
     with (
         closing(stream),
         append_records(results, FIELDS) as write_row,
