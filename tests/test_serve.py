@@ -33,6 +33,7 @@ CHROMEDRIVER = Path("/usr/bin/chromedriver")
 SECRET_KEY = "sk-test-serve-5f1c0b7e-never-shown"
 LLM_MODEL = "local-test-model"
 SENTENCE = "vehicle 1 should collide with vehicle 2"
+OVERTAKE = "the red car should overtake the bus quickly"
 PEACHTREE = "USA_Peach-4_1_T-1"  # 7.0 s of real NGSIM log: episodes up to 6 s
 START_TIMEOUT_S = 900.0  # limits, not expectations: torch loads in three processes, and the project
 RUN_TIMEOUT_S = 900.0  # machine is often shared by a training run and several test runs (load 10-13)
@@ -195,7 +196,15 @@ def test_a_refused_sentence_gets_the_closest_phrasings(server: Server) -> None:
     status, answer = server.request("/api/runs", {"scene": "embedded:scene-0103",
                                                   "sentence": "vehicle 3 should fly to the moon"})
     assert status == 422 and answer["refused"] is True
-    assert len(answer["suggestions"]) == 3 and "Closest supported phrasings" in answer["message"]
+    assert len(answer["suggestions"]) == 3 and "no supported phrasing matches" in answer["message"]
+    # the page lists the suggestions: the message does not list them again
+    assert "Closest supported phrasings" not in answer["message"]
+    assert not any(s in answer["message"] for s in answer["suggestions"])
+    # a manoeuvre the vocabulary lacks: refused by name, with no suggestion (the page shows no list)
+    status, answer = server.request("/api/runs", {"scene": "embedded:scene-0103",
+                                                  "sentence": OVERTAKE})
+    assert status == 422 and answer["refused"] is True and answer["suggestions"] == []
+    assert "overtak" in answer["message"]
     status, answer = server.request("/api/runs", {"scene": "embedded:scene-0103",
                                                   "sentence": "vehicle 40 should stop"})
     assert status == 422 and "vehicles 0-11" in answer["message"]
@@ -249,6 +258,70 @@ def test_runs_queue_are_cancelled_and_the_server_answers_meanwhile(server: Serve
     assert len(folders) == 3
 
 
+@pytest.mark.model
+def test_frames_stream_as_each_replan_finishes(server: Server) -> None:
+    """The guided episode's frames come while it runs (before its rollout exists), the first after
+    the first re-plan, and are the steps of the finished rollout."""
+    job = server.submit(sentence=SENTENCE, duration_s=4, compare=False)
+    deadline = time.monotonic() + RUN_TIMEOUT_S
+    while True:
+        streamed = server.get(f"/api/runs/{job['id']}/frames?since=0")
+        status = server.get(f"/api/runs/{job['id']}")
+        if streamed["count"] > 0:
+            break
+        assert status["state"] in ("queued", "running") and time.monotonic() < deadline, status
+        time.sleep(0.05)
+    header = streamed["header"]
+    assert header["current"] == 30 and header["steps"] == 31 + 40 and header["dt_s"] == 0.1
+    assert not status["has_rollout"] and status["frames"] >= streamed["count"]
+    assert streamed["count"] < header["steps"]  # the run is not over: 8 re-plans of 5 steps
+    assert sum(a["number"] >= 0 for a in header["agents"]) == 12
+    later = server.get(f"/api/runs/{job['id']}/frames?since={streamed['count']}")
+    assert later["start"] == streamed["count"]
+    done = server.wait(job["id"])
+    assert done["state"] == "done" and done["seconds"]["to_first_frame"] < done["seconds"]["to_rollout"]
+    every = server.get(f"/api/runs/{job['id']}/frames?since=0")
+    assert every["count"] == header["steps"] == done["frames"]
+    playback = server.get(f"/api/runs/{job['id']}/playback")
+    final = {a["number"]: a for a in playback["agents"] if a["number"] >= 0}
+    for j, agent in enumerate(header["agents"]):
+        if agent["number"] < 0:
+            continue
+        for k, frame in enumerate(every["frames"]):
+            want = final[agent["number"]]
+            got = frame[j]
+            assert (got is None) == (want["x"][k] is None), (agent["number"], k)
+            if got is not None:
+                assert got[:2] == [want["x"][k], want["y"][k]], (agent["number"], k)
+
+
+@pytest.mark.model
+def test_the_model_is_loaded_once_per_worker_when_the_server_starts(server: Server) -> None:
+    """Two runs (guards on, then off) on the one worker use the same model object of the same
+    process, loaded before either was submitted."""
+    before = time.time()
+    first = server.wait(server.submit(sentence="vehicle 2 should stop", duration_s=1, compare=False)["id"])
+    second = server.wait(server.submit(sentence="vehicle 2 should stop", duration_s=1, compare=False,
+                                       guards=False)["id"])
+    assert first["state"] == second["state"] == "done"
+    assert first["model"] == second["model"] and first["model"]["loaded_at"] < before
+    assert first["model"]["pid"] != server.process.pid  # the worker's process, not the server's
+
+
+@pytest.mark.model
+def test_the_unguided_comparison_gives_way_to_a_waiting_run(server: Server) -> None:
+    """A run submitted while another simulates its unguided comparison does not wait for it: the
+    comparison stops at its next re-plan (said in the baseline), the guided run it made is kept."""
+    first = server.submit(sentence=SENTENCE, duration_s=4, compare=True)
+    server.wait(first["id"], until=("running",), phase="unguided")
+    second = server.submit(sentence="vehicle 2 should stop", duration_s=1, policy="constvel")
+    done = server.wait(first["id"])
+    assert done["state"] == "done" and done["record"] is not None and done["has_rollout"]
+    assert "another run was waiting" in done["baseline"]["skipped"]
+    assert "unguided.json" not in done["files"]
+    assert server.wait(second["id"])["state"] == "done"
+
+
 def test_a_language_model_run_keeps_the_key_on_the_server(server: Server) -> None:
     """The model is unreachable: the run falls back to the offline compiler and says so."""
     job = server.submit(sentence="vehicle 2 should stop", duration_s=1, policy="constvel", llm=True)
@@ -260,10 +333,11 @@ def test_a_language_model_run_keeps_the_key_on_the_server(server: Server) -> Non
 
 
 def test_a_failed_run_is_one_line(tmp_path: Path) -> None:
+    from ctgpp.serve.models import WorkerModels
     from ctgpp.serve.worker import RunSpec, run_safely
 
     spec = RunSpec(1, str(tmp_path / "run"), "scene-9999", None, "", 0, 1.0, "constvel", "on", False, False)
-    kind, payload = run_safely(spec, None, lambda kind, payload: None, lambda: False)
+    kind, payload = run_safely(spec, None, lambda kind, payload: None, lambda: False, WorkerModels())
     assert kind == "error" and "\n" not in payload["message"] and "Traceback" not in payload["message"]
 
 
@@ -339,10 +413,19 @@ def test_the_page_runs_a_sentence_and_plays_it(server: Server, browser: Any, tmp
     sentence = browser.find_element(By.ID, "sentence")
     sentence.send_keys("vehicle 3 should fly to the moon")
     browser.find_element(By.ID, "run").click()
-    wait.until(ec.visibility_of_element_located((By.ID, "refusal")))
-    suggestions = browser.find_elements(By.CSS_SELECTOR, "#suggestions li")
-    assert len(suggestions) == 3
+    refusal = wait.until(ec.visibility_of_element_located((By.ID, "refusal")))
+    suggestions = [li.text for li in browser.find_elements(By.CSS_SELECTOR, "#suggestions li")]
+    assert len(suggestions) == 3 and browser.find_element(By.ID, "suggestions-wrap").is_displayed()
+    assert all(refusal.text.count(s) == 1 for s in suggestions)  # each shown once
     _screenshot(browser, tmp_path, "serve-refused.png")
+    sentence.send_keys(" now")  # a new sentence: the refusal of the old one goes
+    assert not refusal.is_displayed() and not browser.find_elements(By.CSS_SELECTOR, "#suggestions li")
+    sentence.clear()
+    sentence.send_keys(OVERTAKE)
+    browser.find_element(By.ID, "run").click()
+    wait.until(ec.visibility_of_element_located((By.ID, "refusal")))
+    assert "overtak" in browser.find_element(By.ID, "refusal-message").text
+    assert not browser.find_element(By.ID, "suggestions-wrap").is_displayed()  # no empty list
 
     sentence.clear()
     sentence.send_keys(SENTENCE)

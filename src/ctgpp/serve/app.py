@@ -5,8 +5,10 @@ the vocabulary and the queue of runs.
 policies, phrasings, the language model's name when one is configured (never its key or address),
 the limits. ``POST /api/runs``: queue a run (a :class:`~ctgpp.serve.schema.RunRequest`; a sentence
 the compiler refuses is answered 422 with the closest phrasings). ``GET /api/runs/{id}``: its state
-and results; ``POST /api/runs/{id}/cancel``; ``GET /api/runs/{id}/playback``: the rollout to
-animate; ``GET /api/runs/{id}/files/{name}``: a file of its folder. Errors are ``{"message": ...}``.
+and results; ``POST /api/runs/{id}/cancel``; ``GET /api/runs/{id}/frames?since=K``: the guided
+episode's steps simulated so far, from step K (streamed as each re-plan finishes);
+``GET /api/runs/{id}/playback``: the finished rollout to animate; ``GET /api/runs/{id}/files/{name}``:
+a file of its folder. Errors are ``{"message": ...}``.
 """
 
 from __future__ import annotations
@@ -240,6 +242,10 @@ def create_app(config: ServeConfig) -> FastAPI:
     @app.post("/api/runs/{job_id}/cancel")
     async def cancel(job_id: str) -> dict[str, Any]:
         return jobs.cancel(_job_id(job_id))
+
+    @app.get("/api/runs/{job_id}/frames")
+    async def run_frames(job_id: str, since: int = Query(0, ge=0)) -> dict[str, Any]:
+        return jobs.frames(_job_id(job_id), since)
 
     @app.get("/api/runs/{job_id}/playback")
     async def run_playback(job_id: str) -> FileResponse:

@@ -20,7 +20,9 @@ class Job:
     """One run and what is known of it: ``state`` queued, running, or one of ``FINAL_STATES``;
     ``phase`` / ``done`` / ``total`` its progress (re-plans of the guided or unguided episode);
     ``record`` the guided episode's metrics.json once simulated, ``baseline`` the unguided one's;
-    ``files`` what its folder holds for download; ``message`` and ``suggestions`` why it stopped."""
+    ``files`` what its folder holds for download; ``message`` and ``suggestions`` why it stopped;
+    ``frame_header`` and ``frames`` the guided episode's steps simulated so far
+    (:mod:`ctgpp.serve.frames`); ``model`` the worker's model identity the run used."""
 
     id: str
     serial: int
@@ -37,7 +39,11 @@ class Job:
     files: list[str] = field(default_factory=list)
     message: str | None = None
     suggestions: list[str] = field(default_factory=list)
+    frame_header: dict[str, Any] | None = None
+    frames: list[Any] = field(default_factory=list)
+    model: dict[str, Any] | None = None
     started: float | None = None
+    first_frame_at: float | None = None
     rollout_at: float | None = None
     finished: float | None = None
     cancel_asked: float | None = None
@@ -56,13 +62,23 @@ class Job:
             "llm": spec.llm, "compare": spec.compare, "exports": list(spec.exports),
             "position": position, "phase": self.phase, "done": self.done, "total": self.total,
             "cancelling": self.cancel_asked is not None and self.state == "running",
-            "has_rollout": self.rollout_at is not None, "record": self.record, "log": self.log,
+            "frames": len(self.frames), "has_rollout": self.rollout_at is not None,
+            "record": self.record, "log": self.log, "model": self.model,
             "baseline": self.baseline, "files": self.files, "message": self.message,
             "suggestions": self.suggestions, "command": spec.command(), "folder": self.out_dir.name,
             "seconds": {"queued": _span(self.submitted, self.started),
+                        "to_first_frame": _span(self.started, self.first_frame_at),
                         "to_rollout": _span(self.started, self.rollout_at),
                         "total": _span(self.started, self.finished)},
         }
+
+
+def frames_since(job: Job, since: int) -> dict[str, Any]:
+    """The page's frames of ``job`` from window step ``since`` on, with the header (agents, dt_s,
+    current, steps) and how many there are so far."""
+    start = max(0, min(since, len(job.frames)))
+    return {"header": job.frame_header, "start": start, "count": len(job.frames),
+            "frames": job.frames[start:]}
 
 
 def _span(start: float | None, end: float | None) -> float | None:

@@ -2,8 +2,9 @@
 and can be cancelled while it waits or runs.
 
 Runs are handed out in submission order to the threads that look after the worker processes
-(:mod:`ctgpp.serve.worker_handle`). The HTTP handlers only read and change :class:`~ctgpp.serve.job.Job`
-records under the queue's lock, so the server answers while runs compute.
+(:mod:`ctgpp.serve.worker_handle`); a run's unguided comparison stops when another run waits, so a
+guided run never waits behind a comparison. The HTTP handlers only read and change
+:class:`~ctgpp.serve.job.Job` records under the queue's lock, so the server answers while runs compute.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from ctgpp.serve.job import FINAL_STATES, Job
+from ctgpp.serve.job import FINAL_STATES, Job, frames_since
 from ctgpp.serve.worker import RunSpec
 from ctgpp.serve.worker_handle import WorkerHandle
 
@@ -74,7 +75,14 @@ class JobQueue:
             self.jobs[job_id] = job
             self._waiting.append(job)
             self._lock.notify_all()
+            for running in self.jobs.values():
+                self._yield_comparison(running)
             return job
+
+    def _yield_comparison(self, job: Job) -> None:
+        """Stop ``job``'s unguided comparison when it runs one and a run waits (under the lock)."""
+        if job.state == "running" and job.phase == "unguided" and self._waiting:
+            self.workers[job.worker].skip_comparison(job.serial)
 
     def get(self, job_id: str) -> Job:
         """The run ``job_id``; KeyError when there is none."""
@@ -87,6 +95,11 @@ class JobQueue:
         with self._lock:
             job = self.get(job_id)
             return job.status(self._position(job))
+
+    def frames(self, job_id: str, since: int) -> dict[str, Any]:
+        """The guided episode's frames of run ``job_id`` streamed so far, from window step ``since``."""
+        with self._lock:
+            return frames_since(self.get(job_id), since)
 
     def listing(self) -> list[dict[str, Any]]:
         """Every run, newest first, in brief."""
@@ -130,8 +143,16 @@ class JobQueue:
         with self._lock:
             if kind == "progress":
                 job.phase, job.done, job.total = payload["phase"], payload["done"], payload["total"]
+                self._yield_comparison(job)
+            elif kind == "frames":
+                if "header" in payload:  # a new episode: from its start
+                    job.frame_header, job.frames = payload["header"], []
+                del job.frames[payload["start"]:]
+                job.frames.extend(payload["frames"])
+                job.first_frame_at = job.first_frame_at or time.time()
             elif kind == "rollout":
                 job.record, job.log, job.rollout_at = payload["record"], payload["log"], time.time()
+                job.model = payload.get("model")
             elif kind == "baseline":
                 job.baseline = payload
             elif kind == "files":

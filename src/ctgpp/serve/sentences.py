@@ -11,8 +11,12 @@ from __future__ import annotations
 
 import asyncio
 import multiprocessing
+import re
 from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass
+
+# the compiler's message lists the closest phrasings too; the page lists them once, clickable
+LISTED = re.compile(r"\s*Closest supported phrasings: (?:'[^']*'(?:; )?)*\.")
 
 
 @dataclass(frozen=True)
@@ -41,6 +45,11 @@ def load_vocabulary() -> Vocabulary:
     return Vocabulary(tuple(dict.fromkeys(phrasings())), tuple(POLICY_NAMES))
 
 
+def refusal_text(message: str, suggestions: list[str]) -> str:
+    """``message`` without its list of the closest phrasings when ``suggestions`` carries them."""
+    return LISTED.sub("", message) if suggestions else message
+
+
 def refusal(sentence: str, num_vehicles: int) -> tuple[str, list[str]] | None:
     """Why the offline compiler cannot compile ``sentence`` for a scene of ``num_vehicles`` vehicles
     (numbers 0 .. num_vehicles - 1) and the closest supported phrasings; None when it can."""
@@ -49,7 +58,7 @@ def refusal(sentence: str, num_vehicles: int) -> tuple[str, list[str]] | None:
     try:
         compile_query(sentence, num_vehicles)
     except UnsupportedQuery as err:
-        return str(err), list(err.suggestions)
+        return refusal_text(str(err), list(err.suggestions)), list(err.suggestions)
     except QueryError as err:
         return str(err), []
     return None

@@ -1,10 +1,13 @@
 """What a worker process of ``ctgpp serve`` runs: one run after another, each :func:`ctgpp.simulate`
 guided by the sentence, then (to compare) the same episode unguided, written into the run's folder.
+The model is loaded and warmed up once, when the worker starts (:mod:`ctgpp.serve.models`).
 
 The worker tells the server what happens through a queue of ``(serial, kind, payload)`` messages:
-``ready`` once torch and the simulator are imported; per run ``progress`` (phase, re-plans done and
-total), ``rollout`` (the guided episode's record: verdicts, metrics, events, the loss's code; the
-page's ``playback.json`` is written), ``baseline`` (the unguided run's metrics and verdict), ``files``
+``ready`` once the model is loaded and warm (its ``identity``); per run ``progress`` (phase, re-plans
+done and total), ``frames`` (the guided episode's steps executed by the re-plan just done:
+:mod:`ctgpp.serve.frames`), ``rollout`` (the guided episode's record: verdicts, metrics, events, the
+loss's code; the page's ``playback.json`` is written; the model's identity), ``baseline`` (the
+unguided run's metrics and verdict, or ``skipped``: why it stopped, a run was waiting), ``files``
 (what the folder holds for download), then one of ``done``, ``cancelled``, ``refused`` (a sentence
 nothing understands, with the closest supported phrasings) or ``error`` (one line).
 """
@@ -25,6 +28,7 @@ from ctgpp.io.strict_json import dumps_strict
 
 if TYPE_CHECKING:
     from ctgpp.language.llm.client import LLMConfig
+    from ctgpp.serve.models import WorkerModels
 
 log = logging.getLogger(__name__)
 
@@ -67,16 +71,23 @@ class Cancelled(Exception):
     """The server asked to stop the run."""
 
 
-def worker_main(tasks: multiprocessing.queues.Queue, messages: multiprocessing.queues.Queue,
-                cancel: Any, llm: LLMConfig | None) -> None:
-    """The worker process: import the simulator, say ``ready``, then run every :class:`RunSpec` from
-    ``tasks`` until None. ``cancel.value`` holds the serial of a run to stop (a shared integer)."""
-    logging.basicConfig(level=logging.WARNING, format="ctgpp serve worker: %(levelname)s: %(message)s")
-    import ctgpp.api.episode  # noqa: F401  (torch and the model code, before the first run)
-    import ctgpp.language.satisfaction  # noqa: F401
-    import ctgpp.serve.playback  # noqa: F401
+class ComparisonSkipped(Exception):
+    """The server asked to stop the run's unguided comparison: a run waits."""
 
-    messages.put((0, "ready", {}))
+
+def worker_main(tasks: multiprocessing.queues.Queue, messages: multiprocessing.queues.Queue,
+                cancel: Any, skip: Any, llm: LLMConfig | None) -> None:
+    """The worker process: load and warm the model, say ``ready``, then run every :class:`RunSpec`
+    from ``tasks`` until None. ``cancel.value`` holds the serial of a run to stop, ``skip.value`` of a
+    run whose unguided comparison to stop (shared integers)."""
+    logging.basicConfig(level=logging.WARNING, format="ctgpp serve worker: %(levelname)s: %(message)s")
+    import ctgpp.language.satisfaction  # noqa: F401  (before the first run)
+    import ctgpp.serve.playback  # noqa: F401
+    from ctgpp.serve.models import WorkerModels
+
+    models = WorkerModels()
+    models.warm()
+    messages.put((0, "ready", models.identity))
     while (spec := tasks.get()) is not None:
         def tell(kind: str, payload: dict[str, Any], serial: int = spec.serial) -> None:
             messages.put((serial, kind, payload))
@@ -84,23 +95,28 @@ def worker_main(tasks: multiprocessing.queues.Queue, messages: multiprocessing.q
         def cancelled(serial: int = spec.serial) -> bool:
             return bool(cancel.value == serial)
 
-        kind, payload = run_safely(spec, llm, tell, cancelled)
+        def skipped(serial: int = spec.serial) -> bool:
+            return bool(skip.value == serial)
+
+        kind, payload = run_safely(spec, llm, tell, cancelled, models, skipped)
         tell(kind, payload)
 
 
-def run_safely(spec: RunSpec, llm: LLMConfig | None, tell: Tell,
-               cancelled: Callable[[], bool]) -> tuple[str, dict[str, Any]]:
+def run_safely(spec: RunSpec, llm: LLMConfig | None, tell: Tell, cancelled: Callable[[], bool],
+               models: WorkerModels, skip: Callable[[], bool] = lambda: False) -> tuple[str, dict[str, Any]]:
     """:func:`run` with its outcome as the last message: ``done``, ``cancelled``, ``refused`` or
     ``error`` with a one-line message (a stack trace goes only to the server's log)."""
     from ctgpp.language.compiler import UnsupportedQuery
+    from ctgpp.serve.sentences import refusal_text
 
     try:
-        run(spec, llm, tell, cancelled)
+        run(spec, llm, tell, cancelled, models, skip)
         return "done", {}
     except Cancelled:
         return "cancelled", {}
     except UnsupportedQuery as err:
-        return "refused", {"message": str(err), "suggestions": list(err.suggestions)}
+        suggestions = list(err.suggestions)
+        return "refused", {"message": refusal_text(str(err), suggestions), "suggestions": suggestions}
     except USER_ERRORS as err:
         message = err.args[0] if isinstance(err, KeyError) and err.args else str(err)
         return "error", {"message": str(message).splitlines()[0] if str(message) else type(err).__name__}
@@ -110,12 +126,16 @@ def run_safely(spec: RunSpec, llm: LLMConfig | None, tell: Tell,
         return "error", {"message": f"the run failed ({name}); the server's log has the details"}
 
 
-def run(spec: RunSpec, llm: LLMConfig | None, tell: Tell, cancelled: Callable[[], bool]) -> None:
-    """Simulate ``spec`` guided (then unguided to compare) and write the run's folder: request.json,
-    metrics.json, rollout.parquet, playback.json, unguided.json, the exports."""
+def run(spec: RunSpec, llm: LLMConfig | None, tell: Tell, cancelled: Callable[[], bool],
+        models: WorkerModels, skip: Callable[[], bool] = lambda: False) -> None:
+    """Simulate ``spec`` guided (its frames sent as each re-plan finishes), then unguided to compare
+    (stopped at the re-plan after ``skip()`` turns true), with the worker's ``models``, and write the
+    run's folder: request.json, metrics.json, rollout.parquet, playback.json, unguided.json, the
+    exports."""
     import ctgpp
-    from ctgpp.api.episode import policy_factory
+    from ctgpp.serve.frames import FrameTap
     from ctgpp.serve.playback import playback
+    from ctgpp.sim.closed_loop import episode_config
 
     out = Path(spec.out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -124,35 +144,45 @@ def run(spec: RunSpec, llm: LLMConfig | None, tell: Tell, cancelled: Callable[[]
     scene = ctgpp.load_scene(spec.scene_id, spec.data)
     lines: list[str] = []
 
-    def progress(phase: str) -> Callable[[int, int], None]:
+    tap = FrameTap(episode_config(scene, spec.duration_s))
+
+    def progress(phase: str, watched: FrameTap | None = None) -> Callable[[int, int], None]:
         def on_replan(done: int, total: int) -> None:
             if cancelled():
                 raise Cancelled
+            if phase == "unguided" and skip():
+                raise ComparisonSkipped
+            frames = None if watched is None else watched.frames(done)
+            if frames is not None and frames["frames"]:
+                tell("frames", frames)
             tell("progress", {"phase": phase, "done": done, "total": total})
         return on_replan
 
     tell("progress", {"phase": "guided", "done": 0, "total": 0})
-    # one factory for both episodes: the model loads once
-    policies = policy_factory(spec.policy, guards=spec.guards)
-    common: dict[str, Any] = {"policy": spec.policy, "seed": spec.seed, "duration_s": spec.duration_s,
-                              "policies": policies}
+    common: dict[str, Any] = {"policy": spec.policy, "seed": spec.seed, "duration_s": spec.duration_s}
     result = ctgpp.simulate(scene, spec.sentence or None, **common, llm=llm if spec.llm else None,
-                            echo=lines.append, on_replan=progress("guided"))
+                            policies=models.factory(spec.guards, tap), echo=lines.append,
+                            on_replan=progress("guided", tap))
     record = result.record()
     files = [write_text_atomic(out / "metrics.json", dumps_strict(record, indent=2) + "\n"),
              result.write(out / "rollout.parquet")]
     files.append(write_text_atomic(out / "playback.json", dumps_strict(playback(result))))
-    tell("rollout", {"record": record, "log": lines})
+    tell("rollout", {"record": record, "log": lines, "model": models.identity})
     tell("files", {"files": [f.name for f in files]})
     if spec.compare and spec.sentence and spec.policy not in UNGUIDED_POLICIES:
         if cancelled():
             raise Cancelled
         tell("progress", {"phase": "unguided", "done": 0, "total": 0})
-        base = ctgpp.simulate(scene, None, **common, on_replan=progress("unguided"))
-        baseline = {"metrics": base.record(), "query": _verdict(spec.sentence, base)}
-        files.append(write_text_atomic(out / "unguided.json", dumps_strict(baseline, indent=2) + "\n"))
-        tell("baseline", baseline)
-        tell("files", {"files": [f.name for f in files]})
+        try:
+            base = ctgpp.simulate(scene, None, **common, policies=models.factory(spec.guards),
+                                  on_replan=progress("unguided"))
+        except ComparisonSkipped:
+            tell("baseline", {"skipped": "the unguided run was stopped: another run was waiting"})
+        else:
+            baseline = {"metrics": base.record(), "query": _verdict(spec.sentence, base)}
+            files.append(write_text_atomic(out / "unguided.json", dumps_strict(baseline, indent=2) + "\n"))
+            tell("baseline", baseline)
+            tell("files", {"files": [f.name for f in files]})
     for kind in spec.exports:
         if cancelled():
             raise Cancelled

@@ -3,7 +3,8 @@
 Each worker process (:func:`ctgpp.serve.worker.worker_main`) is looked after by one thread of the
 server: the thread hands it the next run of the queue (:mod:`ctgpp.serve.job_queue`), turns its
 messages into the run's state, and starts a new process when one dies or does not stop within
-``CANCEL_GRACE_S`` of a cancel.
+``CANCEL_GRACE_S`` of a cancel. A run's unguided comparison gives way to a run that waits
+(:meth:`WorkerHandle.skip_comparison`): it never keeps a guided run waiting.
 """
 
 from __future__ import annotations
@@ -65,12 +66,18 @@ class WorkerHandle:
         if self._process is not None:
             self._cancel.value = serial
 
+    def skip_comparison(self, serial: int) -> None:
+        """Stop run ``serial``'s unguided comparison at its next re-plan (the run then ends)."""
+        if self._process is not None:
+            self._skip.value = serial
+
     def _spawn(self) -> None:
         ctx = self._context
         self.ready = False
         self._tasks, self._messages, self._cancel = ctx.Queue(), ctx.Queue(), ctx.Value("q", 0)
+        self._skip = ctx.Value("q", 0)
         self._process = ctx.Process(target=worker_main, args=(self._tasks, self._messages, self._cancel,
-                                                               self.jobs.llm),
+                                                               self._skip, self.jobs.llm),
                                     name=f"ctgpp-serve-worker-{self.index}", daemon=True)
         self._process.start()
 

@@ -12,6 +12,7 @@
   const state = {
     scenes: [], options: null, sceneKey: null, scene: null,   // scene: the scene view (first frame)
     jobId: null, job: null, pollTimer: null, playback: null, playbackOf: null, firstFramePending: false,
+    live: null, liveFetching: false,   // live: the streamed frames of the running job (a playback still growing)
     frame: 0, playing: false, clock: null, speed: 1,
     view: null, drag: null, staticLayer: null, staticKey: "", drivable: null,
     timings: {},
@@ -128,12 +129,22 @@
   function useSentence(text) {
     $("sentence").value = text;
     $("sentence").focus();
-    $("refusal").hidden = true;
+    clearRefusal();
   }
 
+  function clearRefusal() {
+    $("refusal").hidden = true;
+    $("refusal-message").textContent = "";
+    $("suggestions").replaceChildren();
+    $("suggestions-wrap").hidden = true;
+  }
+
+  // a run may start while the last one simulates its unguided comparison: the comparison gives way
   function updateRunButton() {
-    const busy = state.job && (state.job.state === "queued" || state.job.state === "running");
-    $("run").disabled = !(state.sceneKey && state.options) || Boolean(busy);
+    const job = state.job;
+    const busy = job && (job.state === "queued" || job.state === "running");
+    const comparing = busy && job.state === "running" && job.phase === "unguided";
+    $("run").disabled = !(state.sceneKey && state.options) || Boolean(busy && !comparing);
     $("cancel").disabled = !busy;
   }
 
@@ -152,9 +163,10 @@
       compare: $("compare").checked,
       exports,
     };
-    $("refusal").hidden = true;
+    clearRefusal();
     for (const key of Object.keys(state.timings)) delete state.timings[key];
     state.firstFramePending = false;
+    state.live = null;
     state.timings.run_clicked = performance.now();
     $("run").disabled = true;
     setStatus("Sending the run…");
@@ -170,10 +182,13 @@
     }
   }
 
+  // the refusal's message, and its suggestions once, under their heading only when there are some
   function showRefusal(data) {
+    const suggestions = [...new Set(data.suggestions || [])];
     $("refusal").hidden = false;
     $("refusal-message").textContent = data.message;
-    $("suggestions").replaceChildren(...(data.suggestions || []).map((s) => {
+    $("suggestions-wrap").hidden = suggestions.length === 0;
+    $("suggestions").replaceChildren(...suggestions.map((s) => {
       const item = document.createElement("li");
       item.textContent = s;
       item.addEventListener("click", () => useSentence(s));
@@ -224,11 +239,14 @@
       const text = { done: `Done${total}.${firstFrameNote()}`, cancelled: job.message || "Cancelled.",
         failed: `The run failed: ${job.message}`, refused: "The sentence was refused." }[job.state];
       setStatus(text, job.state === "failed" || job.state === "refused");
-      if (job.state === "refused") showRefusal(job);
+      if (job.state === "refused" && $("refusal").hidden) showRefusal(job);
     }
     if (job.has_rollout && state.playbackOf !== job.id) {
       state.playbackOf = job.id;
+      state.live = null;
       await loadPlayback(job.id);
+    } else if (!job.has_rollout && job.frames > (state.live ? state.live.count : 0)) {
+      await loadFrames(job.id);
     }
     renderResults(job);
   }
@@ -311,6 +329,7 @@
       verdict.className = `verdict ${cls}`;
       let baseText = "";
       if (base && base.query) baseText = ` (unguided: ${verdictText(base.query.satisfied)[1]})`;
+      else if (base && base.skipped) baseText = ` (${base.skipped})`;
       else if (job.compare && job.state === "running") baseText = " (unguided run in progress…)";
       verdict.textContent = `${text[0].toUpperCase()}${text.slice(1)}${baseText}`;
       const baseParts = base && base.query ? base.query.parts : [];
@@ -329,7 +348,7 @@
       $("loss-path").textContent = "";
       $("code").textContent = "";
     }
-    const baseMetrics = base ? base.metrics : null;
+    const baseMetrics = base && base.metrics ? base.metrics : null;
     const names = Object.keys(record).filter((k) => !METRIC_SKIP.has(k) && (typeof record[k] === "number" || record[k] === null));
     table("metrics", ["metric", "guided", "unguided"], names.map((k) => [k, fmt(record[k]),
       baseMetrics ? fmt(baseMetrics[k]) : (job.compare && job.sentence && job.state === "running" ? "…" : "–")]));
@@ -364,13 +383,55 @@
       const data = await api(`/api/runs/${id}/playback`);
       if (id !== state.jobId) return;
       state.playback = data;
-      state.firstFramePending = true;
+      state.firstFramePending = state.timings.first_frame === undefined;
       state.frame = data.current;
       updatePlayer();
       play();
     } catch (err) {
       setStatus(err.message, true);
     }
+  }
+
+  // the frames streamed so far (each re-plan's executed steps), drawn at the newest one
+  async function loadFrames(id) {
+    if (state.liveFetching) return;
+    state.liveFetching = true;
+    try {
+      const since = state.live && state.live.jobId === id ? state.live.count : 0;
+      const data = await api(`/api/runs/${id}/frames?since=${since}`);
+      if (id !== state.jobId || state.playbackOf === id || !data.header || !data.frames.length) return;
+      if (data.start === 0 || !state.live) state.live = startLive(id, data.header);
+      appendFrames(state.live, data.start, data.frames);
+      stopPlayback();
+      state.playback = state.live.playback;
+      state.frame = state.live.playback.time_s.length - 1;
+      if (state.timings.first_frame === undefined) state.firstFramePending = true;
+      updatePlayer();
+      draw();
+    } catch (err) {
+      setStatus(err.message, true);
+    } finally {
+      state.liveFetching = false;
+    }
+  }
+
+  function startLive(id, header) {
+    const agents = header.agents.map((a) => ({ ...a, x: [], y: [], yaw: [], speed: [] }));
+    return { jobId: id, count: 0, playback: { scene: state.scene ? state.scene.id : "", dt_s: header.dt_s,
+      current: header.current, time_s: [], agents, events: [], named: [], live: true } };
+  }
+
+  function appendFrames(live, start, frames) {
+    const p = live.playback;
+    frames.forEach((frame, i) => {
+      const k = start + i;
+      p.time_s[k] = Math.round((k - p.current) * p.dt_s * 1000) / 1000;
+      frame.forEach((s, j) => {
+        const a = p.agents[j];
+        [a.x[k], a.y[k], a.yaw[k], a.speed[k]] = s === null ? [null, null, null, null] : s;
+      });
+    });
+    live.count = p.time_s.length;
   }
 
   function updatePlayer() {
@@ -538,7 +599,7 @@
     ctx.font = `${Math.round(13 * (window.devicePixelRatio || 1))}px system-ui, sans-serif`;
     ctx.fillStyle = "rgba(20, 24, 36, 0.8)";
     ctx.fillText(`${state.scene.id}   ${label}${p && state.frame < p.current ? " (logged history)" : ""}`, 10, 20);
-    if (p && state.firstFramePending) {  // the first frame of the run's rollout is on the canvas
+    if (p && state.firstFramePending && state.frame > p.current) {  // a simulated frame of the run is on the canvas
       state.firstFramePending = false;
       state.timings.first_frame = performance.now();
       state.timings.seconds = (state.timings.first_frame - state.timings.run_clicked) / 1000;
@@ -705,6 +766,7 @@
     $("run").addEventListener("click", run);
     $("cancel").addEventListener("click", cancel);
     $("sentence").addEventListener("keydown", (e) => { if (e.key === "Enter" && !$("run").disabled) run(); });
+    $("sentence").addEventListener("input", clearRefusal);   // a refusal is of the sentence it was given
     $("play").addEventListener("click", () => (state.playing ? stopPlayback() : play()));
     $("scrub").addEventListener("input", () => { stopPlayback(); state.frame = Number($("scrub").value); draw(); });
     $("speed").addEventListener("change", () => { state.speed = Number($("speed").value); if (state.playing) play(); });
