@@ -5,7 +5,7 @@
 #
 # RUN_DIR is the checkpoint directory: a run resumes where it holds a training state (carry e.g.
 # training/ctgpp-v5 there), else a new run starts (its size from the options: --d-model 128 --heads 16
-# is the paper's reference). The recipe is ctgpp-v5's (BENCHMARKS.md, "Training on the new data");
+# is the paper's reference). The recipe is ctgpp-v5's (docs/benchmarks.md, Training: ctgpp-v5);
 # the CPU recipe is the same `ctgpp train` command without --budget and --loader-workers. A 3-step run
 # on the device first fails fast where it cannot train at all. Used on the lent device machine
 # (issue 35): d = 128 and d = 64 were trained side by side with this recipe in its first form (commit

@@ -4,7 +4,7 @@ start held as the simulator holds them.
 
     python scripts/guard_cost.py --checkpoint training/ctgpp-v4 --seeds 6
 
-(BENCHMARKS.md, Guidance against a denoiser that follows its map.)
+(docs/decisions/sampler.md, the radius floor.)
 """
 
 from __future__ import annotations

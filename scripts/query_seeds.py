@@ -4,7 +4,7 @@ guards on (as ``ctgpp simulate``), the query's verdict and whether any other mov
     python scripts/query_seeds.py "vehicle 1 should collide with vehicle 2" --scene scene-0103 \\
         --presets ddim@99.75.40.0-n2-lr0.9,ddim6-n2-lr0.9 --seeds 10
 
-(BENCHMARKS.md, The default sampler, chosen again for queries and guards.)
+(docs/decisions/sampler.md.)
 """
 
 from __future__ import annotations

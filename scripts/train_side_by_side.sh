@@ -1,6 +1,6 @@
 #!/bin/bash
 # CTG++, its two ablations, the reference size (d = 128, 16 heads) and the CTG and BITS baselines, trained
-# side by side on one GPU with the same data and recipe (EVALUATION.md, "Retrained on the new data").
+# side by side on one GPU with the same data and recipe (docs/evaluation.md, Training records).
 # Each run stops at --steps or after LIMIT seconds (its state saved at the last validation, every 250
 # steps); running the script again resumes every run where it stopped. With OUT set, each run directory
 # is packed into OUT (split in 15 MB parts), a finished run without its optimizer state.

@@ -47,3 +47,15 @@ def llm_env(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> Iterator[CannedS
     server = CannedServer()
     yield server
     server.close()
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """The test tiers (README, Quickstart): a test that drives a browser (the ``browser`` fixture of
+    tests/test_serve.py) is marked ``browser``; every ``model`` and ``browser`` test is also ``slow``,
+    so that the quick tier, ``-m "not slow"`` (pyproject's default), leaves them out and ``-m slow``
+    runs exactly what it leaves out."""
+    for item in items:
+        if "browser" in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.browser)
+        if item.get_closest_marker("model") or item.get_closest_marker("browser"):
+            item.add_marker(pytest.mark.slow)

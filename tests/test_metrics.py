@@ -17,7 +17,9 @@ from ctgpp.metrics import (
     evaluate_metrics,
     metric_names,
     offroad_steps,
+    paper_offroad_rate,
     register_metric,
+    vehicle_events,
 )
 from ctgpp.metrics.realism import histogram, wasserstein_1d
 from ctgpp.scene.types import AgentTracks, AgentType, DrivableArea, LaneGraph, Scene
@@ -188,10 +190,18 @@ def test_offroad_at_the_right_step_and_not_for_cars_starting_off_road():
 
 
 def test_fail_is_union_of_collision_and_offroad():
-    m = compute_metrics(failure_scene())
+    r = failure_scene()
+    m = compute_metrics(r)
     assert m["collision_rate"] == pytest.approx(2 / 5)  # A, E
-    assert m["offroad_rate"] == pytest.approx(2 / 5)  # B, E
+    assert paper_offroad_rate(r).value == pytest.approx(2 / 5)  # B, E: the paper's off-road
     assert m["fail"] == pytest.approx(3 / 5)  # A, B, E
+    # the log itself of B and E leaves the drivable area (x = 35), C's is off it from the start: the
+    # map does not cover where they are, so they are beyond the map, counted apart from offroad_rate
+    # as in their events
+    assert m["offroad_rate"] == 0.0 and m["beyond_map_rate"] == pytest.approx(3 / 5)
+    events = {e["vehicle"]: e for e in vehicle_events(r)}
+    assert [events[v]["beyond_map"] is not None for v in range(5)] == [False, True, True, False, True]
+    assert all(events[v]["offroad"] is None for v in range(5))
 
 
 # ---------------------------------------------------------------- realism

@@ -21,6 +21,7 @@ from ctgpp.metrics import (
     MOVING_METRICS,
     compute_metrics,
     moving_counts,
+    paper_offroad_rate,
     pooled_mean,
     vehicle_events,
     vehicle_outcomes,
@@ -184,8 +185,11 @@ def road_scene() -> Rollout:
 def test_offroad_and_beyond_the_map_are_told_apart():
     r = road_scene()
     assert r.sim.xy[0, CURRENT].tolist() == [10.0, 0.0] and r.sim.xy[0, 30].tolist() == [30.0, 5.0]
-    paper = compute_metrics(r, ("offroad_rate",))
-    assert paper["offroad_rate"] == 1.0  # the paper's definition counts all three
+    assert paper_offroad_rate(r).value == 1.0  # the paper's definition counts all three
+    assert compute_metrics(r, ("fail",))["fail"] == 1.0  # and so does fail, the paper's
+    every = compute_metrics(r, ("offroad_rate", "beyond_map_rate"))  # over every controlled vehicle,
+    assert every["offroad_rate"] == pytest.approx(1 / 3)  # as the events tell them apart: A
+    assert every["beyond_map_rate"] == pytest.approx(2 / 3)  # B and C
     m = compute_metrics(r, MOVING_METRICS)
     assert m["moving_offroad_rate"] == pytest.approx(1 / 3)  # A only
     assert m["beyond_map"] == pytest.approx(2 / 3)  # B (off the raster's edge), C (its log)

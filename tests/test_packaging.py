@@ -65,7 +65,7 @@ def test_the_package_is_typed() -> None:
 
 def test_the_packages_import_downwards_only() -> None:
     """No import cycle between ctgpp's packages and no import running back up the declared layers
-    (``scripts/import_graph.py --check``: README, Layout)."""
+    (``scripts/import_graph.py --check``: docs/layout.md)."""
     import subprocess
 
     root = Path(__file__).resolve().parents[1]

@@ -337,3 +337,53 @@ def test_the_gif_keeps_every_vehicle_colour_and_the_collision_marker(scene: Scen
     star = alpha * np.array(to_rgba("#ffd700")[:3]) + (1 - alpha) * np.array(to_rgba("#dcdcdc")[:3])
     assert not any(np.abs(np.array(c) / 255 - star).max() < 3 / 255 for c in first)  # no crash yet
     assert any(np.abs(np.array(c) / 255 - star).max() < 3 / 255 for c in marked)
+
+
+def busy_scene(scene: Scene, n: int = 64) -> Scene:
+    """scene-0103's map with ``n`` vehicles in a tight 8-wide grid around the ego's start, 3.4 m along and
+    2 m across (numbers 10 to 63 make tags wider than a car's gap), one step long."""
+    from dataclasses import replace
+
+    centre = scene.agents.xy[scene.ego, START]
+    k = np.arange(n)
+    xy = centre + np.stack([(k % 8) * 3.4, (k // 8) * 2.0], axis=-1)  # (n, 2): lanes 2 m apart
+    steps = START + 1
+    tracks = AgentTracks(
+        ids=np.array([f"v{i}" for i in k]), types=np.full(n, AgentType.VEHICLE, dtype=np.int8),
+        xy=np.repeat(xy[:, None], steps, axis=1), yaw=np.zeros((n, steps)), speed=np.ones((n, steps)),
+        extent=np.tile([3.0, 1.6], (n, 1)), valid=np.ones((n, steps), dtype=bool))
+    return replace(scene, agents=tracks, ego=0)
+
+
+def test_labels_never_cover_one_another_on_a_busy_scene(scene: Scene) -> None:
+    busy = busy_scene(scene)
+    fig = draw_scene(busy, START)
+    renderer = fig.canvas.get_renderer()
+    fig.canvas.draw()
+    tags = labels(fig)
+    assert len(tags) == 64
+    boxes = np.array([t.get_bbox_patch().get_window_extent(renderer).extents for t in tags])  # (64, 4)
+    w = np.minimum(boxes[:, None, 2], boxes[None, :, 2]) - np.maximum(boxes[:, None, 0], boxes[None, :, 0])
+    h = np.minimum(boxes[:, None, 3], boxes[None, :, 3]) - np.maximum(boxes[:, None, 1], boxes[None, :, 1])
+    overlap = (np.clip(w, 0, None) * np.clip(h, 0, None))[~np.eye(len(tags), dtype=bool)]
+    assert overlap.max() < 1.0, f"{(overlap >= 1.0).sum() // 2} pairs of tags overlap"
+    anchors = fig.axes[0].transData.transform(np.array([t.xy for t in tags]))  # each tag stays near its car
+    gap = np.maximum(np.maximum(boxes[:, 0] - anchors[:, 0], anchors[:, 0] - boxes[:, 2]),
+                     np.maximum(boxes[:, 1] - anchors[:, 1], anchors[:, 1] - boxes[:, 3]))
+    assert gap.max() < 8 * (boxes[:, 3] - boxes[:, 1]).max()
+    tag0 = next(t for t in tags if t.get_text() == "0 (ego)")  # the first placed keeps the first place
+    box0 = tag0.get_bbox_patch().get_window_extent(renderer)
+    anchor0 = fig.axes[0].transData.transform(tag0.xy)
+    gap_px = 4.0 * fig.dpi / 72  # up and to the right, 4 pt from its car, as on a quiet scene
+    corner = np.array([box0.x0 - anchor0[0], box0.y0 - anchor0[1]])  # the outline's width lies beyond
+    assert (corner >= gap_px).all() and (corner <= gap_px + 1.5).all()
+
+
+def test_the_label_layout_by_hand() -> None:
+    from ctgpp.viz.label_layout import overlap_area, place_labels
+
+    boxes = place_labels(np.array([[0.0, 0.0], [1.0, 0.0]]), np.array([[10.0, 5.0], [10.0, 5.0]]), gap=2.0)
+    assert boxes[0].tolist() == [2.0, 2.0, 12.0, 7.0]  # up and to the right
+    assert boxes[1].tolist() == [3.0, -7.0, 13.0, -2.0]  # its up-right place is taken: down and right
+    assert overlap_area(boxes[:1], boxes[1:]).tolist() == [0.0]
+    assert overlap_area(np.array([[0.0, 0.0, 2.0, 2.0]]), np.array([[1.0, 1.0, 3.0, 3.0]])).tolist() == [1.0]

@@ -9,9 +9,10 @@ The Python API (:mod:`ctgpp.api`)::
     result.metrics["fail"], result.query["satisfied"]      # metrics, the query's verdict
     result.to_arrow()                                      # the rollout (also arrays(), to_pandas())
     result.plot("scene.png"); result.animate("rollout.gif")
+    print(ctgpp.compare(result, other))                    # two results' metrics side by side
 
-``load_scene``, ``simulate`` and ``Result`` are imported on first use: ``import ctgpp`` imports no
-torch.
+``load_scene``, ``simulate``, ``compare`` and ``Result`` are imported on first use: ``import ctgpp``
+imports no torch.
 """
 
 from __future__ import annotations
@@ -21,13 +22,13 @@ from typing import TYPE_CHECKING, Any
 __version__ = "0.1.0"
 
 if TYPE_CHECKING:
-    from ctgpp.api import Result, load_scene, simulate
+    from ctgpp.api import Result, compare, load_scene, simulate
 
-__all__ = ["Result", "__version__", "load_scene", "simulate"]
+__all__ = ["Result", "__version__", "compare", "load_scene", "simulate"]
 
 
 def __getattr__(name: str) -> Any:
-    if name in ("Result", "load_scene", "simulate"):
+    if name in ("Result", "compare", "load_scene", "simulate"):
         import ctgpp.api
 
         return getattr(ctgpp.api, name)

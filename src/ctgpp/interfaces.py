@@ -14,6 +14,7 @@ from typing import Protocol
 import numpy as np
 
 from ctgpp.scene.types import AgentTracks, Scene
+from ctgpp.scene.vehicles import MOVING_SPEED_MPS
 
 __all__ = ["Observation", "Plan", "Policy", "Rollout", "StageChange"]
 
@@ -43,6 +44,11 @@ class Observation:
     rng: np.random.Generator
     held: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     start_step: int = field(kw_only=True)
+
+    def __repr__(self) -> str:
+        return (f"Observation({self.scene.id}, step {self.step} (start {self.start_step}), "
+                f"{len(self.controlled)} controlled of which {len(self.held)} held, "
+                f"horizon {self.horizon_steps} steps)")
 
     def __post_init__(self) -> None:
         if not 0 <= self.start_step <= self.step:
@@ -74,6 +80,10 @@ class Plan:
     valid: np.ndarray
     changes: tuple[StageChange, ...] = ()
 
+    def __repr__(self) -> str:
+        v, f = self.states.shape[:2]
+        return f"Plan({v} vehicles × {f} steps, {len(self.changes)} stage changes)"
+
 
 class Policy(Protocol):
     """Plans the next seconds for every controlled vehicle from the simulated history."""
@@ -92,7 +102,8 @@ class Rollout:
     ``current`` of the window is the simulation start (t = 0 s), earlier indices are the logged
     history, later ones the simulated future. ``sim`` holds every agent of the scene over the window
     (controlled vehicles simulated, the others replayed from the log). ``controlled``: (A,) bool.
-    ``number``: (A,) int, the displayed vehicle number of controlled agents, -1 for the others.
+    ``number``: (A,) int, the displayed vehicle number of controlled agents, -1 for the others
+    (:attr:`roles` says what each of those is).
     ``stage_changes``: what the policy's plan stages changed, as (episode time s of the re-plan,
     change) in order (empty for a policy without stages).
     """
@@ -105,6 +116,23 @@ class Rollout:
     number: np.ndarray
     policy: str
     stage_changes: tuple[tuple[float, StageChange], ...] = ()
+
+    def __repr__(self) -> str:
+        steps = self.sim.num_steps - 1 - self.current
+        return (f"Rollout({self.scene.id}, policy {self.policy}, from {self.start_s:g} s for "
+                f"{steps * self.dt_s:g} s, {int(self.controlled.sum())} vehicles simulated, "
+                f"{int((~self.controlled).sum())} agents replayed)")
+
+    @property
+    def roles(self) -> np.ndarray:
+        """(A,) str, each agent's role in the episode, fixed at the start: "moving" (a simulated
+        vehicle faster than 0.5 m/s), "at_rest" (a simulated vehicle slower than that: parked or
+        waiting; the policies that hold parked vehicles keep the parked ones still) or "replayed"
+        (played from the log: pedestrians, cyclists, static objects, vehicles absent at the start;
+        vehicle number -1)."""
+        start = self.current
+        fast = self.sim.valid[:, start] & (self.sim.speed[:, start] > MOVING_SPEED_MPS)
+        return np.where(self.controlled, np.where(fast, "moving", "at_rest"), "replayed")
 
     @property
     def log(self) -> AgentTracks:

@@ -6,7 +6,8 @@
 >>> result.query["satisfied"], result.metrics["fail"]
 
 :func:`load_scene` and :func:`simulate` live in :mod:`ctgpp.api.episode`, :class:`Result` in
-:mod:`ctgpp.api.result`. They are imported on first use, so that ``import ctgpp`` stays light (no
+:mod:`ctgpp.api.result`, :func:`compare` (results side by side) in :mod:`ctgpp.api.comparison`.
+They are imported on first use, so that ``import ctgpp`` stays light (no
 torch until a simulation needs it).
 """
 
@@ -16,6 +17,7 @@ from importlib import import_module
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
+    from ctgpp.api.comparison import Comparison, compare
     from ctgpp.api.episode import default_scene_id, load_scene, simulate
     from ctgpp.api.result import Result
 
@@ -24,9 +26,11 @@ _WHERE = {
     "simulate": "ctgpp.api.episode",
     "default_scene_id": "ctgpp.api.episode",
     "Result": "ctgpp.api.result",
+    "compare": "ctgpp.api.comparison",
+    "Comparison": "ctgpp.api.comparison",
 }
 
-__all__ = ["Result", "default_scene_id", "load_scene", "simulate"]
+__all__ = ["Comparison", "Result", "compare", "default_scene_id", "load_scene", "simulate"]
 
 
 def __getattr__(name: str) -> Any:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
@@ -16,6 +16,8 @@ from ctgpp.scene.types import Scene
 if TYPE_CHECKING:
     import pandas
     import pyarrow as pa
+
+    from ctgpp.api.comparison import Comparison
 
 
 @dataclass(frozen=True, eq=False)
@@ -44,6 +46,13 @@ class Result:
     query: dict[str, Any] | None
     guards: dict[str, Any]
     stages: dict[str, Any]
+
+    def __repr__(self) -> str:
+        fail = self.metrics.get("fail", float("nan"))
+        verdict = "" if self.query is None else f", query satisfied {self.query.get('satisfied')}"
+        return (f"Result({self.scene.id}, policy {self.policy}, seed {self.seed}, from {self.start_s:g} s "
+                f"for {self.duration_s:g} s, {self.num_vehicles} vehicles of which {self.moving_vehicles} "
+                f"moving, fail {fail:.3f}{verdict})")
 
     @property
     def policy(self) -> str:
@@ -107,23 +116,62 @@ class Result:
             raise ImportError("Result.to_pandas needs pandas: pip install 'ctgpp[pandas]'") from None
         return self.to_arrow().to_pandas()
 
-    def arrays(self) -> dict[str, np.ndarray]:
-        """The rollout as NumPy arrays over every agent of the scene (A) and the episode's steps (T):
-        time_s (T,), xy (A, T, 2) m, yaw (A, T) rad, speed (A, T) m/s, valid (A, T), extent (A, 2)
-        length and width m, controlled (A,), number (A,) displayed number or -1, track_id (A,)."""
+    def arrays(self, by: Literal["agent", "vehicle"] = "agent") -> dict[str, np.ndarray]:
+        """The rollout as NumPy arrays over the episode's steps (T) and, with ``by="agent"``, every
+        agent of the scene (A, in the scene's order) or, with ``by="vehicle"``, the simulated vehicles
+        (A = V, row i is vehicle number i): time_s (T,), xy (A, T, 2) m, yaw (A, T) rad, speed (A, T)
+        m/s, valid (A, T), extent (A, 2) length and width m, controlled (A,), number (A,) displayed
+        number or -1, role (A,) moving / at_rest / replayed (:attr:`Rollout.roles`), track_id (A,)."""
+        if by not in ("agent", "vehicle"):
+            raise ValueError(f"by must be 'agent' or 'vehicle', got {by!r}")
         r, sim = self.rollout, self.rollout.sim
+        rows = np.arange(sim.num_agents) if by == "agent" else self._vehicle_rows()
         time_s = np.round((np.arange(sim.num_steps) - r.current) * r.dt_s, 6)
         return {
             "time_s": time_s,
-            "xy": sim.xy.copy(),
-            "yaw": sim.yaw.copy(),
-            "speed": sim.speed.copy(),
-            "valid": sim.valid.copy(),
-            "extent": sim.extent.copy(),
-            "controlled": r.controlled.copy(),
-            "number": r.number.copy(),
-            "track_id": sim.ids.astype(str),
+            "xy": sim.xy[rows],
+            "yaw": sim.yaw[rows],
+            "speed": sim.speed[rows],
+            "valid": sim.valid[rows],
+            "extent": sim.extent[rows],
+            "controlled": r.controlled[rows],
+            "number": r.number[rows],
+            "role": r.roles[rows],
+            "track_id": sim.ids[rows].astype(str),
         }
+
+    def vehicle(self, number: int) -> dict[str, Any]:
+        """Vehicle ``number`` (its displayed number, as in queries and pictures): time_s (T,), xy
+        (T, 2) m, yaw (T,) rad, speed (T,) m/s, valid (T,), extent (2,) m, role, track_id, and its
+        events (the record of :attr:`events`). KeyError for a number the episode does not have."""
+        rows = self._vehicle_rows()
+        if not 0 <= number < len(rows):
+            raise KeyError(f"no vehicle {number}: this episode simulates vehicles 0-{len(rows) - 1}")
+        a = int(rows[number])
+        r, sim = self.rollout, self.rollout.sim
+        return {
+            "time_s": np.round((np.arange(sim.num_steps) - r.current) * r.dt_s, 6),
+            "xy": sim.xy[a].copy(),
+            "yaw": sim.yaw[a].copy(),
+            "speed": sim.speed[a].copy(),
+            "valid": sim.valid[a].copy(),
+            "extent": sim.extent[a].copy(),
+            "role": str(r.roles[a]),
+            "track_id": str(sim.ids[a]),
+            "events": next((e for e in self.events if e["vehicle"] == number), None),
+        }
+
+    def _vehicle_rows(self) -> np.ndarray:
+        """(V,) the agent row of each vehicle number, in number order."""
+        number = self.rollout.number
+        rows = np.flatnonzero(number >= 0)
+        return rows[np.argsort(number[rows], kind="stable")]
+
+    def compare(self, *others: Result, labels: list[str] | None = None) -> Comparison:
+        """This result's metrics beside ``others``' as a table (:func:`ctgpp.compare`)."""
+        from ctgpp.api.comparison import compare
+
+        return compare(self, *others, labels=labels)
 
     def write(self, path: str | Path) -> Path:
         """Write the rollout table to ``path`` (.parquet or .csv), atomically."""

@@ -62,7 +62,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
 
 # commands that import torch before their first output (seconds; more on a busy machine): they say so
 # in one line first
-SLOW_START = ("simulate", "generate", "rules", "evaluate", "realism", "evaluate-queries", "train", "bench")
+SLOW_START = ("simulate", "generate", "evaluate", "realism", "evaluate-queries", "train", "bench")
 
 
 class DefaultsFormatter(argparse.HelpFormatter):

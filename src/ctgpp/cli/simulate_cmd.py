@@ -139,8 +139,9 @@ def run_simulate(args: argparse.Namespace) -> int:
             files.append(result.export(kind, stage.path(export_name(kind, scene.id))))
         files = [stage.final(f) for f in files]
     metrics = result.metrics
-    print(f"{scene.id} from {result.start_s:g} s for {result.duration_s:g} s, "
-          f"{result.num_vehicles} vehicles, policy {result.policy}")
+    print(f"{scene.id} from {result.start_s:g} s for {result.duration_s:g} s, policy {result.policy}: "
+          f"{result.num_vehicles} vehicles present at the start simulated "
+          f"(of {scene.num_vehicles} logged in the whole scene)")
     print("  " + "  ".join(f"{k} {_fmt(v)}" for k, v in metrics.items() if k not in MOVING_METRICS))
     moving = "  ".join(f"{k} {_fmt(metrics[k])}" for k in MOVING_METRICS if k in metrics)
     print(f"  {result.moving_vehicles} moving at the start: {moving}")

@@ -7,8 +7,8 @@ trajectory from a different sample: starting from that scene-level choice, it sw
 at a time to another of its samples while the loss of the composed scene falls. Each trajectory is
 still one the model sampled jointly with the others; the composition is never worse under the loss
 than the scene-level choice, and with N samples it chooses among N^V scenes instead of N
-(BENCHMARKS.md, Speed: with the fast sampler at N = 2, as good as the paper's filtration over N = 4
-or 5, at a fraction of their time).
+(docs/decisions/sampler.md: with the fast sampler at N = 2, as good as the paper's filtration over
+N = 4 or 5, at a fraction of their time).
 """
 
 from __future__ import annotations

@@ -31,7 +31,7 @@ from ctgpp.dynamics import bound_yaw_rate, clip_actions, rollout
 Objective = Callable[[Tensor], "Tensor | tuple[Tensor, Tensor]"]
 ADAM_BETAS = (0.9, 0.999)
 ADAM_EPS = 1e-8
-NEED_FACTOR = 4.0  # GuidanceConfig.need_factor; 1 let collisions back (BENCHMARKS.md, with the cut step)
+NEED_FACTOR = 4.0  # GuidanceConfig.need_factor; 1 let collisions back (docs/decisions/guards.md)
 
 
 @dataclass(frozen=True)
@@ -39,8 +39,8 @@ class GuidanceConfig:
     """Algorithm 2's settings: ``inner_steps`` (W) Adam steps of learning rate ``lr`` per denoising step.
 
     The paper's reference is W = 1 at each of K = 100 DDPM steps; the default, W = 1 of lr 0.9, goes
-    with the default 4-step DDIM sampler, chosen by ``ctgpp bench`` (BENCHMARKS.md, Speed): at so few
-    steps the clip radius, not the learning rate, bounds each move.
+    with the default 6-step DDIM sampler (docs/decisions/sampler.md): at so few steps the clip radius,
+    not the learning rate, bounds each move.
 
     guide_from_step: guide only at diffusion steps k ≤ this value (None: at every step, as the paper).
 
@@ -49,8 +49,7 @@ class GuidanceConfig:
     guidance moved at the early steps, a denoiser that follows its map closely (the shipped one) moves
     back, and the last steps cannot steer at all — "vehicle 1 should collide with vehicle 2" was met
     in none of 36 seeds whatever the learning rate, Adam steps, DDIM steps or samples, and in 10 of
-    10 with a floor of 0.3 (0 of 7 with 0.15): BENCHMARKS.md, Guidance against a denoiser that
-    follows its map.
+    10 with a floor of 0.3 (0 of 7 with 0.15): docs/decisions/sampler.md.
 
     need_factor: where the objective gives the realism guards apart (the pair (rule, guards), or
     (0, guards) for the guards alone), the guards move each sample by their own step, not Adam's:
@@ -63,14 +62,12 @@ class GuidanceConfig:
     vehicle with the least share in an overlap braked by the whole radius (NGSIM Peachtree's guarded
     traffic stopped 30 % of its moving vehicles, the log none). Cutting that step to the cost's need
     kept its direction, the signs of the gradient; the gradient's own direction moves the actions
-    that make the cost (BENCHMARKS.md, Guard steps along their gradient, and the road going on where
-    the map stops). A rule's or query's own loss keeps Adam's step (with every loss cut to need, the
-    paper's no-collision rule let more vehicles collide: BENCHMARKS.md, Guards that steer, look
-    ahead, and take the step their cost needs).
+    that make the cost (docs/decisions/guards.md). A rule's or query's own loss keeps Adam's step
+    (with every loss cut to need, the paper's no-collision rule let more vehicles collide: same record).
 
     compose: for a loss that couples vehicles, filtration composes the plan vehicle by vehicle from
     the N samples (:func:`ctgpp.diffusion.filtration.compose`; the default: with the fast sampler,
-    −0.013 ± 0.006 of fail under no collision over 126 episodes, BENCHMARKS.md); False keeps one
+    −0.013 ± 0.006 of fail under no collision over 126 episodes, docs/decisions/sampler.md); False keeps one
     sample for the whole scene, as the paper.
     """
 
@@ -188,7 +185,7 @@ def yield_to_guards(rule: Tensor, guards: Tensor) -> Tensor:
     of its lane against the guard, however much larger its own gradient; where the guards are
     satisfied (zero gradient) or agree, the rule's gradient is unchanged. (Channel by channel instead
     — acceleration and yaw rate apart — kept "drive at 10 m/s" off NGSIM Peachtree's oncoming queue
-    but left 16 of the 28 held-out mini_val queries satisfied, not 20: BENCHMARKS.md.)"""
+    but left 16 of the 28 held-out mini_val queries satisfied, not 20: docs/decisions/guards.md.)"""
     dot = (rule * guards).sum(dim=(-2, -1), keepdim=True)
     norm2 = (guards * guards).sum(dim=(-2, -1), keepdim=True)
     coef = torch.where(dot < 0, dot / norm2.clamp(min=1e-30), torch.zeros_like(dot))

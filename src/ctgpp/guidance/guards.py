@@ -42,7 +42,7 @@ query's pair) and in filtration, which composes the plan with the lowest total. 
 metres (mean depth off the road, overlap depth, distance out of the lane), as the rules do, so all
 weigh 1, the rule or query too: on the quickstart query over 20 seeds, a collision weight of 5 or a
 rule weight of 3 or 10 left more vehicles colliding, a lane tolerance of 1.0 or 2.0 m more than
-1.5 m (BENCHMARKS.md, Realism guards). Every guard is a hinge, zero (with no gradient) while it is
+1.5 m (docs/decisions/guards.md). Every guard is a hinge, zero (with no gradient) while it is
 satisfied, so a vehicle that drives well is not moved at all.
 """
 
@@ -67,7 +67,7 @@ from ctgpp.guidance.rules.motion import NoOffroad
 from ctgpp.guidance.scope import LossScope
 
 GUARD_NAMES = ("offroad", "collision", "lane")
-COLLISION_WEIGHT = 1.0  # 5 measured worse (BENCHMARKS.md, Realism guards)
+COLLISION_WEIGHT = 1.0  # 5 measured worse (docs/decisions/guards.md)
 LANE_TOLERANCE_M = 1.5  # 1.0 and 2.0 measured worse (with the steering lane guard too, on Peachtree)
 HEADWAY_S = 0.5  # the road kept clear ahead, in seconds at the vehicle's speed; 1.0 measured no better
 # filtration ranks a plan by its guards' cost times this, plus the rule's: a sample that keeps the guards

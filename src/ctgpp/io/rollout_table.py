@@ -16,8 +16,9 @@ from ctgpp.scene.types import AgentType
 
 def rollout_table(rollout: Rollout) -> pa.Table:
     """Columns: time_s (0 at the simulation start, negative for history), agent (displayed vehicle
-    number, -1 for agents that are not controlled), track_id, type, controlled, x, y, yaw, speed,
-    length, width (metres, radians, m/s)."""
+    number, -1 for agents that are not controlled), role (moving, at_rest or replayed:
+    :attr:`Rollout.roles`), track_id, type, controlled, x, y, yaw, speed, length, width (metres,
+    radians, m/s)."""
     sim = rollout.sim
     n_agents, n_steps = sim.valid.shape
     agent, step = np.nonzero(sim.valid)  # row order: agent by agent, time ascending
@@ -27,6 +28,7 @@ def rollout_table(rollout: Rollout) -> pa.Table:
         {
             "time_s": np.round(time_s, 3),
             "agent": rollout.number[agent].astype(np.int32),
+            "role": rollout.roles[agent],
             "track_id": sim.ids[agent].astype(str),
             "type": type_names[sim.types[agent]],
             "controlled": rollout.controlled[agent],

@@ -1,7 +1,8 @@
 """Episode metrics (DESIGN.md, Metrics; paper appendix E): pure functions of a Rollout, by name.
 
-Importing this package registers ``collision_rate``, ``offroad_rate``, ``fail``, ``real`` and
-``rel_real``, then the figures over the vehicles moving at the start (``MOVING_METRICS``:
+Importing this package registers ``collision_rate``, ``offroad_rate``, ``beyond_map_rate``, ``fail``,
+``real`` and ``rel_real`` (``docs/metrics.md`` defines every one), then the figures over the vehicles
+moving at the start (``MOVING_METRICS``:
 ``moving_fail``, ``lane_leave``, ``stop_rate``, ``ade_10s``, ...); :func:`compute_metrics` evaluates
 them all on one rollout. :func:`vehicle_events` lists what happened to each vehicle.
 """
@@ -10,12 +11,15 @@ from ctgpp.metrics.collision import collided_vehicles, collision_rate, collision
 from ctgpp.metrics.events import vehicle_events
 from ctgpp.metrics.moving import MOVING_COUNTS, MOVING_METRICS, POOL_WEIGHT, moving_counts, pooled_mean
 from ctgpp.metrics.offroad import (
+    beyond_map_rate,
     beyond_map_steps,
     fail_rate,
     failed_vehicles,
     offroad_rate,
     offroad_steps,
     offroad_vehicles,
+    paper_offroad_rate,
+    paper_offroad_vehicles,
 )
 from ctgpp.metrics.outcomes import VehicleOutcomes, vehicle_outcomes
 from ctgpp.metrics.realism import realism, realism_distances, relative_realism, relative_realism_distances
@@ -34,6 +38,7 @@ __all__ = [
     "POOL_WEIGHT",
     "MetricValue",
     "VehicleOutcomes",
+    "beyond_map_rate",
     "beyond_map_steps",
     "collided_vehicles",
     "collision_rate",
@@ -49,6 +54,8 @@ __all__ = [
     "offroad_rate",
     "offroad_steps",
     "offroad_vehicles",
+    "paper_offroad_rate",
+    "paper_offroad_vehicles",
     "pooled_mean",
     "realism",
     "realism_distances",

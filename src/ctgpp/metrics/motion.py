@@ -26,7 +26,7 @@ from ctgpp.geometry import wrap_angle
 from ctgpp.interfaces import Rollout
 from ctgpp.scene.types import AgentTracks
 
-# A standstill, what stop_rate counts (EVALUATION.md): a near-zero speed at one step. Not the
+# A standstill, what stop_rate counts (docs/metrics.md): a near-zero speed at one step. Not the
 # moving threshold (ctgpp.scene.vehicles.MOVING_SPEED_MPS, 0.5 m/s), which decides who is at rest at
 # the start and when a "stop" behaviour holds: a vehicle creeping at 0.3 m/s in a queue is not
 # moving, but has not come to a standstill.

@@ -11,9 +11,12 @@ Beyond the mapped area (:func:`beyond_map_steps`): the drivable raster is a crop
 the map has gaps, so a vehicle whose log leaves the drivable area, that drives off the edge of the
 raster, or that drives on past the end of a lane where the mapped road stops (a lane with no successor
 whose road ends there: NGSIM Peachtree's map is a crossroads with four cut-off arms) tells about the
-map rather than about the policy. Such vehicles are reported apart by the
-figures over the vehicles moving at the start (``metrics.moving``); ``offroad_rate`` and ``fail``
-keep the paper's definition.
+map rather than about the policy. Such vehicles are reported apart, as the per-vehicle events do
+(``beyond_map``, not ``offroad``): ``offroad_rate`` counts the vehicles off the road on the mapped
+area, ``beyond_map_rate`` those beyond the map, both over every controlled vehicle, and the figures
+over the vehicles moving at the start (``metrics.moving``) likewise. ``fail`` and the ``no_offroad``
+rule's violation keep the paper's definition (any step with the centre off the drivable area, beyond
+the map or not: :func:`paper_offroad_vehicles`), so that Table 1 stays comparable with the paper's.
 """
 
 from __future__ import annotations
@@ -92,26 +95,53 @@ def past_map_end(scene: Scene, xy: np.ndarray) -> np.ndarray:
     return np.asarray(near.any(axis=1))
 
 
-def offroad_vehicles(rollout: Rollout) -> tuple[np.ndarray, np.ndarray]:
-    """The controlled vehicles and whether each goes off-road at any future step.
-
-    Returns (agents (C,) int, offroad (C,) bool).
-    """
+def paper_offroad_vehicles(rollout: Rollout) -> tuple[np.ndarray, np.ndarray]:
+    """The controlled vehicles and whether each is off-road at any future step, as the paper counts
+    it (vehicles beyond the map included). Returns (agents (C,) int, offroad (C,) bool)."""
     agents = controlled_vehicle_indices(rollout)
     return agents, np.asarray(offroad_steps(rollout, agents).any(axis=1))
 
 
+def offroad_vehicles(rollout: Rollout) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The controlled vehicles, whether each goes off-road on the mapped area, and whether each goes
+    beyond the map (:func:`beyond_map_steps`; such a vehicle is never off-road here, as in the
+    per-vehicle events). Returns (agents (C,) int, offroad (C,) bool, beyond (C,) bool)."""
+    agents, offroad = paper_offroad_vehicles(rollout)
+    beyond = beyond_map_steps(rollout, agents) >= 0
+    return agents, offroad & ~beyond, beyond
+
+
 def failed_vehicles(rollout: Rollout) -> tuple[np.ndarray, np.ndarray]:
-    """The controlled vehicles and whether each collides or goes off-road. (agents (C,), failed (C,))."""
+    """The controlled vehicles and whether each collides or goes off-road as the paper counts it
+    (:func:`paper_offroad_vehicles`). (agents (C,), failed (C,))."""
     agents, collided = collided_vehicles(rollout)
-    _, offroad = offroad_vehicles(rollout)
+    _, offroad = paper_offroad_vehicles(rollout)
     return agents, collided | offroad
 
 
 @register_metric("offroad_rate")
 def offroad_rate(rollout: Rollout) -> MetricValue:
-    """Fraction of the controlled vehicles that go off-road at any future step."""
-    agents, offroad = offroad_vehicles(rollout)
+    """Fraction of the controlled vehicles that go off-road on the mapped area at any future step
+    (the vehicles beyond the map are counted apart: ``beyond_map_rate``)."""
+    agents, offroad, _ = offroad_vehicles(rollout)
+    if agents.size == 0:
+        return MetricValue.invalid()
+    return MetricValue(float(offroad.mean()), True)
+
+
+@register_metric("beyond_map_rate")
+def beyond_map_rate(rollout: Rollout) -> MetricValue:
+    """Fraction of the controlled vehicles that go beyond the mapped area (:func:`beyond_map_steps`)."""
+    agents, _, beyond = offroad_vehicles(rollout)
+    if agents.size == 0:
+        return MetricValue.invalid()
+    return MetricValue(float(beyond.mean()), True)
+
+
+def paper_offroad_rate(rollout: Rollout) -> MetricValue:
+    """Fraction of the controlled vehicles off the drivable area at any future step, beyond the map
+    or not: the paper's off-road rate, the ``no_offroad`` rule's violation."""
+    agents, offroad = paper_offroad_vehicles(rollout)
     if agents.size == 0:
         return MetricValue.invalid()
     return MetricValue(float(offroad.mean()), True)

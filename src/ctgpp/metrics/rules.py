@@ -20,7 +20,7 @@ import numpy as np
 from ctgpp.geometry import boxes_overlap
 from ctgpp.interfaces import Rollout
 from ctgpp.metrics.collision import collision_rate, controlled_vehicle_indices
-from ctgpp.metrics.offroad import failed_vehicles, offroad_rate
+from ctgpp.metrics.offroad import failed_vehicles, paper_offroad_rate
 
 
 def vehicle_agents(rollout: Rollout, vehicles: int | Sequence[int] | None = None) -> np.ndarray:
@@ -79,8 +79,9 @@ def no_collision(rollout: Rollout) -> float:
 
 
 def no_offroad(rollout: Rollout) -> float:
-    """Off-road rate of the controlled vehicles (centre outside the drivable area)."""
-    return float(offroad_rate(rollout).value)
+    """Off-road rate of the controlled vehicles (centre outside the drivable area), as the paper
+    counts it: vehicles beyond the map included (:func:`~ctgpp.metrics.offroad.paper_offroad_rate`)."""
+    return float(paper_offroad_rate(rollout).value)
 
 
 def speed_limit(rollout: Rollout, limit_mps: float, vehicles: Sequence[int] | None = None) -> float:

@@ -173,7 +173,7 @@ def softmax_last(logits: Tensor) -> Tensor:
 
     With fewer than 16 keys (a scene of 8 or 12 vehicles) PyTorch's CPU softmax kernel takes ~20 ns per
     element, ~9× its cost per element at 16 keys; five elementwise passes (max, subtract, exp, sum,
-    divide) are then ~3× faster (BENCHMARKS.md, Speed). They work in place, so autograd keeps
+    divide) are then ~3× faster (docs/decisions/denoiser-speed.md). They work in place, so autograd keeps
     ``torch.softmax``.
     """
     if logits.shape[-1] >= SMALL_SOFTMAX or logits.requires_grad:

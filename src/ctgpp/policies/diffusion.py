@@ -23,7 +23,7 @@ from ctgpp.model.checkpoint import load_checkpoint
 from ctgpp.model.denoiser import Denoiser
 from ctgpp.policies.stages import GuidedSampling, PlanContext, PlanSet, StageConfig, plan_pipeline, run_stages
 
-DEFAULT_STEPS = 6  # the fast preset's DDIM steps, spread evenly (BENCHMARKS.md, The default sampler)
+DEFAULT_STEPS = 6  # the fast preset's DDIM steps, spread evenly (docs/decisions/sampler.md)
 
 
 @dataclass(frozen=True)
@@ -32,7 +32,7 @@ class SamplingConfig:
 
     ``timesteps`` are the DDIM steps visited (``steps`` of them, from K − 1 down); None spreads them
     evenly. The defaults (DDIM, 6 steps spread evenly: k = 99, 79, 59, 40, 20, 0; N = 2) are the
-    ``fast`` preset (BENCHMARKS.md, The default sampler): the 4 steps k = 99, 75, 40, 0 chosen before
+    ``fast`` preset (docs/decisions/sampler.md): the 4 steps k = 99, 75, 40, 0 chosen before
     for the no-collision rule guide only at their first two steps (the clip radius of the last two is
     0.025), too little for a query to steer by — "vehicle 1 should collide with vehicle 2" was met in
     1 of 10 seeds against 10 of 10, and with the realism guards 0.115 of the moving vehicles failed

@@ -53,7 +53,7 @@ UNGUIDED_POLICIES = ("ctgpp-unguided", "replay", "constvel")  # the policies tha
 
 
 def default_checkpoint(kind: str = "ctgpp") -> Path:
-    """The checkpoint of model ``kind`` shipped with the package (see BENCHMARKS.md for its record)."""
+    """The checkpoint of model ``kind`` shipped with the package (record: docs/benchmarks.md, Training)."""
     return Path(str(resources.files("ctgpp") / "assets" / "checkpoints" / kind))
 
 

@@ -3,7 +3,7 @@
 Two are named: ``paper``, the paper's configuration (DDPM over all K = 100 steps, guidance at every
 step with one Adam step of lr 0.3 clipped to Algorithm 2's radii, N = 5 samples, one sample for the
 whole scene when the loss couples vehicles: DESIGN.md, Guided sampling), and ``fast``, the default
-of ``simulate`` and ``evaluate``, chosen from ``ctgpp bench`` measurements (BENCHMARKS.md, Speed).
+of ``simulate`` and ``evaluate``, chosen from ``ctgpp bench`` measurements (docs/decisions/sampler.md).
 Any other configuration is spelled out in its name, so that a candidate can be timed beside them:
 ``ddim<steps>`` (evenly spread), ``ddim@<k>.<k>...`` (the DDIM steps visited, from K − 1 down) or
 ``ddpm`` (every step), then optionally ``-e<eta>`` (DDIM's noise, default 0), ``-n<samples>``

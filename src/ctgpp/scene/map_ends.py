@@ -8,8 +8,8 @@ not one). The metrics report a vehicle that drives off one as beyond the map, no
 (:mod:`ctgpp.metrics.offroad`). Guidance must agree: to the road-edge guard, an edge drawn across
 the lanes where the crop cut them is a wall, and every plan that runs past it costs, so a vehicle
 nearing it is held back for nothing that is there (with the guards' own step, 30 % of Peachtree's
-moving vehicles drive off its arms within 10 s, as the log's leave the recorded area: BENCHMARKS.md,
-Guard steps along their gradient, and the road going on where the map stops). :func:`open_drivable`
+moving vehicles drive off its arms within 10 s, as the log's leave the recorded area:
+docs/decisions/guards.md, Where the map stops). :func:`open_drivable`
 is the drivable area with a lane-wide strip continued straight on from every map end to the
 raster's edge; the guidance's signed distance field is built from it.
 """

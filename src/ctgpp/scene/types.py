@@ -56,6 +56,10 @@ class AgentTracks:
                 actual = getattr(self, name).shape
                 raise ValueError(f"AgentTracks.{name} has shape {actual}, expected {shape}")
 
+    def __repr__(self) -> str:
+        return (f"AgentTracks({self.num_agents} agents × {self.num_steps} steps, "
+                f"{int(self.is_vehicle.sum())} vehicles)")
+
     @property
     def num_agents(self) -> int:
         return int(self.valid.shape[0])
@@ -102,6 +106,9 @@ class LaneGraph:
         if self.intersection.shape != (n,):
             object.__setattr__(self, "intersection", np.zeros(n, dtype=bool))
 
+    def __repr__(self) -> str:
+        return f"LaneGraph({self.num_lanes} lanes, {len(self.points)} centerline points)"
+
     @property
     def num_lanes(self) -> int:
         return len(self.ids)
@@ -134,6 +141,10 @@ class DrivableArea:
     mask: np.ndarray
     origin_xy: np.ndarray
     resolution_m: float
+
+    def __repr__(self) -> str:
+        h, w = self.mask.shape
+        return f"DrivableArea({w} × {h} cells of {self.resolution_m:g} m)"
 
     @cached_property
     def sdf_m(self) -> np.ndarray:
@@ -180,6 +191,12 @@ class Scene:
     lanes: LaneGraph
     drivable: DrivableArea
     ego: int = -1
+
+    def __repr__(self) -> str:
+        ego = f", ego agent {self.ego}" if self.ego >= 0 else ""
+        return (f"Scene({self.id!r}, map {self.map_name!r}, {self.dataset}, {self.duration_s:.1f} s at "
+                f"{self.dt_s:g} s, {self.agents.num_agents} agents of which {self.num_vehicles} vehicles "
+                f"logged, {self.lanes.num_lanes} lanes{ego})")
 
     @property
     def duration_s(self) -> float:

@@ -3,8 +3,9 @@ updatable per frame.
 
 Numbered (simulated) vehicles each have their own colour (``viz.colors``) and carry a tag with their
 number in that colour, drawn above everything else so that no marker covers it; replayed agents are
-grey. The vehicles a query names get a thick outline and a thick tag edge. Events are marked where
-they happen and listed (time, vehicle, partner) in a box in the lower left corner.
+grey. The vehicles a query names get a thick outline and a thick tag edge; tags that would cover one
+another are moved apart (``viz.label_layout``). Events are marked where they happen and listed (time,
+vehicle, partner) in a box in the lower left corner.
 """
 
 from __future__ import annotations
@@ -28,11 +29,14 @@ from ctgpp.scene.types import AgentTracks, AgentType, Scene
 from ctgpp.viz.caption import QueryCaption
 from ctgpp.viz.colors import REPLAYED_COLORS, agent_colors, text_color, vehicle_color
 from ctgpp.viz.events import Event, distinct_events, event_lines
+from ctgpp.viz.label_layout import place_labels
 from ctgpp.viz.layers import COLORS, View, draw_drivable, draw_lanes
 
 HISTORY_S = 3.0  # length of the drawn history trail
 EVENT_FRESH_S = 2.0  # in animations an event is marked large this long, then small and faint
 MARKER_FACE_ALPHA = (0.7, 0.35)  # opacity of an event marker's face: recent, past
+LABEL_GAP_PT = 4.0  # the nearest a tag's corner comes to its vehicle's centre
+LABEL_PAD = 0.2  # a tag's box around its text, in font sizes (matplotlib's boxstyle pad)
 REPLAYED_NAMES = {
     "vehicle": "replayed vehicle",
     "pedestrian": "pedestrian",
@@ -103,14 +107,15 @@ class ScenePainter:
         for collection in (self._trails, self._ghosts, self._boxes, self._heads):
             ax.add_collection(collection)
         self._labels: dict[int, Annotation] = {}
+        self._label_sizes: dict[int, tuple[float, float]] = {}  # text width, height px (fixed)
         for a in np.flatnonzero(self.numbers >= 0):
             n = int(self.numbers[a])
             face = vehicle_color(n)
             self._labels[int(a)] = ax.annotate(
-                f"{n} (ego)" if a == scene.ego else str(n), (0.0, 0.0), xytext=(4, 4),
+                f"{n} (ego)" if a == scene.ego else str(n), (0.0, 0.0), xytext=(LABEL_GAP_PT, LABEL_GAP_PT),
                 textcoords="offset points", fontsize=fontsize, fontweight="bold", color=text_color(face),
-                zorder=Z["label"], gid="vehicle-label", annotation_clip=True,
-                bbox={"boxstyle": "round,pad=0.2", "fc": face, "ec": "black",
+                zorder=Z["label"], gid="vehicle-label", annotation_clip=True, ha="left", va="bottom",
+                bbox={"boxstyle": f"round,pad={LABEL_PAD}", "fc": face, "ec": "black",
                       "lw": 2.0 if n in self.named else 0.6})
         self._events = {}
         for kind, s in EVENT_STYLE.items():
@@ -168,6 +173,40 @@ class ScenePainter:
         for a, label in self._labels.items():
             label.set_visible(bool(tracks.valid[a, index]))
             label.xy = tuple(tracks.xy[a, index])
+        self._layout_labels([a for a in self._labels if tracks.valid[a, index]])
+
+    def _layout_labels(self, agents: list[int]) -> None:
+        """Move the tags of ``agents`` (in number order) apart so that no two cover each other
+        (:func:`place_labels`, in display pixels)."""
+        ax = self.ax
+        ax.apply_aspect()  # the axes' final box: data -> pixels as drawn
+        renderer = ax.figure.canvas.get_renderer()  # type: ignore[attr-defined]  # Agg canvas
+        frame = ax.get_window_extent(renderer)
+        px_per_pt = ax.figure.dpi / 72.0
+        shown, anchors, sizes, margins = [], [], [], []
+        for a in agents:
+            label = self._labels[a]
+            anchor = ax.transData.transform(label.xy)
+            if not frame.contains(*anchor):
+                continue  # clipped: not drawn
+            if a not in self._label_sizes:
+                extent = label.get_window_extent(renderer)
+                self._label_sizes[a] = (extent.width, extent.height)
+            patch = label.get_bbox_patch()
+            edge = (patch.get_linewidth() if patch is not None else 0.0) * px_per_pt
+            font_pt = float(label.get_fontsize())
+            margin = LABEL_PAD * font_pt * px_per_pt + edge / 2 + 0.5  # from the text to the box's edge
+            w, h = self._label_sizes[a]
+            shown.append(label)
+            anchors.append(anchor)
+            sizes.append((w + 2 * margin, h + 2 * margin))
+            margins.append(margin)
+        if not shown:
+            return
+        boxes = place_labels(np.array(anchors), np.array(sizes), LABEL_GAP_PT * px_per_pt)
+        for label, box, anchor, margin in zip(shown, boxes, anchors, margins, strict=True):
+            corner = box[:2] + margin - anchor  # the text's lower left corner from the anchor, px
+            label.xyann = (corner[0] / px_per_pt, corner[1] / px_per_pt)
 
     def show_events(self, events: Sequence[Event], until_s: float | None = None) -> None:
         """Mark and list the events (all, or those up to ``until_s`` seconds after the simulation start;

@@ -108,7 +108,7 @@ class ClearAhead(PairGuard):
 
     A collision guard that waits for the plan's boxes to overlap acts late: the denoiser's early
     plans drive on, and a vehicle at 6 m/s passing a stopped car that juts into its lane clipped it
-    (BENCHMARKS.md, Guards that steer, look ahead, and take the step their cost needs). This one
+    (docs/decisions/guards.md). This one
     costs as soon as what lies ahead is nearer than the distance the vehicle covers in ``headway_s``,
     and its gradient only slows the vehicle (the disc moves back with the speed; its place and
     heading carry no gradient): a vehicle behind another brakes, it does not swerve out of its lane

@@ -78,7 +78,7 @@ def disc_layout(extent: Tensor) -> tuple[Tensor, Tensor]:
     the half width; between discs it dips by 0.06 m for a 4.5 × 1.9 m car, 0.19 m for NGSIM's
     7 × 2.1 m boxes). Discs covering the whole box overshoot its sides: three of them reached 0.5 m
     past each side of NGSIM's boxes, so that neighbours in Peachtree's 2.8 m lanes overlapped at
-    the start, and the collision guard steered them into each other (BENCHMARKS.md)."""
+    the start, and the collision guard steered them into each other (docs/decisions/guards.md)."""
     length, width = extent[..., 0].clamp_min(0.1), extent[..., 1].clamp_min(0.1)
     radius = width / 2
     reach = (length / 2 - radius).clamp_min(0.0)  # (...) the end discs' offset
@@ -91,8 +91,8 @@ def outline_layout(extent: Tensor) -> tuple[Tensor, Tensor]:
     of :func:`disc_layout` and the box's four corners, discs of radius 0. The capsule rounds a corner
     off by 0.4 of the half width (0.38 m for a 1.9 m wide car), and a box standing across another's
     path touches it with a corner first: a car passing a stopped one angled into its lane clipped that
-    corner while the capsules kept 0.2 m apart (BENCHMARKS.md). Returns offsets (..., P, 2) m in the
-    box's frame (forward, left) and radii (..., P) m, P = NUM_DISCS + 4."""
+    corner while the capsules kept 0.2 m apart (docs/decisions/guards.md). Returns offsets (..., P, 2) m
+    in the box's frame (forward, left) and radii (..., P) m, P = NUM_DISCS + 4."""
     along, radius = disc_layout(extent)  # (..., D), (...)
     half_l, half_w = extent[..., 0].clamp_min(0.1) / 2, extent[..., 1].clamp_min(0.1) / 2
     corners_along = torch.stack([half_l, half_l, -half_l, -half_l], dim=-1)  # (..., 4)
