@@ -212,6 +212,15 @@ def add_llm_args(parser: argparse.ArgumentParser) -> None:
         metavar="N",
         help="longest reply in tokens (default: env CTGPP_LLM_MAX_TOKENS, else 1024)",
     )
+    parser.add_argument(
+        "--llm-mode",
+        default=None,
+        choices=["program", "structured", "auto"],
+        help="what the model is asked for: a loss program (program, the paper's path), calls of the "
+        "behaviour registry as schema-constrained JSON (structured: fast with a small local model; the "
+        "offline compiler's reading is the fallback and is compared), or structured calls only where "
+        "the offline compiler refuses the sentence (auto) (default: env CTGPP_LLM_MODE, else program)",
+    )
 
 
 def llm_config(args: argparse.Namespace) -> LLMConfig | None:
@@ -223,6 +232,7 @@ def llm_config(args: argparse.Namespace) -> LLMConfig | None:
         model=args.llm_model,
         timeout_s=args.llm_timeout,
         max_tokens=args.llm_max_tokens,
+        mode=args.llm_mode,
     )
 
 

@@ -198,10 +198,12 @@ def _keep_rounds(results: Path, row: dict[str, str], report: dict[str, Any]) -> 
 
 def _provenance(report: dict[str, Any]) -> dict[str, str]:
     """Where the guided loss came from (the query's report of :class:`~ctgpp.api.result.Result`):
-    path (compiler, llm, cache, fallback), the model's replies and their seconds."""
+    path (compiler, llm, cache, structured, fallback), the model's replies and their seconds."""
     path: str = report["path"]
     if report["fallback"] is not None:
         kind = "fallback"
+    elif path.startswith("llm-structured"):
+        kind = "structured"
     elif path.startswith("language model"):
         kind = "cache" if path.endswith("(cache)") else "llm"
     else:
@@ -261,7 +263,7 @@ def markdown_table(records: list[dict[str, str]], cases: Sequence[QueryCase] | N
 def _paths_summary(records: list[dict[str, str]]) -> list[str]:
     """Where the guided losses came from, when a language model was asked: accepted in which round,
     fallbacks, satisfied and fail per path, the model's seconds per query."""
-    if not any(r.get("path") in ("llm", "cache", "fallback") for r in records):
+    if not any(r.get("path") in ("llm", "cache", "structured", "fallback") for r in records):
         return []
     n = len(records)
     llm = [r for r in records if r["path"] == "llm"]
@@ -273,7 +275,7 @@ def _paths_summary(records: list[dict[str, str]]) -> list[str]:
            f"{sum(r['path'] == 'cache' for r in records)} from the cache, "
            f"{sum(r['path'] == 'fallback' for r in records)} by the compiler after the model's failed; "
            f"{_num(seconds)} s of the model per query."]
-    for path in ("llm", "cache", "fallback"):
+    for path in ("llm", "cache", "structured", "fallback"):
         rows = [r for r in records if r["path"] == path]
         if rows:
             hits = sum(r["satisfied_guided"] == "1" for r in rows)

@@ -6,6 +6,11 @@ its limited worker process (:class:`ctgpp.language.llm.remote.RemoteLoss`), all 
 episode's :class:`~ctgpp.language.llm.budget.LifetimeBudget`; when every round of it is
 refused (or the model cannot be reached) the compiler takes over, and the user is told. A program
 stopped during sampling is evicted from the cache and :func:`fall_back` gives the compiler's loss.
+
+With ``--llm-mode structured`` the model maps the sentence to calls of the behaviour registry instead
+(:mod:`ctgpp.language.llm.structured`; ``path`` :data:`STRUCTURED_PATH`), compared with the compiler's
+reading where there is one (a difference is noted); a refused reply falls back to the compiler. With
+``auto`` the compiler reads the sentence and the model is asked only when the compiler refuses it.
 """
 
 from __future__ import annotations
@@ -29,9 +34,13 @@ from ctgpp.language.llm.cache import LossCache
 from ctgpp.language.llm.client import LLMClient, LLMConfig, LLMError
 from ctgpp.language.llm.generate import GenerationFailed, generate_loss
 from ctgpp.language.llm.remote import GeneratedLossError
+from ctgpp.language.llm.structured import StructuredRefused, read_structured, structure_key
 from ctgpp.language.sandbox.checks import LossChecker
 
 log = logging.getLogger(__name__)
+
+STRUCTURED_PATH = "llm-structured"
+"""The start of ``path`` for a loss read by the model as calls of the behaviour registry."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -104,6 +113,10 @@ def resolve_query(query: str, obs: Observation, llm: LLMConfig | None, max_repai
             assert compile_error is not None
             raise compile_error
         return QueryLoss(compiled.loss, compiled.code, "offline query compiler", compiled)
+    if llm.mode == "auto" and compiled is not None:
+        return QueryLoss(compiled.loss, compiled.code, "offline query compiler", compiled)
+    if llm.mode in ("structured", "auto"):
+        return _structured(query, obs, llm, compiled, compile_error)
     checker = LossChecker()
     checker.start()  # the worker imports torch while the model answers
     try:
@@ -126,6 +139,36 @@ def resolve_query(query: str, obs: Observation, llm: LLMConfig | None, max_repai
     source = "cache" if generated.cached else f"{generated.rounds} round(s)"
     return QueryLoss(loss, generated.code, f"language model {llm.model} ({source})", compiled, [], query,
                      llm.model, [r.record() for r in generated.transcript])
+
+
+def _structured(query: str, obs: Observation, llm: LLMConfig, compiled: CompiledQuery | None,
+                compile_error: QueryError | None) -> QueryLoss:
+    """The loss of the model's structured reading of ``query`` (module docstring); the compiler's
+    (with the reason) when the reply is refused or the model cannot be reached; QueryError when
+    neither reads the sentence."""
+    try:
+        reading = read_structured(query, LLMClient(llm), len(obs.controlled))
+        check_possible(reading.compiled, obs)
+    except (StructuredRefused, LLMError, QueryError) as err:
+        rounds = [err.round.record()] if isinstance(err, StructuredRefused) and err.round else []
+        if compiled is None:
+            assert compile_error is not None
+            raise QueryError(f"{err}; the offline compiler does not read the sentence either: "
+                             f"{compile_error}") from None
+        note = f"{err}; the offline compiler's reading is used"
+        log.warning("%s; falling back to the offline compiler", note)
+        return QueryLoss(compiled.loss, compiled.code, "offline query compiler (fallback)", compiled, [note],
+                         rounds=rounds, fallback=str(err))
+    notes = []
+    if compiled is not None:
+        keys = [sorted(map(structure_key, c.parts)) for c in (reading.compiled, compiled)]
+        same = keys[0] == keys[1]
+        notes.append("the offline compiler reads the sentence the same way" if same else
+                     "the offline compiler reads the sentence differently: " + "; ".join(
+                         p.code() for p in compiled.parts))
+    got = reading.compiled
+    return QueryLoss(got.loss, got.code, f"{STRUCTURED_PATH} (language model {llm.model}, "
+                     f"{reading.round.seconds:.1f} s)", got, notes, rounds=[reading.round.record()])
 
 
 def fall_back(failed: QueryLoss, err: GeneratedLossError) -> QueryLoss:

@@ -22,12 +22,16 @@ from typing import Any
 
 from ctgpp.language.llm.prompt import Message
 
-__all__ = ["DEFAULT_BASE_URL", "LLMClient", "LLMConfig", "LLMError"]
+__all__ = ["DEFAULT_BASE_URL", "LLM_MODES", "LLMClient", "LLMConfig", "LLMError"]
 
 DEFAULT_BASE_URL = "https://api.openai.com/v1"
 PLACEHOLDER_KEY = "not-needed"  # local servers (vLLM, Ollama) accept any key; the client needs one
 DEFAULT_TIMEOUT_S = 600.0  # per request: a cold prompt on a 2-core CPU server, then the program
 DEFAULT_MAX_TOKENS = 1024  # a loss program is 30-60 lines; bounds a reply that rambles on
+LLM_MODES = ("program", "structured", "auto")
+"""What the model is asked for: a loss program (the paper's path), structured calls of the behaviour
+registry (:mod:`ctgpp.language.llm.structured`), or structured calls only where the offline compiler
+refuses the sentence (``auto``)."""
 RETRY_WAIT_S = (1.0, 4.0)  # before the first and later retries of a refused connection, 429 or 5xx
 
 
@@ -39,7 +43,8 @@ class LLMError(RuntimeError):
 class LLMConfig:
     """Where and how to reach the model. timeout_s: per request, s (a request that times out is not
     repeated); max_retries: retries of a refused connection, HTTP 429 and 5xx; max_tokens: the most
-    tokens of one reply (None: the server's limit); temperature None leaves the server default."""
+    tokens of one reply (None: the server's limit); temperature None leaves the server default;
+    mode: one of :data:`LLM_MODES`."""
 
     base_url: str
     model: str
@@ -48,6 +53,7 @@ class LLMConfig:
     max_retries: int = 2
     temperature: float | None = 0.0
     max_tokens: int | None = DEFAULT_MAX_TOKENS
+    mode: str = "program"
 
     @classmethod
     def resolve(
@@ -59,11 +65,13 @@ class LLMConfig:
         max_retries: int | None = None,
         env: Mapping[str, str] | None = None,
         max_tokens: int | None = None,
+        mode: str | None = None,
     ) -> LLMConfig | None:
         """The configuration from flags (arguments) over the environment, or None when no model is
         named anywhere (then the offline compiler is used). Raises :class:`LLMError` when a model
         is named for the OpenAI API but no key is given, or a timeout or token limit is not a
-        positive number."""
+        positive number, or the mode (``--llm-mode``, env ``CTGPP_LLM_MODE``) is not one of
+        :data:`LLM_MODES`."""
         env = os.environ if env is None else env
         model = model or env.get("CTGPP_LLM_MODEL") or None
         if model is None:
@@ -71,6 +79,9 @@ class LLMConfig:
         timeout = _positive("--llm-timeout", timeout_s, env.get("CTGPP_LLM_TIMEOUT"), DEFAULT_TIMEOUT_S)
         tokens = _positive("--llm-max-tokens", max_tokens, env.get("CTGPP_LLM_MAX_TOKENS"),
                            DEFAULT_MAX_TOKENS)
+        mode = mode or env.get("CTGPP_LLM_MODE") or "program"
+        if mode not in LLM_MODES:
+            raise LLMError(f"--llm-mode must be one of {', '.join(LLM_MODES)} (got {mode!r})")
         url = (base_url or env.get("OPENAI_BASE_URL") or DEFAULT_BASE_URL).rstrip("/")
         key = api_key or env.get("OPENAI_API_KEY") or None
         if key is None and url == DEFAULT_BASE_URL:
@@ -83,6 +94,7 @@ class LLMConfig:
             timeout_s=timeout,
             max_retries=2 if max_retries is None else int(max_retries),
             max_tokens=int(tokens),
+            mode=mode,
         )
 
 
@@ -121,23 +133,28 @@ class LLMClient:
             max_retries=0,  # retried here: never after a timeout
         )
 
-    def complete(self, messages: Sequence[Message]) -> str:
-        """The model's reply text to ``messages`` (``[{"role": ..., "content": ...}, ...]``)."""
+    def complete(self, messages: Sequence[Message], request: Mapping[str, Any] | None = None) -> str:
+        """The model's reply text to ``messages`` (``[{"role": ..., "content": ...}, ...]``);
+        ``request``: more fields of the chat request (``response_format``, ``max_tokens``,
+        ``extra_body`` for a server's own fields such as llama.cpp's ``cache_prompt``)."""
         for attempt in range(self.config.max_retries + 1):
             try:
-                return self._complete_once(messages)
+                return self._complete_once(messages, request or {})
             except _Retryable as failure:
                 if attempt == self.config.max_retries:
                     raise LLMError(str(failure)) from None
                 time.sleep(RETRY_WAIT_S[min(attempt, len(RETRY_WAIT_S) - 1)])
         raise AssertionError("the loop returns or raises")
 
-    def _complete_once(self, messages: Sequence[Message]) -> str:
+    def _complete_once(self, messages: Sequence[Message], request: Mapping[str, Any]) -> str:
         cfg, err = self.config, self._errors
         where = f"the language model at {cfg.base_url}"
         extra: dict[str, Any] = {} if cfg.temperature is None else {"temperature": cfg.temperature}
         if cfg.max_tokens is not None:
             extra["max_tokens"] = cfg.max_tokens
+        extra |= request
+        if cfg.max_tokens is not None and "max_tokens" in request:
+            extra["max_tokens"] = min(int(request["max_tokens"]), cfg.max_tokens)
         try:
             response = self._client.chat.completions.create(
                 model=cfg.model, messages=[dict(m) for m in messages], **extra
