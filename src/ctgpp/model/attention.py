@@ -6,9 +6,10 @@ receive a zero message, never NaN.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, fields
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
@@ -119,7 +120,36 @@ class GatedSpatialAttention(nn.Module):
         s, t, c, _ = tokens.shape
         return self.kv(self.norm(tokens)).view(s, t, c, 2, self.heads, self.head_dim)
 
-    def forward(self, x: Tensor, edges: Tensor, mask: Tensor, context: Tensor | None = None) -> Tensor:
+    def forward(
+        self, x: Tensor, edges: Tensor, mask: Tensor, context: Tensor | None = None,
+        groups: Sequence[tuple[Tensor, Tensor]] | None = None,
+    ) -> Tensor:
+        """:meth:`dense` over each neighbourhood group apart (:func:`neighbourhood_groups`; all at once
+        when None): groups (agents (Ag,), keys (Kg,)) with no key of one in another's mask, so the
+        outputs are the dense ones up to round-off, at a cost linear in the agents when groups are small."""
+        if groups is None:
+            return self.dense(x, edges, mask, context)
+        s, a = x.shape[0], x.shape[2]
+        out = torch.empty_like(x)
+        buckets: dict[tuple[int, int], list[tuple[Tensor, Tensor]]] = {}
+        for agents, keys in groups:  # groups of one size go through one call, stacked on the rows
+            buckets.setdefault((len(agents), len(keys)), []).append((agents, keys))
+        for same in buckets.values():
+            agents = torch.stack([g[0] for g in same])  # (G, Ag)
+            keys = torch.stack([g[1] for g in same])  # (G, Kg)
+            n = len(same)
+            sub_x = x[:, :, agents].permute(2, 0, 1, 3, 4).reshape(n * s, *x.shape[1:2], agents.shape[1], -1)
+            sub_edges = edges[0][:, agents[:, :, None], keys[:, None, :]].transpose(0, 1)  # (G, T, Ag, Kg, E)
+            sub_mask = mask[0][:, agents[:, :, None], keys[:, None, :]].transpose(0, 1)  # (G, T, Ag, Kg)
+            ctx = None
+            if context is not None:
+                c_idx = keys[:, agents.shape[1]:] - a  # (G, Cg): the keys after the group's agents
+                ctx = context[0][:, c_idx].transpose(0, 1)  # (G, T, Cg, 2, h, dh)
+            sub = self.dense(sub_x, sub_edges, sub_mask, ctx)  # (G*S, T, Ag, d)
+            out[:, :, agents] = sub.view(n, s, *sub.shape[1:]).permute(1, 2, 0, 3, 4)
+        return out
+
+    def dense(self, x: Tensor, edges: Tensor, mask: Tensor, context: Tensor | None = None) -> Tensor:
         """x (S, T, A, d) residual stream; edges (Se, T, A, K, E) embedded e_ij for query i, key j;
         mask (Se, T, A, K) bool, True where i may attend to j, the diagonal always True; context
         (Se, T, C, 2, h, dh) the keys and values of C context agents (:meth:`context_keys`), the keys
@@ -191,3 +221,25 @@ def masked_softmax(logits: Tensor, mask: Tensor, dim: int) -> Tensor:
     logits = logits.masked_fill(~mask, float("-inf"))
     logits = torch.where(has_any, logits, torch.zeros_like(logits))
     return torch.softmax(logits, dim=dim) * mask.to(logits.dtype)
+
+
+def neighbourhood_groups(mask: Tensor) -> list[tuple[Tensor, Tensor]] | None:
+    """The connected groups of the spatial attention's mask (1, T, A, K) (K = A agents, then context
+    agents), over all time steps: (agents (Ag,), keys (Kg,)) ascending, each agent in one group, no
+    mask entry between groups. None when the A agents form one group (the dense attention is then the
+    only computation), or when the mask has several scene rows (their groups differ)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    if mask.shape[0] != 1:
+        return None
+    a, k = mask.shape[2], mask.shape[3]
+    rows, cols = torch.nonzero(mask[0].any(dim=0), as_tuple=True)  # (M,) agent i, key j
+    graph = coo_matrix((np.ones(len(rows)), (rows.numpy(), cols.numpy())), shape=(k, k))
+    count, label = connected_components(graph, directed=False)
+    label_t = torch.from_numpy(label)
+    groups = []
+    for g in torch.unique(label_t[:a]).tolist():
+        keys = torch.nonzero(label_t == g).flatten()  # ascending: its agents, then its context agents
+        groups.append((keys[keys < a], keys))
+    return None if len(groups) == 1 else groups

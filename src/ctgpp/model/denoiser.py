@@ -17,7 +17,7 @@ from torch import Tensor, nn
 
 from ctgpp.data.batch import SceneBatch
 from ctgpp.dynamics import clip_actions, rollout
-from ctgpp.model.attention import FoldedKeys, GatedSpatialAttention, MaskedAttention
+from ctgpp.model.attention import FoldedKeys, GatedSpatialAttention, MaskedAttention, neighbourhood_groups
 from ctgpp.model.config import ModelConfig
 from ctgpp.model.context_encoder import AgentEmbedding, ContextEncoder
 from ctgpp.model.embeddings import RowFFN, StepEmbedding, TimeEmbedding
@@ -45,7 +45,8 @@ class DenoiserContext:
     (:class:`FoldedKeys` with leading dimensions (S, A)). agent_tokens (S, A, 1, d): the agent
     embedding added to every future token (None for models without context). context_keys: per
     block, the context agents' keys and values (S or 1, T, C, 2, h, dh) of its spatial attention
-    (None without context).
+    (None without context). groups: the spatial attention's neighbourhood groups
+    (:func:`~ctgpp.model.attention.neighbourhood_groups`; None: one dense attention).
     """
 
     agent_mask: Tensor
@@ -57,6 +58,7 @@ class DenoiserContext:
     map_keys: tuple[FoldedKeys, ...]
     agent_tokens: Tensor | None = None
     context_keys: tuple[Tensor, ...] | None = None
+    groups: list[tuple[Tensor, Tensor]] | None = None
 
     def expand(self, n: int) -> DenoiserContext:
         """The context of S scenes for ``n`` samples each: (S, ...) -> (S*n, ...), scene-major rows
@@ -66,7 +68,7 @@ class DenoiserContext:
         ``edges``, ``spatial_mask`` and ``context_keys``, the largest, keep their S rows: the spatial
         attention shares each scene's among its samples.
         """
-        kept = ("edges", "spatial_mask", "map_keys", "agent_tokens", "context_keys")
+        kept = ("edges", "spatial_mask", "map_keys", "agent_tokens", "context_keys", "groups")
         expanded = {
             f.name: repeat_samples(getattr(self, f.name), n) for f in fields(self) if f.name not in kept
         }
@@ -79,6 +81,7 @@ class DenoiserContext:
             map_keys=map_keys,
             agent_tokens=agent,
             context_keys=self.context_keys,
+            groups=self.groups,
         )
 
 
@@ -119,7 +122,8 @@ class Block(nn.Module):
         x = x[:, :, keep_from:] + attended.view(s, a, kept, d)
         edges, spatial_mask = ctx.edges[:, keep_from:], ctx.spatial_mask[:, keep_from:]
         known = None if context_keys is None else context_keys[:, keep_from:]
-        x = self.spatial(x.transpose(1, 2), edges, spatial_mask, known).transpose(1, 2)  # via (S, T, A, d)
+        x = self.spatial(x.transpose(1, 2), edges, spatial_mask, known, ctx.groups)  # via (S, T, A, d)
+        x = x.transpose(1, 2)
         h = self.map_norm(x).reshape(s * a, kept, d)
         lanes = map_keys.map(lambda value: value.reshape(s * a, *value.shape[2:]))  # rows (S*A)
         x = x + self.map.attend(h, lanes).view(s, a, kept, d)
@@ -154,6 +158,9 @@ class Denoiser(nn.Module):
         self.blocks = nn.ModuleList(Block(config) for _ in range(config.blocks))
         self.out_norm = nn.LayerNorm(d)
         self.out = nn.Linear(d, 2)
+        # True: the spatial attention runs apart over groups of agents out of each other's social
+        # radius (outputs equal up to round-off, exactly the dense ones when one group); off by default
+        self.neighbourhoods = False
 
     @property
     def block_list(self) -> list[Block]:
@@ -193,6 +200,7 @@ class Denoiser(nn.Module):
             map_keys=self._fold_lanes(lane_tokens, lane_valid),
             agent_tokens=agent_tokens,
             context_keys=context_keys,
+            groups=neighbourhood_groups(spatial_mask) if self.neighbourhoods else None,
         )
 
     def _state_features(self, states: Tensor, valid: Tensor) -> Tensor:
