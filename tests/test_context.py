@@ -16,7 +16,7 @@ from ctgpp.model import Denoiser, ModelConfig
 from ctgpp.policies.diffusion import DiffusionPolicy, SamplingConfig
 from ctgpp.scene.types import AgentTracks, AgentType, Scene
 from ctgpp.scene.vehicles import controlled_vehicles
-from ctgpp.sim.closed_loop import SimConfig, initial_observation, simulate
+from ctgpp.sim.closed_loop import SimConfig, held_numbers, initial_observation, simulate
 
 TINY = ModelConfig(d_model=32, heads=2, blocks=1, edge_dim=8, lane_hidden=16)
 STEP = 60
@@ -116,8 +116,11 @@ def test_sampling_never_changes_held_or_replayed_futures(scene_0103: Scene) -> N
     assert (samples.actions[:, rows] == 0).all() and (samples.trajectories[rows, ..., :3] == 0).all()
     rollout = simulate(scene_0103, policy, 4.0, seed=1, config=SimConfig(duration_steps=20))
     sim, log, cur = rollout.sim, rollout.log, rollout.current
-    standing = np.repeat(sim.xy[held, cur : cur + 1], sim.num_steps - cur, axis=1)
-    np.testing.assert_array_equal(sim.xy[held, cur:], standing)
+    # the vehicles the simulator holds: parked, fewer than those at rest
+    parked = obs.controlled[held_numbers(scene_0103, obs.tracks, step0, obs.controlled, True)]
+    assert 0 < len(parked) < len(held)
+    standing = np.repeat(sim.xy[parked, cur : cur + 1], sim.num_steps - cur, axis=1)
+    np.testing.assert_array_equal(sim.xy[parked, cur:], standing)
     others = np.setdiff1d(np.arange(a.num_agents), obs.controlled)
     window = slice(rollout.first_step, rollout.first_step + sim.num_steps)
     seen = obs.tracks  # the replayed agents as the policy was given them: the log, parked cars held
