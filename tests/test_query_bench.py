@@ -107,7 +107,11 @@ def test_a_killed_run_resumes_and_the_table_reports_both_sides(catalog: Catalog,
     assert collide["satisfied_guided"] in ("0", "1")
     assert lane["satisfied_unguided"] == "1"  # the log keeps its lane
     assert collide["fail_excl_guided"] != "" and lane["fail_excl_guided"] == ""  # collision pairs only
-    assert float(collide["fail_excl_guided"]) <= float(collide["fail_guided"]) + 1e-9
+    # the others' failures are some of all the failures (the rate itself may rise: fewer vehicles)
+    n = int(collide["vehicles"])
+    others_failed = float(collide["fail_excl_guided"]) * (n - 2)
+    assert others_failed <= float(collide["fail_guided"]) * n + 1e-4
+    assert abs(others_failed - round(others_failed)) < 1e-4  # a count of vehicles
 
     # A kill in the middle of writing the second row: the torn line is dropped and redone.
     lines = results.read_text().splitlines(keepends=True)
