@@ -25,6 +25,7 @@ def test_scenes_lists_the_embedded_data(capsys: pytest.CaptureFixture[str]) -> N
     assert "mini_val" in out and "boston-seaport" in out and "10 scenes" in out
 
 
+@pytest.mark.slow
 def test_simulate_writes_rollout_metrics_picture_and_animation(tmp_path: Path) -> None:
     out = tmp_path / "run"
     assert (
@@ -84,6 +85,7 @@ def test_user_mistakes_get_one_clear_line_and_exit_2(
     assert not (tmp_path / "x").exists()
 
 
+@pytest.mark.slow
 def test_evaluate_over_two_sets_in_workers_writes_table_and_realism_picture(tmp_path: Path) -> None:
     copy = tmp_path / "copy"
     shutil.copytree(default_data_dir(), copy)

@@ -97,6 +97,7 @@ class LoggingFactory(PolicyFactory):
         return len(self.log.read_text().splitlines()) if self.log.exists() else 0
 
 
+@pytest.mark.slow
 def test_parallel_run_resumes_without_recomputing(catalog: Catalog, tmp_path: Path) -> None:
     episodes = plan_episodes(catalog, "mini_val", ["replay", "constvel"], [0], 4.0)
     assert len(episodes) == 2 * (2 + 2)  # starts 3 and 7 s in each scene

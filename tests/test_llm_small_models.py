@@ -54,6 +54,7 @@ def test_max_tokens_is_sent_and_a_timed_out_request_is_not_sent_again(server: Ca
     assert len(server.requests) == 1
 
 
+@pytest.mark.slow
 def test_busy_and_failing_servers_are_retried(server: CannedServer) -> None:
     server.replies = [(429, "slow down"), (503, "loading the model"), reply(GOOD)]
     assert "CollisionLoss" in _client(server, max_retries=2).complete(build_messages(QUERY))

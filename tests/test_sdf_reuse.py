@@ -49,6 +49,7 @@ def _arrays(result: ctgpp.Result) -> list[np.ndarray]:
     return [sim.xy, sim.yaw, sim.speed, sim.valid]
 
 
+@pytest.mark.model
 @pytest.mark.parametrize("query", [None, "vehicle 1 should collide with vehicle 2"])
 def test_rollouts_are_bit_identical_with_and_without_reuse(
     query: str | None, monkeypatch: pytest.MonkeyPatch

@@ -322,6 +322,7 @@ def test_the_unguided_comparison_gives_way_to_a_waiting_run(server: Server) -> N
     assert server.wait(second["id"])["state"] == "done"
 
 
+@pytest.mark.slow
 def test_a_language_model_run_keeps_the_key_on_the_server(server: Server) -> None:
     """The model is unreachable: the run falls back to the offline compiler and says so."""
     job = server.submit(sentence="vehicle 2 should stop", duration_s=1, policy="constvel", llm=True)

@@ -108,6 +108,7 @@ def test_policy_never_sees_the_logged_future(scene_0103: Scene, trained: tuple[P
     np.testing.assert_array_equal(plan, policy.plan(obs(scrambled_log(replayed))).states)
 
 
+@pytest.mark.slow
 def test_torchrun_two_process_training(tmp_path: Path) -> None:
     """DistributedDataParallel over two CPU processes (gloo) through torchrun."""
     out = tmp_path / "ddp"

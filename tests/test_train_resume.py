@@ -12,6 +12,7 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
 import torch
 from safetensors.torch import load_file
 
@@ -54,6 +55,7 @@ def _kill_after_first_state(out: Path) -> None:
     assert proc.returncode == -signal.SIGKILL, "the run finished before it could be killed"
 
 
+@pytest.mark.slow
 def test_train_killed_and_resumed_reproduces_the_uninterrupted_run(tmp_path: Path) -> None:
     whole, resumed = tmp_path / "whole", tmp_path / "resumed"
     _run(whole)
@@ -73,6 +75,7 @@ def test_train_killed_and_resumed_reproduces_the_uninterrupted_run(tmp_path: Pat
     assert not [p.name for p in resumed.iterdir() if ".tmp" in p.name]
 
 
+@pytest.mark.slow
 def test_a_run_removes_the_temporary_files_a_killed_write_left(tmp_path: Path) -> None:
     """A kill while a state was written leaves its temporary file: ours (``io.atomic``) or safetensors'
     own (``save_file`` writes ".tmp" and 6 random characters beside the file, then renames it — what

@@ -207,7 +207,8 @@ def test_pooled_over_logged_turns_not_episodes():
     lines = moving_table([s]).splitlines()
     header = next(line for line in lines if line.startswith("| rule |"))
     assert header.startswith("| rule | method | moving | turns | fail |")
-    assert header.endswith("| turn follow | speed / log's | at rest, moved as logged | at rest, kept as logged |")
+    tail = "| turn follow | speed / log's | at rest, moved as logged | at rest, kept as logged |"
+    assert header.endswith(tail)
     row = next(line for line in lines if line.startswith("| none | constvel |"))
     assert row.startswith("| none | constvel | 12 | 4 | - |") and row.endswith("| - | 0.500 | - | - | - |")
 
