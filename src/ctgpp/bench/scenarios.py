@@ -6,7 +6,7 @@ keeps one preset's caches from flattering the next. Each scene is loaded once pe
 drivable-area distance field (a one-off per scene, ~0.8 s for a nuScenes map crop) is built before
 the clock starts, as ``evaluate`` keeps it across a scene's episodes. The episodes' fail rate, rule
 violation and realism are measured beside the time, so a speed-up that costs quality shows in the
-same table, and so are the figures over the vehicles moving at the start (``metrics.moving``).
+same table, and so are the figures over the vehicles that move (``metrics.moving``).
 """
 
 from __future__ import annotations

@@ -144,7 +144,7 @@ def run_simulate(args: argparse.Namespace) -> int:
           f"(of {scene.num_vehicles} logged in the whole scene)")
     print("  " + "  ".join(f"{k} {_fmt(v)}" for k, v in metrics.items() if k not in MOVING_METRICS))
     moving = "  ".join(f"{k} {_fmt(metrics[k])}" for k in MOVING_METRICS if k in metrics)
-    print(f"  {result.moving_vehicles} moving at the start: {moving}")
+    print(f"  {result.moving_vehicles} that move (in the log or the simulation): {moving}")
     for text, value in result.rules.items():
         mark = "yes" if value["satisfied"] else "no "
         print(f"  rule {text}: violation {_fmt(value['violation'])} {value['unit']}".rstrip()

@@ -1,7 +1,7 @@
 """One evaluation episode: what identifies it, and how it is simulated and measured.
 
 An episode is (set, method, rule, scene, start, seed); its result is one CSV row of metrics (the
-paper's, then the figures over the vehicles moving at the start with the counts of vehicles behind
+paper's, then the figures over the vehicles that move with the counts of vehicles behind
 them, ``metrics.moving``) and the histograms of the realism statistics behind ``real`` and
 ``rel_real``. The same function serves the sequential run and the worker processes of a parallel one.
 """

@@ -2,7 +2,7 @@
 
 Importing this package registers ``collision_rate``, ``offroad_rate``, ``beyond_map_rate``, ``fail``,
 ``real`` and ``rel_real`` (``docs/metrics.md`` defines every one), then the figures over the vehicles
-moving at the start (``MOVING_METRICS``:
+that move (``MOVING_METRICS``:
 ``moving_fail``, ``lane_leave``, ``stop_rate``, ``ade_10s``, ...); :func:`compute_metrics` evaluates
 them all on one rollout. :func:`vehicle_events` lists what happened to each vehicle.
 """

@@ -1,5 +1,5 @@
 """What happened to each controlled vehicle of a rollout: the one computation behind the figures
-over the vehicles moving at the start (``metrics.moving``), the per-vehicle events
+over the vehicles that move (``metrics.moving``), the per-vehicle events
 (``metrics.events``) and the failure marks on pictures (``viz.events``).
 
 Kinds of vehicles: *moving* — controlled, and faster than 0.5 m/s at the start or carried more than

@@ -8,7 +8,7 @@ the vehicle's last simulated step, where the simulation ends it earlier) differs
 heading at the start by more than :data:`FOLLOWED_TURN_RAD` (45°), with the same sign.
 
 The log (replay) follows every logged turn by construction; constant velocity none (its heading
-never changes). ``metrics.moving.turn_follow`` is the share over the vehicles moving at the start.
+never changes). ``metrics.moving.turn_follow`` is the share over the vehicles that move.
 """
 
 from __future__ import annotations
