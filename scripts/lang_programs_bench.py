@@ -23,10 +23,8 @@ import os
 import sys
 import tempfile
 import time
-from dataclasses import replace
 
-import torch
-from tests.support.lang_programs import KNOWN_MISSES, MEANING_SET, PAPER, RUNTIME_SET, load
+from tests.support.lang_programs import KNOWN_MISSES, MEANING_SET, PAPER, RUNTIME_SET, drive, load
 from tests.support.llm_server import MODEL, CannedServer, reply
 from tests.support.observations import logged_x, real_observation
 
@@ -40,21 +38,6 @@ from ctgpp.language.llm.generate import GenerationFailed, generate_loss
 from ctgpp.language.llm.remote import GeneratedLossError, RemoteLoss
 from ctgpp.language.query import fall_back, resolve_query
 from ctgpp.language.sandbox.checks import LossChecker
-
-
-def drive(loss: RemoteLoss, batch, x: torch.Tensor, calls: int) -> int:
-    """Sampling's calls: re-plans of 7 (a new batch each), 6 with a gradient, one without."""
-    plan = batch
-    for k in range(calls):
-        if k % 7 == 0:
-            plan = replace(batch, memo={})
-        if k % 7 < 6:
-            xg = x.clone().requires_grad_()
-            loss(xg, plan).sum().backward()
-        else:
-            with torch.no_grad():
-                loss(x, plan)
-    return calls
 
 
 def meaning(server: CannedServer, calls: int) -> None:
@@ -82,7 +65,7 @@ def meaning(server: CannedServer, calls: int) -> None:
             counts[kind][1] += 1
             budget = LifetimeBudget(reference.loss)
             loss = RemoteLoss(result.code, checker, own_worker=False, rows=result.rows, budget=budget)
-            drive(loss, batch, logged_x(obs, num_samples=2)[0], calls)
+            drive(loss, batch, logged_x(obs, num_samples=2)[0], calls, replan_calls=7)
             worst = max(worst, budget.spent_s / budget.limit_s)
             note = " (known miss)" if program.name in KNOWN_MISSES else ""
             print(f"| {program.name} | {program.expect[:40]} | accepted{note} | "
@@ -108,7 +91,7 @@ def lifetime(server: CannedServer, floor_s: float) -> None:
         cached = LossCache().cost(program.query, MODEL) or 0.0
         start = time.monotonic()
         try:
-            drive(loss, batch, x, 100_000)
+            drive(loss, batch, x, 100_000, replan_calls=7)
             cause = "not stopped"
         except GeneratedLossError as err:
             cause = str(err).split(": ", 1)[1][:70]

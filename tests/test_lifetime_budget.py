@@ -11,7 +11,6 @@ loss (:func:`fall_back`) with nothing left in the cache. A cached program carrie
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -27,7 +26,7 @@ from ctgpp.language.llm.generate import generate_loss
 from ctgpp.language.llm.remote import GeneratedLossError, RemoteLoss
 from ctgpp.language.query import fall_back, probe_x, resolve_query
 from ctgpp.language.sandbox.checks import LossChecker, LossCheckError
-from tests.support.lang_programs import RUNTIME_SET, load
+from tests.support.lang_programs import RUNTIME_SET, drive, load
 from tests.support.llm_server import MODEL, CannedServer, reply
 from tests.support.observations import logged_x, real_observation
 
@@ -39,22 +38,6 @@ REASONS = {"budget": "more than its budget for the whole episode", "memo": "chan
 @pytest.fixture(scope="module")
 def obs() -> Any:
     return real_observation()
-
-
-def drive(loss: Any, batch: Any, x: torch.Tensor, calls: int = 400) -> int:
-    """Call ``loss`` as sampling does (re-plans of 5 calls with their own batch: 4 with a gradient on
-    x (B, N, T, 6), one without); returns the calls made."""
-    plan = batch
-    for k in range(calls):
-        if k % 5 == 0:
-            plan = replace(batch, memo={})
-        if k % 5 < 4:
-            xg = x.clone().requires_grad_()
-            loss(xg, plan).sum().backward()
-        else:
-            with torch.no_grad():
-                loss(x, plan)
-    return calls
 
 
 def test_there_are_six_runtime_programs() -> None:
@@ -73,7 +56,7 @@ def test_stopped_within_the_budget_and_the_episode_goes_on(program: Any, llm_env
     budget = query_loss.loss.budget
     batch, x = build_guidance_batch(obs), logged_x(obs, num_samples=2)[0]
     with pytest.raises(GeneratedLossError) as stopped:
-        drive(query_loss.loss, batch, x)
+        drive(query_loss.loss, batch, x, calls=400)
     message = str(stopped.value)
     assert REASONS[program.expect] in message and "grows" not in message, message
     assert budget.spent_s <= budget.limit_s + MIN_CALL_LIMIT_S + 0.1  # never much past the budget

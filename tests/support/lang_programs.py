@@ -6,8 +6,11 @@ reason>``, or for runtime programs ``budget``/``memo``) and ``# what:``/``# atta
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
+
+import torch
 
 DATA = Path(__file__).resolve().parents[1] / "data"
 MEANING_SET = DATA / "lang_programs"
@@ -52,3 +55,19 @@ def load(folder: Path) -> list[Program]:
         what = _header(code, "what" if "# what:" in code else "attack")
         out.append(Program(path.name.removesuffix(".loss.txt"), _header(code, "query"), expect, what, code))
     return out
+
+
+def drive(loss: Any, batch: Any, x: torch.Tensor, calls: int, replan_calls: int = 5) -> int:
+    """Call ``loss`` as sampling does: re-plans of ``replan_calls`` calls, each with its own batch
+    (an empty memo), all but the last with a gradient on x (B, N, T, 6); returns the calls made."""
+    plan = batch
+    for k in range(calls):
+        if k % replan_calls == 0:
+            plan = replace(batch, memo={})
+        if k % replan_calls < replan_calls - 1:
+            xg = x.clone().requires_grad_()
+            loss(xg, plan).sum().backward()
+        else:
+            with torch.no_grad():
+                loss(x, plan)
+    return calls
