@@ -72,6 +72,12 @@ How clauses combine (examples from the compiler's test set, `tests/data/sentence
 | one after another | `vehicle 1 stops; after that vehicle 2 stops` |
 | in turn | `vehicles 1, 2 and 3 stop one by one` |
 | a deadline | `vehicle 1 stops within 5 s` (an event happens by then; a limit holds from then on) |
+
+In a sequence, a part waits for the earlier parts about its own vehicles (or, naming none of them,
+for the clause just before) to be reached before it guides, and is judged after them: in
+`vehicles 20 and 21 move to the rightmost lane one by one and then both turn right at the next
+intersection`, vehicle 21 changes lanes once vehicle 20 is in the rightmost lane, and each vehicle
+turns once it is in the rightmost lane itself.
 | units | m/s, km/h, mph; m, ft: `keep vehicle 7 no farther than 30 ft from vehicle 3` |
 
 Each behaviour: what it means, its phrasings, its parameters (as `ctgpp simulate --rule

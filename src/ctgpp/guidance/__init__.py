@@ -13,7 +13,8 @@ helpers generated code may import, and the realism guards.
   lane graph: :mod:`ctgpp.scene.lane_paths`; polyline projections: :mod:`ctgpp.scene.polylines`).
 - :mod:`~ctgpp.guidance.rules`: the rules library (motion, lanes, interaction, relative, route,
   comparisons, time windows); :mod:`~ctgpp.guidance.composite`: "and" of weighted losses,
-  ``make_loss`` by name, ``describe_rules``.
+  ``make_loss`` by name, ``describe_rules``; :mod:`~ctgpp.guidance.sequence`: "then" and "one by
+  one", each stage guiding once the earlier ones are reached.
 - :mod:`~ctgpp.guidance.guards`: the realism guards (on the road, no collision, in lane) around a
   rule's or query's loss.
 """
@@ -22,11 +23,13 @@ import ctgpp.guidance.rules.lanes  # noqa: F401  (registers the map-aware and re
 from ctgpp.guidance.base import GuidanceLoss, register_loss, registered_losses
 from ctgpp.guidance.composite import CompositeLoss, ParamInfo, RuleInfo, describe_rules, make_loss
 from ctgpp.guidance.context import GuidanceBatch, build_guidance_batch
+from ctgpp.guidance.sequence import InOrder
 
 __all__ = [
     "CompositeLoss",
     "GuidanceBatch",
     "GuidanceLoss",
+    "InOrder",
     "ParamInfo",
     "RuleInfo",
     "build_guidance_batch",

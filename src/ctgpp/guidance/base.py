@@ -50,6 +50,13 @@ class GuidanceLoss(nn.Module):
         its scope may ask to collide."""
         return PlanConstraints.of_scope(self.scope(), int(data_batch.num_vehicles))
 
+    def reached(self, data_batch: Any) -> bool | None:
+        """Whether what the loss asks is achieved at the re-plan of ``data_batch``, judged from the
+        vehicles' state at its step (never a later one): a sequence's next stage waits for it
+        (:class:`~ctgpp.guidance.sequence.InOrder`). None: the loss cannot tell (the default), and a
+        sequence does not wait for it."""
+        return None
+
     def guided_parts(self, x: Tensor, data_batch: Any) -> Tensor | tuple[Tensor, Tensor]:
         """What a guidance step minimizes (:func:`ctgpp.diffusion.guided.guide_mean`): the cost, or the
         pair (the rule's cost, the realism guards' cost) for a loss that carries the guards apart."""

@@ -56,9 +56,21 @@ class CompositeLoss(GuidanceLoss):
         parts = [loss.constraints(data_batch) for loss, w in weighted if w > 0]
         return PlanConstraints().merged(parts, collide_pairs(self.scope(), int(data_batch.num_vehicles)))
 
+    def reached(self, data_batch: Any) -> bool | None:
+        """False when a part is not reached, True when every part is, else None (one cannot tell)."""
+        return all_reached([loss.reached(data_batch) for loss in self.losses])
+
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         pairs = zip(self.losses, self.weights, strict=True)
         return join_costs([w * loss(x, data_batch, agt_mask) for loss, w in pairs])
+
+
+def all_reached(answers: Sequence[bool | None]) -> bool | None:
+    """Several parts' :meth:`~ctgpp.guidance.base.GuidanceLoss.reached` together: False when one is
+    not reached, True when all are, None when none is False and one cannot tell."""
+    if any(answer is False for answer in answers):
+        return False
+    return True if all(answer is True for answer in answers) else None
 
 
 def join_costs(costs: Sequence[Tensor]) -> Tensor:
@@ -129,6 +141,7 @@ def make_loss(name: str, **params: Any) -> GuidanceLoss:
 __all__ = [
     "MAX_SPEED_MPS",
     "CompositeLoss",
+    "all_reached",
     "ParamInfo",
     "RuleInfo",
     "check_quantity",

@@ -6,12 +6,14 @@ the lane graph — never the guidance loss that steered the sampler — on the w
 states (a speed limit from when the vehicle could be under it, "slow down to" as reach and stay, ...).
 
 A sequence ("one by one", "then": the parts' ``stage``) is judged in its order too: a part achieved
-at a time (its verdict's ``done_s``: a lane reached, a turn made) before a part of an earlier stage
-was achieved is not satisfied (one that held from t = 0 asked for no move and is in order). Where
-either part does not say when it was achieved, the order is not judged, and the report says so. A
-part whose vehicle a later stage takes elsewhere ("move to the rightmost lane and then turn right":
-after the turn it drives in another street's lane) is judged up to the time that later manoeuvre
-began (its verdict's ``began_s``: entering the intersection), not at the end of the episode.
+at a time (its verdict's ``done_s``: a lane reached, a turn made) before a part it waits for was
+achieved (the earlier parts about its vehicles, else the stage just before:
+:func:`~ctgpp.language.compiler.compiled.prerequisites`, what guidance waits for too) is not
+satisfied (one that held from t = 0 asked for no move and is in order). Where either part does not
+say when it was achieved, the order is not judged, and the report says so. A part whose vehicle a
+later stage takes elsewhere ("move to the rightmost lane and then turn right": after the turn it
+drives in another street's lane) is judged up to the time that later manoeuvre began (its verdict's
+``began_s``: entering the intersection), not at the end of the episode.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from ctgpp.behaviours import get_behaviour
 from ctgpp.behaviours.timing import TimeWindow
 from ctgpp.interfaces import Rollout
 from ctgpp.language.compiler import CompiledQuery, QueryPart
+from ctgpp.language.compiler.compiled import part_subjects, prerequisites
 
 
 @dataclass(frozen=True)
@@ -54,8 +57,9 @@ def check_satisfied(
     checked = [_checked(rollout, part) for part in parts]
     found = [_until_later_stage(rollout, k, parts, checked) for k in range(len(parts))]
     reports = []
-    for part, (report, done) in zip(parts, found, strict=True):
-        earlier = [(p, d) for p, (_, d) in zip(parts, found, strict=True) if p.stage < part.stage]
+    waits = prerequisites(list(parts))
+    for k, (report, done) in enumerate(found):
+        earlier = [(parts[j], found[j][1]) for j in waits[k]]
         reports.append(in_order(report, done, earlier))
     return reports
 
@@ -82,14 +86,6 @@ def in_order(report: PartReport, done_s: float | None, earlier: Sequence[tuple[Q
                                     f"stage (t = {last:.1f} s)")
 
 
-def _subjects(part: QueryPart) -> set[int]:
-    """The vehicles a part is about: its ``vehicles``, else its behaviour's ``vehicle`` parameter."""
-    if part.vehicles is not None:
-        return set(part.vehicles)
-    vehicle = part.params.get("vehicle")
-    return {int(vehicle)} if isinstance(vehicle, int) else set()
-
-
 def _until_later_stage(
     rollout: Rollout, index: int, parts: Sequence[QueryPart],
     checked: Sequence[tuple[PartReport, float | None, float | None]],
@@ -100,7 +96,7 @@ def _until_later_stage(
     part = parts[index]
     report, done, _ = checked[index]
     began = [b for q, (_, _, b) in zip(parts, checked, strict=True)
-             if q.stage > part.stage and b is not None and _subjects(q) & _subjects(part)]
+             if q.stage > part.stage and b is not None and part_subjects(q) & part_subjects(part)]
     if not began or part.window is not None:
         return report, done
     until = min(began)

@@ -48,6 +48,18 @@ def world_states(x: Tensor, data_batch: GuidanceBatch) -> tuple[Tensor, Tensor]:
     return pos, yaw[..., 0]
 
 
+def past_poses(data_batch: GuidanceBatch, row: int) -> tuple[Tensor, Tensor]:
+    """Vehicle ``row``'s positions (K, 2), local world frame m, and world yaws (K,) rad at the valid
+    steps from the episode's start to the re-plan (``known``: the simulated past, never later)."""
+    agent = int(data_batch.agent_index[row])
+    steps = slice(int(data_batch.start_step), int(data_batch.step) + 1)
+    known = data_batch.known
+    valid = known.valid[agent, steps]  # (K,)
+    xy = torch.as_tensor(data_batch.to_local(known.xy[agent, steps][valid]), dtype=data_batch.pose.dtype)
+    yaw = torch.as_tensor(known.yaw[agent, steps][valid], dtype=data_batch.pose.dtype)
+    return xy.to(data_batch.device), yaw.to(data_batch.device)
+
+
 def across_heading(pos: Tensor, yaw: Tensor) -> Tensor:
     """pos (..., 2) unchanged in value, whose gradient keeps only its part across the heading yaw (...)
     rad: a cost of the result steers a vehicle and never asks it to slow down or speed up (a lane's

@@ -18,15 +18,22 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ctgpp.behaviours.lane_changes import IN_LANE_M, LANE_HEADING_DEG
+from ctgpp.geometry import wrap_angle
 from ctgpp.guidance.base import register_loss
 from ctgpp.guidance.context import GuidanceBatch
 from ctgpp.guidance.lane_helpers import ramp_weights, signed_offset
 from ctgpp.guidance.lane_paths import EPISODE_REACH_MAX_M, get_adjacent_lane, get_rightmost_lane, reach_m
-from ctgpp.guidance.rules.common import Rule, apply_mask, check_vehicle, soft_abs, world_states
+from ctgpp.guidance.rules.common import Rule, apply_mask, check_vehicle, past_poses, soft_abs, world_states
 from ctgpp.guidance.scope import LossScope
 from ctgpp.scene.lanes import lane_points_ahead, nearest_lane
+from ctgpp.scene.polylines import project_onto_polyline
 
 EPISODE_REACH_S = 15.0  # committed target lanes reach this long ahead (:func:`reach_m`)
+# a lane is *reached* (a sequence's next stage may begin) as the checks count a vehicle in it
+# (behaviours/lane_changes.py): within half a lane of its centerline, heading its way within 30°
+REACHED_M = IN_LANE_M
+REACHED_DEG = LANE_HEADING_DEG
 
 
 def extended(data_batch: GuidanceBatch, line: Tensor, extra_m: float) -> Tensor:
@@ -97,6 +104,25 @@ class CommittedLaneRule(Rule):
             return None
         local = data_batch.to_local(world)
         return torch.as_tensor(local, dtype=data_batch.pose.dtype, device=data_batch.device)
+
+    def reached(self, data_batch: Any) -> bool | None:
+        """The vehicle has been on its committed lane at a step from the episode's start to the
+        re-plan (:func:`past_poses`: once reached, it stays reached): within ``REACHED_M`` of its
+        centerline, heading its way within ``REACHED_DEG``. None without a target lane."""
+        if self.vehicle >= data_batch.num_vehicles:
+            return None
+        line = self.target_line(data_batch, self.vehicle)
+        if line is None:
+            return None
+        with torch.no_grad():
+            xy, yaw = past_poses(data_batch, self.vehicle)  # (K, 2), (K,)
+            if len(xy) == 0:
+                return False
+            offset = signed_offset(xy, line).abs()  # (K,) m
+            _, heading = project_onto_polyline(xy, line)  # (K,) rad
+            turned = wrap_angle(yaw - heading).abs()
+            on = (offset < REACHED_M) & (turned < math.radians(REACHED_DEG))
+        return bool(on.any())
 
     def cost(self, pos: Tensor, x_row: Tensor, line: Tensor, data_batch: GuidanceBatch, row: int) -> Tensor:
         """(N,) lateral offset cost of vehicle ``row``'s positions pos (N, T, 2) from ``line``, ramped

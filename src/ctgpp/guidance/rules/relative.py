@@ -45,6 +45,9 @@ class _ForSomeVehicles(GuidanceLoss):
         """The wrapped loss's scope among ``vehicles``."""
         return self.loss.scope().restricted(self.vehicles)
 
+    def reached(self, data_batch: Any) -> bool | None:
+        return self.loss.reached(data_batch)
+
     def rows(self, x: Tensor, data_batch: Any) -> Tensor:
         """(B,) bool, True on the rows of x of ``vehicles``."""
         mask = torch.zeros(x.shape[0], dtype=torch.bool, device=x.device)

@@ -34,6 +34,9 @@ class During(GuidanceLoss):
     def scope(self) -> LossScope:
         return self.loss.scope()
 
+    def reached(self, data_batch: Any) -> bool | None:
+        return self.loss.reached(data_batch)
+
     def columns(self, num_steps: int, data_batch: Any) -> slice:
         """The columns of x (T of them) inside the window, at the re-plan of ``data_batch`` (its
         ``step`` in the episode that began at its ``start_step``)."""

@@ -16,7 +16,7 @@ from ctgpp.guidance.base import register_loss
 from ctgpp.guidance.constraints import PlanConstraints
 from ctgpp.guidance.context import GuidanceBatch
 from ctgpp.guidance.lane_paths import get_turn_lane, turn_exit
-from ctgpp.guidance.rules.common import time_weights
+from ctgpp.guidance.rules.common import past_poses, time_weights
 from ctgpp.guidance.rules.lane_change import CommittedLaneRule
 from ctgpp.scene.polylines import arc_length, point_at, project_onto_polyline
 from ctgpp.scene.vehicles import MOVING_SPEED_MPS
@@ -80,6 +80,21 @@ class TurnAtNextIntersection(CommittedLaneRule):
         """World point (2,) m where vehicle i's committed turn leaves the intersection
         (:func:`~ctgpp.guidance.lane_paths.turn_exit` at the episode's start step), or None."""
         return turn_exit(data_batch.at_start(), i, self.direction)  # type: ignore[arg-type]
+
+    def reached(self, data_batch: Any) -> bool | None:
+        """The vehicle has been through the intersection at a step from the episode's start to the
+        re-plan (:func:`past_poses`): its position along the committed path past the exit. None
+        without a committed path or exit."""
+        if self.vehicle >= data_batch.num_vehicles:
+            return None
+        line = self.target_line(data_batch, self.vehicle)
+        exit_world = self.committed_exit(data_batch, self.vehicle)
+        if line is None or exit_world is None:
+            return None
+        with torch.no_grad():
+            exit_local = torch.as_tensor(data_batch.to_local(exit_world), dtype=line.dtype)
+            xy, _ = past_poses(data_batch, self.vehicle)  # (K, 2)
+            return bool((arc_length(xy.to(line), line) >= arc_length(exit_local, line)).any())
 
     def constraints(self, data_batch: Any) -> PlanConstraints:
         """The committed lane path is the vehicle's route (the steering stage drives along it)."""

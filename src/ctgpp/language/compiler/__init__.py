@@ -9,7 +9,7 @@ rules each becomes in :mod:`.handlers`, the lexicon in :mod:`.patterns`, whom a 
 The public entry: :func:`compile_query` and what it returns or raises, importable from here."""
 
 from ctgpp.language.compiler.compile import compile_query
-from ctgpp.language.compiler.compiled import CompiledQuery, QueryPart, render_code
+from ctgpp.language.compiler.compiled import CompiledQuery, QueryPart, compose, render_code
 from ctgpp.language.compiler.refusals import UnsupportedQuery, VehicleOutOfRange, phrasings, suggest
 from ctgpp.language.compiler.subjects import QueryError
 
@@ -20,6 +20,7 @@ __all__ = [
     "UnsupportedQuery",
     "VehicleOutOfRange",
     "compile_query",
+    "compose",
     "phrasings",
     "render_code",
     "suggest",

@@ -11,8 +11,8 @@ times, such as "vehicle 1" in "vehicle 1 and vehicle 2 collide", is joined with 
 :mod:`ctgpp.language.compiler.segments`), reads each clause
 (:mod:`ctgpp.language.compiler.patterns`: its subjects and objects, quantities in SI units, its
 times), recognises its family (:mod:`ctgpp.language.compiler.families`) and joins the rules in a
-:class:`CompositeLoss` (the conjunction, every part weighted 1; the parts and their code:
-:mod:`ctgpp.language.compiler.compiled`).
+:class:`CompositeLoss` (the conjunction, every part weighted 1), or for a sequence an ``InOrder``
+whose stages guide one after the other (the parts and their code: :mod:`ctgpp.language.compiler.compiled`).
 
 How a sentence is read:
 
@@ -26,7 +26,8 @@ How a sentence is read:
   at 4 s" (stopped from 4 s, still moving before 3 s: :func:`~ctgpp.language.compiler.handlers.stop`);
   "at all times" is the behaviour's own window. The loss is the rule on the window's steps
   (:class:`~ctgpp.guidance.rules.timing.During`), the verdict the check on the window.
-- Sequences: "then", "after that" and "one by one" number the parts' ``stage`` (0, 1, ...).
+- Sequences: "then", "after that" and "one by one" number the parts' ``stage`` (0, 1, ...); a
+  stage guides once the earlier ones are reached (:mod:`ctgpp.guidance.sequence`).
 - Comparisons: "A faster than B", "A fast while B slow" (one ``faster_than`` part). A later clause
   on the same pair refines a "follow" ("follows vehicle 1, staying at most 12 m behind it").
 
@@ -47,8 +48,7 @@ from dataclasses import replace
 
 from ctgpp.behaviours import get_behaviour
 from ctgpp.behaviours.timing import TimeWindow
-from ctgpp.guidance import CompositeLoss
-from ctgpp.language.compiler.compiled import CompiledQuery, QueryPart, render_code
+from ctgpp.language.compiler.compiled import CompiledQuery, QueryPart, compose, render_code
 from ctgpp.language.compiler.normalise import normalise, original_span
 from ctgpp.language.compiler.patterns import Clause
 from ctgpp.language.compiler.refusals import (
@@ -197,5 +197,5 @@ def compile_query(query: str, num_vehicles: int) -> CompiledQuery:
         spans = [original_span(query, original, p.span) for p in parts]
         parts = [replace(p, span=s, text=original[s[0] : s[1]].strip())
                  for p, s in zip(parts, spans, strict=True)]
-    loss = CompositeLoss([(part.build(), 1.0) for part in parts])
+    loss = compose(parts)
     return CompiledQuery(original, loss, parts, render_code(parts), query)

@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from ctgpp.behaviours.timing import TimeWindow
-from ctgpp.guidance import GuidanceLoss, make_loss
+from ctgpp.guidance import CompositeLoss, GuidanceLoss, InOrder, make_loss
 from ctgpp.guidance.rules.relative import ForVehicles, SteerOnly
 from ctgpp.guidance.rules.timing import During
 
@@ -80,17 +80,68 @@ class CompiledQuery:
     read_as: str = ""
 
 
+def prerequisites(parts: list[QueryPart]) -> list[tuple[int, ...]]:
+    """For each part, the parts (indices) of earlier stages it waits for: those about one of its
+    vehicles; a part about none of the vehicles of earlier stages waits for the whole stage just
+    before it. "Vehicles 20 and 21 move to the rightmost lane one by one and then both turn right":
+    vehicle 21's lane change waits for vehicle 20's, and each turn for its own vehicle's lane change
+    (vehicle 20 does not stop short of its turn until vehicle 21 is in lane). "Vehicle 1 stops; after
+    that vehicle 2 stops": vehicle 2's stop waits for vehicle 1's."""
+    out = []
+    for part in parts:
+        earlier = [k for k, p in enumerate(parts) if p.stage < part.stage]
+        own = [k for k in earlier if part_subjects(parts[k]) & part_subjects(part)]
+        if not own and earlier:
+            last = max(parts[k].stage for k in earlier)
+            own = [k for k in earlier if parts[k].stage == last]
+        out.append(tuple(own))
+    return out
+
+
+def part_subjects(part: QueryPart) -> set[int]:
+    """The vehicles a part is about: its ``vehicles``, else its rule's ``vehicle`` parameter."""
+    if part.vehicles is not None:
+        return set(part.vehicles)
+    vehicle = part.params.get("vehicle")
+    return {int(vehicle)} if isinstance(vehicle, int) else set()
+
+
+def compose(parts: list[QueryPart]) -> GuidanceLoss:
+    """The loss of a query's ``parts``: all of them together (:class:`CompositeLoss`), or, for a
+    sequence (parts of more than one stage), each part once those it waits for are reached
+    (:class:`InOrder`, :func:`prerequisites`)."""
+    if len({p.stage for p in parts}) == 1:
+        return CompositeLoss([(part.build(), 1.0) for part in parts])
+    return InOrder([p.build() for p in parts], prerequisites(parts))
+
+
 def render_code(parts: list[QueryPart]) -> str:
-    """Readable Python source that builds the same loss as the compiled ``parts``."""
-    lines = ["from ctgpp.guidance import CompositeLoss, make_loss"]
+    """Readable Python source that builds the same loss as the compiled ``parts`` (:func:`compose`)."""
+    if len({p.stage for p in parts}) > 1:
+        return _render_sequence(parts)
+    lines = ["from ctgpp.guidance import CompositeLoss, make_loss", *_wrapper_imports(parts)]
+    lines += ["", "loss = CompositeLoss(["]
+    for p in parts:
+        lines.append(f"    ({p.code()}, 1.0),  # {p.text}")
+    lines.append("])")
+    return "\n".join(lines) + "\n"
+
+
+def _render_sequence(parts: list[QueryPart]) -> str:
+    waits = prerequisites(parts)
+    lines = ["from ctgpp.guidance import InOrder, make_loss", *_wrapper_imports(parts), "",
+             "# each part guides once the parts it waits for (waits[k]) are reached", "loss = InOrder(["]
+    lines += [f"    {p.code()},  # {k}: {p.text}" for k, p in enumerate(parts)]
+    lines.append(f"], waits={[list(w) for w in waits]})")
+    return "\n".join(lines) + "\n"
+
+
+def _wrapper_imports(parts: list[QueryPart]) -> list[str]:
+    lines = []
     wrappers = [name for name, used in (("ForVehicles", any(p.vehicles is not None for p in parts)),
                                         ("SteerOnly", any(p.steers is not None for p in parts))) if used]
     if wrappers:
         lines.append(f"from ctgpp.guidance.rules.relative import {', '.join(wrappers)}")
     if any(p.window is not None for p in parts):
         lines.append("from ctgpp.guidance.rules.timing import During")
-    lines += ["", "loss = CompositeLoss(["]
-    for p in parts:
-        lines.append(f"    ({p.code()}, 1.0),  # {p.text}")
-    lines.append("])")
-    return "\n".join(lines) + "\n"
+    return lines

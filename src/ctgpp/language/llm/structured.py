@@ -30,8 +30,7 @@ from typing import Any
 
 from ctgpp.behaviours import behaviours, get_behaviour
 from ctgpp.behaviours.timing import TimeWindow
-from ctgpp.guidance import CompositeLoss
-from ctgpp.language.compiler import CompiledQuery, QueryPart, render_code
+from ctgpp.language.compiler import CompiledQuery, QueryPart, compose, render_code
 from ctgpp.language.compiler.handlers import (
     DISTANCE_MARGIN_M,
     MOVING_BEFORE_STOP_MPS,
@@ -224,7 +223,7 @@ def read_structured(query: str, client: LLMClient, num_vehicles: int) -> Structu
     except (StructuredRefused, ValueError) as err:
         raise StructuredRefused(f"the language model's structured reply was refused: {err}",
                                 Round(reply, str(err), seconds)) from None
-    loss = CompositeLoss([(part.build(), 1.0) for part in parts])
+    loss = compose(parts)
     compiled = CompiledQuery(query, loss, parts, render_code(parts), si_units(normalise(query)))
     return StructuredReading(compiled, Round(reply, None, seconds))
 

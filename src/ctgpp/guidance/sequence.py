@@ -1,0 +1,102 @@
+"""A sequence of losses: "vehicles 20 and 21 move to the rightmost lane one by one and then turn
+right", "vehicle 3 changes lanes, then stops" (issue 36, item 6).
+
+:class:`InOrder` holds the parts of a sentence and, for each, the earlier parts it waits for (which
+ones a sentence's stages wait for: :func:`ctgpp.language.compiler.compiled.prerequisites`). At a
+re-plan a part guides only once each part it waits for guides and is reached
+(:meth:`~ctgpp.guidance.base.GuidanceLoss.reached`, judged on the simulated past up to the re-plan:
+a part once reached stays reached, and the loss keeps no memory of its own). A part that cannot tell
+whether it is reached (None) holds nothing back: what waits for it starts with it, as everything did
+before sequences guided. A vehicle whose every part still waits keeps its lane (``keep_lane``) until
+its turn: waiting for vehicle 20's lane change, vehicle 21 would otherwise drive as the model samples
+it, out of the lane guard's hold, since the sentence moves it across lanes. Before sequences guided,
+both vehicles of the paper's failure case changed lanes within 0.1 s of each other.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+from torch import Tensor
+
+from ctgpp.guidance.base import GuidanceLoss
+from ctgpp.guidance.composite import all_reached, join_costs
+from ctgpp.guidance.constraints import PlanConstraints, collide_pairs
+from ctgpp.guidance.rules.lanes import KeepLane
+from ctgpp.guidance.scope import LossScope
+
+
+class InOrder(GuidanceLoss):
+    """``parts``: the losses of a sentence (each weighs 1, as in a
+    :class:`~ctgpp.guidance.composite.CompositeLoss`); ``waits[k]``: the parts (indices, earlier in
+    ``parts``) that part k waits for. A part is *on* when each part it waits for is on and reached.
+
+    The cost is the sum of the parts that are on and of ``keep_lane`` for each vehicle that only waiting
+    parts move; ``constraints`` are those of the parts that are on (a turn's route is driven only once
+    the turn is on); ``scope`` is every part's, so the guards leave the whole manoeuvre to the loss.
+    """
+
+    def __init__(self, parts: Sequence[GuidanceLoss], waits: Sequence[Sequence[int]]) -> None:
+        super().__init__()
+        if not parts or len(waits) != len(parts):
+            raise ValueError(f"InOrder needs parts and one waits entry per part (got {len(parts)} parts "
+                             f"and {len(waits)} waits)")
+        self.waits = [tuple(int(j) for j in w) for w in waits]
+        for k, w in enumerate(self.waits):
+            if any(not 0 <= j < k for j in w):
+                raise ValueError(f"InOrder: part {k} may only wait for earlier parts (got {list(w)})")
+        self.parts = list(parts)
+        for k, loss in enumerate(self.parts):
+            self.add_module(f"part{k}", loss)
+        waiting = {v for k, loss in enumerate(self.parts) if self.waits[k] for v in _vehicles(loss)}
+        self.wait_in_lane = {v: KeepLane(vehicle=v) for v in sorted(waiting)}
+
+    @property
+    def couples_agents(self) -> bool:  # type: ignore[override]
+        return any(loss.couples_agents for loss in self.parts)
+
+    def scope(self) -> LossScope:
+        out = LossScope.nothing()
+        for loss in self.parts:
+            out = out.union(loss.scope())
+        return out
+
+    def on(self, data_batch: Any) -> list[bool]:
+        """Which parts guide at the re-plan of ``data_batch`` (kept per batch)."""
+        key = ("in_order", id(self))
+        memo = data_batch.memo
+        if key not in memo:
+            on: list[bool] = []
+            for w in self.waits:
+                on.append(all(on[j] and self.parts[j].reached(data_batch) is not False for j in w))
+            memo[key] = on
+        return list(memo[key])
+
+    def active_parts(self, data_batch: Any) -> list[GuidanceLoss]:
+        """The parts that are on, then ``keep_lane`` of each vehicle only waiting parts move."""
+        on = self.on(data_batch)
+        parts = [loss for loss, k in zip(self.parts, on, strict=True) if k]
+        moving = {v for loss in parts for v in _vehicles(loss)}
+        waiting = {v for loss, k in zip(self.parts, on, strict=True) if not k for v in _vehicles(loss)}
+        waiting -= moving
+        return parts + [self.wait_in_lane[v] for v in sorted(waiting) if v < data_batch.num_vehicles]
+
+    def constraints(self, data_batch: Any) -> PlanConstraints:
+        on = self.on(data_batch)
+        parts = [loss.constraints(data_batch) for loss, k in zip(self.parts, on, strict=True) if k]
+        return PlanConstraints().merged(parts, collide_pairs(self.scope(), int(data_batch.num_vehicles)))
+
+    def reached(self, data_batch: Any) -> bool | None:
+        return all_reached([loss.reached(data_batch) for loss in self.parts])
+
+    def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
+        return join_costs([loss(x, data_batch, agt_mask) for loss in self.active_parts(data_batch)])
+
+
+def _vehicles(loss: GuidanceLoss) -> frozenset[int]:
+    """The vehicles a part moves (its scope's ``moves``; none for a global or opaque loss)."""
+    return frozenset(loss.scope().moves)
+
+
+__all__ = ["InOrder"]
