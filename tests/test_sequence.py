@@ -13,6 +13,7 @@ import torch
 
 from ctgpp.guidance import CompositeLoss, GuidanceBatch, InOrder, build_guidance_batch, make_loss
 from ctgpp.guidance.rules.lane_change import REACHED_M
+from ctgpp.guidance.sequence import KeepPace
 from ctgpp.interfaces import Observation
 from ctgpp.language.compiler import compile_query
 from ctgpp.language.compiler.compiled import prerequisites
@@ -73,8 +74,8 @@ def test_at_the_start_only_the_first_lane_change_guides(start_obs: Observation) 
     assert isinstance(loss, InOrder)
     assert loss.on(batch) == [True, False, False, False]
     x, _ = logged_x(start_obs)
-    alone = CompositeLoss([(make_loss("move_to_rightmost_lane", vehicle=20), 1.0),
-                           (make_loss("keep_lane", vehicle=21), 1.0)])
+    alone = CompositeLoss([(make_loss("move_to_rightmost_lane", vehicle=20), 1.0), (KeepPace(20), 1.0),
+                           (KeepPace(21), 1.0), (make_loss("keep_lane", vehicle=21), 1.0)])
     assert torch.equal(loss(x, batch), alone(x, build_guidance_batch(start_obs)))
     assert loss.constraints(batch).routes == {}  # no turn is driven before its lane change
 
@@ -110,6 +111,23 @@ def test_reached_needs_the_lane_not_just_its_neighbourhood(start_obs: Observatio
     turned = pose.copy()
     turned[2] += math.radians(45.0)
     assert rightmost.reached(build_guidance_batch(later(start_obs, 10, {20: turned}))) is False
+
+
+def test_keep_pace_by_hand(start_obs: Observation) -> None:
+    batch = build_guidance_batch(start_obs)
+    v = 20
+    x = torch.zeros(batch.num_vehicles, 2, 52, 6)
+    x[v, 1, :, 4] = -1.0  # sample 1 brakes at 1 m/s², sample 0 keeps its speed
+    x.requires_grad_()
+    cost = KeepPace(v)(x, batch)  # (B, N)
+    assert cost.shape == (batch.num_vehicles, 2)
+    c = cost.detach()
+    assert float(c[v, 0]) == 0.0 and float(c[:v].abs().sum() + c[v + 1 :].abs().sum()) == 0.0
+    t = torch.arange(1, 53, dtype=torch.float32) * 0.1  # s: the shortfall after t is 1 m/s² · t
+    w = 0.95 ** torch.arange(52, dtype=torch.float32)
+    assert float(c[v, 1]) == pytest.approx(float((t * w).sum() / w.sum()), rel=1e-5)
+    cost.sum().backward()
+    assert x.grad is not None and float(x.grad[v, 1, :, 4].max()) < 0  # more acceleration costs less
 
 
 def test_in_order_checks_its_waits() -> None:

@@ -18,13 +18,39 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
+import torch
 from torch import Tensor
 
 from ctgpp.guidance.base import GuidanceLoss
 from ctgpp.guidance.composite import all_reached, join_costs
 from ctgpp.guidance.constraints import PlanConstraints, collide_pairs
+from ctgpp.guidance.rules.common import apply_mask, check_vehicle, time_weights
+from ctgpp.guidance.rules.lane_change import one_row
 from ctgpp.guidance.rules.lanes import KeepLane
+from ctgpp.guidance.rules.turns import NEAR_TERM_DECAY, free_speed
 from ctgpp.guidance.scope import LossScope
+
+
+class KeepPace(GuidanceLoss):
+    """A vehicle keeps the speed it has at the re-plan: the shortfall (m/s) of its speeds (without the
+    clip at zero: :func:`~ctgpp.guidance.rules.turns.free_speed`) below it, weighted
+    ``NEAR_TERM_DECAY``**t toward the next seconds (normalized), as a turn keeps its speed. Never
+    asks for more than the vehicle drives now; the guards and the brakes still slow it for what is
+    ahead."""
+
+    def __init__(self, vehicle: int) -> None:
+        super().__init__()
+        self.vehicle = int(vehicle)
+
+    def scope(self) -> LossScope:
+        return LossScope.of([self.vehicle])
+
+    def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
+        row = check_vehicle(self.vehicle, data_batch, x.shape[0])
+        now = data_batch.speed[row].to(x)
+        speed = free_speed(x[row], now, data_batch.dt_s)  # (N, T) m/s
+        near = time_weights(speed.shape[-1], NEAR_TERM_DECAY, speed)  # (T,)
+        return apply_mask(one_row(x, row, (torch.relu(now - speed) * near).sum(-1)), agt_mask)
 
 
 class InOrder(GuidanceLoss):
@@ -51,6 +77,7 @@ class InOrder(GuidanceLoss):
             self.add_module(f"part{k}", loss)
         waiting = {v for k, loss in enumerate(self.parts) if self.waits[k] for v in _vehicles(loss)}
         self.wait_in_lane = {v: KeepLane(vehicle=v) for v in sorted(waiting)}
+        self.keep_pace = {v: KeepPace(vehicle=v) for v in sorted(waiting)}
 
     @property
     def couples_agents(self) -> bool:  # type: ignore[override]
@@ -74,13 +101,15 @@ class InOrder(GuidanceLoss):
         return list(memo[key])
 
     def active_parts(self, data_batch: Any) -> list[GuidanceLoss]:
-        """The parts that are on, then ``keep_lane`` of each vehicle only waiting parts move."""
+        """The parts that are on, then ``keep_pace`` of each vehicle a waiting part moves and
+        ``keep_lane`` of each vehicle only waiting parts move."""
         on = self.on(data_batch)
         parts = [loss for loss, k in zip(self.parts, on, strict=True) if k]
         moving = {v for loss in parts for v in _vehicles(loss)}
         waiting = {v for loss, k in zip(self.parts, on, strict=True) if not k for v in _vehicles(loss)}
-        waiting -= moving
-        return parts + [self.wait_in_lane[v] for v in sorted(waiting) if v < data_batch.num_vehicles]
+        waiting = {v for v in waiting if v < data_batch.num_vehicles}
+        return (parts + [self.keep_pace[v] for v in sorted(waiting)]
+                + [self.wait_in_lane[v] for v in sorted(waiting - moving)])
 
     def constraints(self, data_batch: Any) -> PlanConstraints:
         on = self.on(data_batch)
