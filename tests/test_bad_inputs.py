@@ -20,7 +20,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ctgpp.api import episode as api_episode
 from ctgpp.cli.main import main
 from ctgpp.data.catalog import Catalog, CatalogEntry, default_data_dir, write_index
 from ctgpp.data.safe_pickle import safe_load
@@ -31,30 +30,12 @@ from ctgpp.io.strict_json import dumps_strict
 from ctgpp.policies.factory import default_checkpoint
 from ctgpp.scene.types import AgentTracks, AgentType, Scene
 from tests.support.data import NUSCENES
+from tests.support.refusals import no_simulation, refused
+
+__all__ = ["no_simulation"]  # a fixture from tests/support
 
 PICKLE = NUSCENES / "scenarionet" / "sd_nuscenes_v1.0-mini_scene-0103.pkl"
 SIM = ["simulate", "--policy", "replay", "--animation", "none"]
-
-
-@pytest.fixture
-def no_simulation(monkeypatch: pytest.MonkeyPatch) -> None:
-    """Refusals come before the work: a simulation started fails the test."""
-
-    def refuse(*args: object, **kwargs: object) -> None:
-        raise AssertionError("a simulation started for an input that must be refused first")
-
-    monkeypatch.setattr(api_episode, "run_closed_loop", refuse)
-
-
-def refused(argv: list[str], capsys: pytest.CaptureFixture[str], *names: str) -> str:
-    """Run ``ctgpp argv`` in process: exit code 2 and one stderr line naming each of ``names``."""
-    assert main(argv) == 2
-    err = capsys.readouterr().err
-    lines = [line for line in err.strip().splitlines() if "%|" not in line]  # progress bars aside
-    assert len(lines) == 1 and lines[0].startswith("ctgpp: error: "), err
-    for name in names:
-        assert name in lines[0], (name, lines[0])
-    return lines[0]
 
 
 def copy_of_embedded(tmp_path: Path) -> Path:

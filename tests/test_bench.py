@@ -18,6 +18,7 @@ from ctgpp.data.batch import collate
 from ctgpp.data.windows import build_window
 from ctgpp.diffusion.guided import GuidanceConfig
 from ctgpp.model import Denoiser, ModelConfig
+from ctgpp.model.checkpoint import save_checkpoint
 from ctgpp.policies.diffusion import SamplingConfig
 from ctgpp.policies.presets import preset
 from ctgpp.policies.stages import StageConfig
@@ -161,3 +162,20 @@ def test_presets_with_the_plan_stages() -> None:
 def test_unknown_presets_are_clear_errors(name: str) -> None:
     with pytest.raises(ValueError, match="sampler preset"):
         preset(name)
+
+
+@pytest.mark.parametrize("mode", ["on", "off"])
+def test_bench_neighbourhoods_flag_times_the_curve_by_groups(mode: str, tmp_path: Path) -> None:
+    """``--neighbourhoods on`` runs the per-agent curve by neighbourhood groups: 24 agents tiled from
+    a real window lie in several groups 300 m apart; ``off`` (the default) is one dense attention."""
+    torch.manual_seed(0)
+    save_checkpoint(tmp_path / "tiny", Denoiser(TINY), TINY, {})
+    out = tmp_path / "bench"
+    argv = ["bench", "--episodes", "0", "--scenes", "", "--agents", "4,24", "--repeats", "1"]
+    argv += ["--checkpoint", str(tmp_path / "tiny"), "--neighbourhoods", mode, "--out", str(out)]
+    assert main(argv) == 0
+    report = json.loads((out / "bench.json").read_text(), parse_constant=_no_constant)
+    assert report["neighbourhoods"] == mode
+    groups = [c["groups"] for c in report["agents"]]
+    assert groups[1] > 1 if mode == "on" else groups == [1, 1]
+    assert ("by neighbourhood groups" in (out / "bench.md").read_text()) == (mode == "on")

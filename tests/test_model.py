@@ -23,6 +23,7 @@ from ctgpp.model import (
     training_loss,
 )
 from ctgpp.model.attention import GatedSpatialAttention, MaskedAttention, softmax_last
+from ctgpp.model.denoiser import repeat_samples
 from ctgpp.scene.types import Scene
 
 TINY = ModelConfig(d_model=32, heads=2, blocks=1, edge_dim=8, lane_hidden=16)
@@ -371,3 +372,34 @@ def test_lane_segments_legacy_default_and_checks() -> None:
     assert ModelConfig(context=None, map=None).tokens_per_lane == 1
     with pytest.raises(ValueError, match="lane_segments"):
         ModelConfig(lane_segments=3)  # 40 points do not split into 3 stretches
+
+
+def test_expanded_context_gives_the_former_outputs_bit_for_bit(scene_0103: Scene) -> None:
+    """What ``expand`` copies once (the folded lane keys laid out by rows, the context keys per sample)
+    changes no bit of a prediction against the former views, which every call copied itself."""
+    model = make_model(dataclasses.replace(TINY, blocks=2))  # the last block reads only future tokens
+    batch = collate([build_window(scene_0103, 40, TINY.window_config(max_agents=64))])
+    n = 3
+    x = torch.randn(n, batch.num_agents, 52, 2, generator=torch.Generator().manual_seed(9))
+    ctx = model.encode_context(batch)
+    assert ctx.context_keys is not None and ctx.context_keys[0].shape[2] > 0  # context agents present
+    fast = ctx.expand(n)
+    views = tuple(keys.map(lambda v: repeat_samples(v, n)) for keys in ctx.map_keys)
+    former = dataclasses.replace(fast, map_keys=views, sample_context_keys=None)
+    with torch.no_grad():
+        got = model(x, torch.full((n,), 30), batch, fast)
+        want = model(x, torch.full((n,), 30), batch, former)
+    assert torch.equal(got, want)
+
+
+def test_a_context_expanded_twice_predicts_as_one_expanded_once(scene_0103: Scene) -> None:
+    """Expanding an expanded context (2 then 3 samples a scene) repeats each scene's rows 6 times, the
+    context keys per sample included."""
+    model = make_model()
+    batch = collate([build_window(scene_0103, 40, TINY.window_config(max_agents=64))])
+    x = torch.randn(6, batch.num_agents, 52, 2, generator=torch.Generator().manual_seed(10))
+    ctx = model.encode_context(batch)
+    with torch.no_grad():
+        twice = model(x, torch.full((6,), 30), batch, ctx.expand(2).expand(3))
+        once = model(x, torch.full((6,), 30), batch, ctx.expand(6))
+    assert torch.equal(twice, once)

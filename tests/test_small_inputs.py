@@ -10,36 +10,17 @@ from typing import Any
 
 import pytest
 
-from ctgpp.api import episode as api_episode
 from ctgpp.cli.common import MAX_QUERY_CHARS
-from ctgpp.cli.main import main
 from ctgpp.language.compiler import compile_query
 from ctgpp.language.llm.client import LLMError
 from ctgpp.language.llm.generate import MAX_REPLY_CHARS, RECORD_CHARS, GenerationFailed, generate_loss
 from ctgpp.serve.schema import MAX_SENTENCE_CHARS
 from tests.support.llm_server import GOOD, QUERY, CannedServer, no_proxy, reply, server
 from tests.support.loss_checks import checker, scene
+from tests.support.refusals import no_simulation, refused
 
-__all__ = ["checker", "no_proxy", "scene", "server"]  # fixtures from tests/support
-
-
-@pytest.fixture(autouse=True)
-def no_simulation(monkeypatch: pytest.MonkeyPatch) -> None:
-    """Refusals come before the work: a simulation started fails the test."""
-
-    def refuse(*args: object, **kwargs: object) -> None:
-        raise AssertionError("a simulation started for an input that must be refused first")
-
-    monkeypatch.setattr(api_episode, "run_closed_loop", refuse)
-
-
-def refused(argv: list[str], capsys: pytest.CaptureFixture[str], *names: str) -> str:
-    assert main(argv) == 2
-    lines = capsys.readouterr().err.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("ctgpp: error: "), lines
-    for name in names:
-        assert name in lines[0], (name, lines[0])
-    return lines[0]
+__all__ = ["checker", "no_proxy", "no_simulation", "scene", "server"]  # fixtures from tests/support
+pytestmark = pytest.mark.usefixtures("no_simulation")  # every input here is refused before the work
 
 
 @pytest.mark.parametrize("seed", ["-1", str(2**32)])

@@ -102,8 +102,10 @@ def paired_difference(result: PresetResult, reference: PresetResult, metric: str
 
 
 def agent_table(curve: Sequence[CallTiming]) -> str:
-    lines = ["| agents | samples | ms / call | ms / agent |", "|---:|---:|---:|---:|"]
-    lines += [f"| {c.agents} | {c.samples} | {c.ms:.1f} | {c.ms / c.agents:.2f} |" for c in curve]
+    lines = ["| agents | samples | groups | ms / call | ms / agent |", "|---:|---:|---:|---:|---:|"]
+    lines += [
+        f"| {c.agents} | {c.samples} | {c.groups} | {c.ms:.1f} | {c.ms / c.agents:.2f} |" for c in curve
+    ]
     return "\n".join(lines) + "\n"
 
 

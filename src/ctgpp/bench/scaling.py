@@ -23,12 +23,15 @@ TILE_SPACING_M = 300.0
 
 @dataclass(frozen=True)
 class CallTiming:
-    """Median milliseconds of one denoiser call over ``rows`` = scenes × samples, ``agents`` each."""
+    """Median milliseconds of one denoiser call over ``rows`` = scenes × samples, ``agents`` each;
+    ``groups``: the neighbourhood groups its spatial attention ran over (``Denoiser.neighbourhoods``;
+    1: one dense attention)."""
 
     agents: int
     scenes: int
     samples: int
     ms: float
+    groups: int = 1
 
 
 def median_ms(fn: Callable[[], object], repeats: int) -> float:
@@ -74,10 +77,21 @@ def call_ms(model: Denoiser, batch: SceneBatch, samples: int, repeats: int) -> f
 def agent_curve(
     model: Denoiser, window: SceneWindow, counts: Sequence[int], samples: int, repeats: int
 ) -> list[CallTiming]:
-    """Milliseconds of one call (N = ``samples``) for each agent count of ``counts``."""
-    return [
-        CallTiming(a, 1, samples, call_ms(model, tiled_batch(window, a), samples, repeats)) for a in counts
-    ]
+    """Milliseconds of one call (N = ``samples``) for each agent count of ``counts``, the spatial
+    attention dense or by neighbourhood groups as ``model.neighbourhoods`` says."""
+    out = []
+    for a in counts:
+        batch = tiled_batch(window, a)
+        ms = call_ms(model, batch, samples, repeats)
+        out.append(CallTiming(a, 1, samples, ms, group_count(model, batch)))
+    return out
+
+
+@torch.no_grad()
+def group_count(model: Denoiser, batch: SceneBatch) -> int:
+    """How many neighbourhood groups ``model``'s spatial attention runs over for ``batch`` (1: dense)."""
+    groups = model.encode_context(batch).groups if model.neighbourhoods else None
+    return 1 if groups is None else len(groups)
 
 
 def scene_batching(

@@ -54,6 +54,14 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--agents", default="8,16,32,64,128", help="agent counts of the per-call curve ('' to skip)"
     )
+    p.add_argument(
+        "--neighbourhoods",
+        choices=("on", "off"),
+        default="off",
+        help="the per-agent curve with the spatial attention run apart over groups of agents out of "
+        "each other's social radius (on; outputs equal up to round-off) or dense (off, default, as "
+        "simulate runs it)",
+    )
     p.add_argument("--scenes", default="1,2,4,8", help="scene batch sizes ('' to skip)")
     p.add_argument("--repeats", type=int, default=5, help="calls per point of the curves (median)")
     p.add_argument(
@@ -131,10 +139,15 @@ def run_bench(args: argparse.Namespace) -> int:
         busiest = _busiest_windows(catalog, args.split, model.config)
         samples = preset("fast").sampling.num_samples
         if agents:
+            model.neighbourhoods = args.neighbourhoods == "on"
             curve = agent_curve(model, busiest[0], agents, samples, args.repeats)
+            model.neighbourhoods = False
             report["agents"] = [asdict(c) for c in curve]
+            report["neighbourhoods"] = args.neighbourhoods
             plot_agent_curve(curve, args.out / "agents.png")
-            text += ["## One denoiser call against the number of agents\n", agent_table(curve)]
+            how = "by neighbourhood groups" if args.neighbourhoods == "on" else "dense"
+            text += [f"## One denoiser call against the number of agents (spatial attention {how})\n"]
+            text += [agent_table(curve)]
         if sizes:
             rows = scene_batching(model, busiest, sizes, samples, args.repeats)
             report["batching"] = [{**asdict(t), "separate_ms": s} for t, s in rows]

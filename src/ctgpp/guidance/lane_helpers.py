@@ -11,6 +11,8 @@ polyline, :func:`get_route_to_point` the lane path that leads through a point.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import torch
 from torch import Tensor
@@ -30,7 +32,7 @@ from ctgpp.guidance.lane_paths import (
 )
 from ctgpp.scene.lane_paths import Direction, path_polyline
 from ctgpp.scene.lanes import LaneProjection, lane_length, lanes_ahead, project_to_lane
-from ctgpp.scene.polylines import project_onto_polyline, project_onto_polylines
+from ctgpp.scene.polylines import PackedPolylines, pack_polylines, project_onto_packed, project_onto_polyline
 from ctgpp.scene.types import LaneGraph
 
 LANE_PATHS_MAX = 12  # get_lane_paths: at most this many paths per vehicle
@@ -49,6 +51,7 @@ __all__ = [
     "get_turn_lane",
     "get_turn_lane_projection",
     "lane_path_distance",
+    "lane_path_table",
     "next_intersection_distance",
     "project_onto_polyline",
     "ramp_weights",
@@ -189,26 +192,61 @@ def _thinned(line: np.ndarray, spacing_m: float) -> np.ndarray:
     return line[keep]
 
 
-def lane_path_distance(pos_world: Tensor, paths: list[list[Tensor]]) -> tuple[Tensor, Tensor]:
+@dataclass(frozen=True, eq=False)
+class LanePathTable:
+    """The lane paths of B vehicles (:func:`get_lane_paths`) packed once for :func:`lane_path_distance`:
+    row (R,) long, each path's vehicle; slot (R,) long, its place among that vehicle's paths;
+    has (B,) bool, the vehicles with paths; width, the most paths of a vehicle; lines, the R paths
+    packed (:func:`~ctgpp.scene.polylines.pack_polylines`: None when none has two points)."""
+
+    row: Tensor
+    slot: Tensor
+    has: Tensor
+    width: int
+    lines: PackedPolylines | None
+
+    @classmethod
+    def of(cls, paths: list[list[Tensor]], like: Tensor) -> LanePathTable:
+        """The table of ``paths`` (for each of the B vehicles its polylines (M, 2)) in ``like``'s dtype
+        and device."""
+        rows = [b for b in range(len(paths)) for _ in paths[b]]
+        has = torch.tensor([len(p) > 0 for p in paths], device=like.device)
+        slot = [k for p in paths for k in range(len(p))]
+        lines: list[Tensor | None] = [line.to(like) for p in paths for line in p]
+        return cls(
+            torch.tensor(rows, dtype=torch.long), torch.tensor(slot, dtype=torch.long), has,
+            max((len(p) for p in paths), default=0), pack_polylines(lines, like),
+        )
+
+
+def lane_path_table(data_batch: GuidanceBatch, rows: list[bool], like: Tensor) -> LanePathTable:
+    """The :class:`LanePathTable` of the batch's vehicles whose ``rows`` (B,) are True (the others have
+    no paths) in ``like``'s dtype and device, kept per batch (the paths are the batch's own)."""
+    key = ("lane_path_table", tuple(rows), like.dtype, like.device)
+    if key not in data_batch.memo:
+        paths = [get_lane_paths(data_batch, b) if keep else [] for b, keep in enumerate(rows)]
+        data_batch.memo[key] = LanePathTable.of(paths, like)
+    return data_batch.memo[key]
+
+
+def lane_path_distance(pos_world: Tensor, paths: list[list[Tensor]] | LanePathTable) -> tuple[Tensor, Tensor]:
     """Distance (m) of each vehicle's positions from the nearest of its lane paths.
 
     pos_world (B, ..., 2) local world frame m; paths: for each of the B vehicles, its polylines (M, 2)
-    (:func:`get_lane_paths`). Returns the distances (B, ...) m — differentiable with respect to the
-    positions, smooth at zero (:func:`lane_offset`) — and has (B,) bool, False for a vehicle without
-    paths (its distances are 0).
+    (:func:`get_lane_paths`), or their table (:func:`lane_path_table`). Returns the distances (B, ...)
+    m — differentiable with respect to the positions, smooth at zero (:func:`lane_offset`) — and has
+    (B,) bool, False for a vehicle without paths (its distances are 0).
     """
+    table = paths if isinstance(paths, LanePathTable) else LanePathTable.of(paths, pos_world)
     n_b, rest = pos_world.shape[0], pos_world.shape[1:-1]
-    rows = [b for b in range(n_b) for _ in paths[b]]
-    has = torch.tensor([len(p) > 0 for p in paths], device=pos_world.device)
-    if not rows:
+    has = table.has
+    if len(table.row) == 0:
         return pos_world.new_zeros(n_b, *rest), has
-    lines: list[Tensor | None] = [line.to(pos_world) for p in paths for line in p]
-    points = pos_world[rows]  # (R, ..., 2): each vehicle's positions once per path
-    flat = points.reshape(len(rows), 1, -1, 2)  # (R, ..., 2) -> (R, 1, Q, 2)
-    foot, _ = project_onto_polylines(flat, flat[..., :1], lines)
-    dist = lane_offset(flat, foot).reshape(len(rows), *rest)  # (R, 1, Q) -> (R, ...)
-    slot = [k for p in paths for k in range(len(p))]
-    table = pos_world.new_full((n_b, max(len(p) for p in paths), *rest), float("inf"))
-    table = table.index_put((torch.tensor(rows), torch.tensor(slot)), dist)  # (B, K, ...)
-    nearest = table.amin(dim=1)  # (B, ...)
+    points = pos_world[table.row]  # (R, ..., 2): each vehicle's positions once per path
+    flat = points.reshape(len(table.row), 1, -1, 2)  # (R, ..., 2) -> (R, 1, Q, 2)
+    foot, _ = project_onto_packed(flat, flat[..., :1], table.lines)
+    dist = lane_offset(flat, foot).reshape(len(table.row), *rest)  # (R, 1, Q) -> (R, ...)
+    table_d = pos_world.new_full((n_b, table.width, *rest), float("inf"))
+    table_d = table_d.index_put((table.row, table.slot), dist)  # (B, K, ...)
+    nearest = table_d.amin(dim=1)  # (B, ...)
     return torch.where(has.reshape(n_b, *[1] * len(rest)), nearest, torch.zeros_like(nearest)), has

@@ -152,9 +152,10 @@ class GatedSpatialAttention(nn.Module):
     def dense(self, x: Tensor, edges: Tensor, mask: Tensor, context: Tensor | None = None) -> Tensor:
         """x (S, T, A, d) residual stream; edges (Se, T, A, K, E) embedded e_ij for query i, key j;
         mask (Se, T, A, K) bool, True where i may attend to j, the diagonal always True; context
-        (Se, T, C, 2, h, dh) the keys and values of C context agents (:meth:`context_keys`), the keys
-        after the A agents' own (K = A + C; K = A without context). Se is S, or 1 when the S rows are
-        samples of one scene sharing its edges and context (never copied S times).
+        (Se or S, T, C, 2, h, dh) the keys and values of C context agents (:meth:`context_keys`), the
+        keys after the A agents' own (K = A + C; K = A without context). Se is S, or 1 when the S rows
+        are samples of one scene sharing its edges (never copied S times) and context (repeated here
+        for the samples unless given with S rows).
         Returns the updated (S, T, A, d).
         """
         s, t, a, d = x.shape
@@ -163,15 +164,21 @@ class GatedSpatialAttention(nn.Module):
         h = self.norm(x)
         scale = 1 / math.sqrt(self.head_dim)  # on the weights: cheaper than on the queries
         q = F.linear(h, self.q.weight * scale, self.q.bias * scale).view(s, t, a, heads, self.head_dim)
-        k, v = self.kv(h).view(s, t, a, 2, heads, self.head_dim).unbind(dim=3)
+        k, v = self.kv(h).view(s, t, a, 2, heads, self.head_dim).unbind(dim=3)  # (S, T, A, h, dh)
+        keys, values = [k], [v]
         if context is not None and context.shape[2] > 0:
             c = context.shape[2]
-            shared = context[:, None].expand(se, r, *context.shape[1:]).reshape(s, t, c, 2, heads, -1)
-            k = torch.cat([k, shared[:, :, :, 0]], dim=2)  # (S, T, K, h, dh)
-            v = torch.cat([v, shared[:, :, :, 1]], dim=2)
-        n_keys = k.shape[2]
+            shared = context  # already a row per sample (S, T, C, 2, h, dh), else repeated here
+            if context.shape[0] != s:
+                shared = context[:, None].expand(se, r, *context.shape[1:]).reshape(s, t, c, 2, heads, -1)
+            keys.append(shared[:, :, :, 0])
+            values.append(shared[:, :, :, 1])
+        # the K = A (+ C) keys and values copied once, straight into the layouts the matmuls read
+        k_t = torch.cat([part.permute(0, 1, 3, 4, 2) for part in keys], dim=-1)  # (S, T, h, dh, K)
+        v_h = torch.cat([part.permute(0, 1, 3, 2, 4) for part in values], dim=-2)  # (S, T, h, K, dh)
+        n_keys = k_t.shape[-1]
         # the (S, T, h, A, K) tensors dominate for many agents: written once, then updated in place
-        logits = q.permute(0, 1, 3, 2, 4) @ k.permute(0, 1, 3, 4, 2)  # (S, T, h, A_i, K_j)
+        logits = q.permute(0, 1, 3, 2, 4) @ k_t  # (S, T, h, A_i, K_j)
         q_edge = torch.einsum("stihd,hde->stihe", q, self.key_edge)  # (S, T, A, h, E)
         # (Se, T, A, r*h, E): E stays innermost, so this copy is cheap (E outside made it 10× dearer)
         q_edge = q_edge.view(se, r, t, a, heads, -1).permute(0, 2, 3, 1, 4, 5)
@@ -182,7 +189,7 @@ class GatedSpatialAttention(nn.Module):
         logits.view(se, r, t, heads, a, n_keys).add_(edge_logits)
         logits.view(se, r, t, heads, a, n_keys).masked_fill_(~mask[:, None, :, None], float("-inf"))
         weights = self.dropout(softmax_last(logits))  # (S, T, h, A_i, K_j)
-        msg = (weights @ v.permute(0, 1, 3, 2, 4)).permute(0, 1, 3, 2, 4)  # (S, T, A, h, dh)
+        msg = (weights @ v_h).permute(0, 1, 3, 2, 4)  # (S, T, A, h, dh)
         w = weights.view(se, r, t, heads, a, n_keys).permute(0, 2, 4, 1, 3, 5)  # (Se, T, A, r, h, K)
         w = w.reshape(se, t, a, r * heads, n_keys)
         edge_msg = (w @ edges).view(se, t, a, r, heads, -1).permute(0, 3, 1, 2, 4, 5)  # (Se, r, T, A, h, E)

@@ -47,6 +47,9 @@ class DenoiserContext:
     block, the context agents' keys and values (S or 1, T, C, 2, h, dh) of its spatial attention
     (None without context). groups: the spatial attention's neighbourhood groups
     (:func:`~ctgpp.model.attention.neighbourhood_groups`; None: one dense attention).
+    sample_context_keys: ``context_keys`` with a row per sample (S*n, T, C, 2, h, dh), made once by
+    :meth:`expand` for the dense spatial attention, which would otherwise repeat them at every call
+    (None: not made).
     """
 
     agent_mask: Tensor
@@ -59,6 +62,7 @@ class DenoiserContext:
     agent_tokens: Tensor | None = None
     context_keys: tuple[Tensor, ...] | None = None
     groups: list[tuple[Tensor, Tensor]] | None = None
+    sample_context_keys: tuple[Tensor, ...] | None = None
 
     def expand(self, n: int) -> DenoiserContext:
         """The context of S scenes for ``n`` samples each: (S, ...) -> (S*n, ...), scene-major rows
@@ -66,14 +70,22 @@ class DenoiserContext:
 
         Encoding once and expanding saves n − 1 encodings of the same scene (history, edges, lanes).
         ``edges``, ``spatial_mask`` and ``context_keys``, the largest, keep their S rows: the spatial
-        attention shares each scene's among its samples.
+        attention shares each scene's among its samples. What every denoising step would otherwise
+        copy from views is copied here once: the folded lane keys (the map attention's batched
+        matmuls take their (S*n*A) rows contiguous) and, for the dense spatial attention, the context
+        keys per sample (``sample_context_keys``).
         """
-        kept = ("edges", "spatial_mask", "map_keys", "agent_tokens", "context_keys", "groups")
+        kept = ("edges", "spatial_mask", "map_keys", "agent_tokens", "context_keys", "groups",
+                "sample_context_keys")
         expanded = {
             f.name: repeat_samples(getattr(self, f.name), n) for f in fields(self) if f.name not in kept
         }
-        map_keys = tuple(keys.map(lambda value: repeat_samples(value, n)) for keys in self.map_keys)
+        map_keys = tuple(keys.map(lambda v: repeat_samples(v, n).contiguous()) for keys in self.map_keys)
         agent = None if self.agent_tokens is None else repeat_samples(self.agent_tokens, n)
+        per_sample = None
+        if self.context_keys is not None and self.groups is None:  # kept at S rows by every expansion
+            rows = self.agent_mask.shape[0] * n  # the rows after this one
+            per_sample = tuple(sample_rows(keys, rows // keys.shape[0]) for keys in self.context_keys)
         return DenoiserContext(
             **expanded,
             edges=self.edges,
@@ -82,7 +94,15 @@ class DenoiserContext:
             agent_tokens=agent,
             context_keys=self.context_keys,
             groups=self.groups,
+            sample_context_keys=per_sample,
         )
+
+
+def sample_rows(keys: Tensor, n: int) -> Tensor:
+    """Context keys (S, T, C, 2, h, dh) -> (S*n, T, C, 2, h, dh), each scene's row repeated for its
+    ``n`` samples (scene-major), as :meth:`GatedSpatialAttention.dense` repeats them."""
+    s = keys.shape[0]
+    return keys[:, None].expand(s, n, *keys.shape[1:]).reshape(s * n, *keys.shape[1:])
 
 
 class Block(nn.Module):
@@ -257,6 +277,8 @@ class Denoiser(nn.Module):
         x = x + self.time_emb()[None, None] + self.step_emb(k_t)[:, None, None]
         last = len(self.blocks) - 1
         known = ctx.context_keys or (None,) * len(self.blocks)
+        if ctx.sample_context_keys is not None and ctx.groups is None:
+            known = ctx.sample_context_keys  # the same keys, already one row per sample
         for i, (block, map_keys) in enumerate(zip(self.blocks, ctx.map_keys, strict=True)):
             # only the future tokens are read out: the last block computes nothing for the history ones
             keep_from = self.config.history_steps if i == last else 0

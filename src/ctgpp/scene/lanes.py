@@ -33,7 +33,8 @@ class LaneProjection:
 
 @dataclass(frozen=True, eq=False)
 class _Segments:
-    """All centerline segments of a lane graph. start, vec (S, 2) m; length, s0 (S,) m; lane (S,)."""
+    """All centerline segments of a lane graph. start, vec (S, 2) m; length, s0 (S,) m; lane (S,);
+    heading (S,) rad."""
 
     start: np.ndarray
     vec: np.ndarray
@@ -41,6 +42,7 @@ class _Segments:
     s0: np.ndarray
     lane: np.ndarray
     lane_length: np.ndarray  # (L,) m
+    heading: np.ndarray
 
 
 _CACHE: weakref.WeakKeyDictionary[LaneGraph, _Segments] = weakref.WeakKeyDictionary()
@@ -60,7 +62,7 @@ def _segments(lanes: LaneGraph) -> _Segments:
     lane_total = np.bincount(lane, length, minlength=lanes.num_lanes)
     first = np.concatenate([[0.0], np.cumsum(lane_total)[:-1]])
     s0 = np.maximum(cum - length - first[lane], 0.0)  # arc length at each segment start
-    segs = _Segments(start, vec, length, s0, lane, lane_total)
+    segs = _Segments(start, vec, length, s0, lane, lane_total, np.arctan2(vec[:, 1], vec[:, 0]))
     _CACHE[lanes] = segs
     return segs
 
@@ -70,8 +72,9 @@ def lane_length(lanes: LaneGraph, lane: int) -> float:
     return float(_segments(lanes).lane_length[lane])
 
 
-def _project(segs: _Segments, rows: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, ...]:
-    """Project xy (2,) onto segments ``rows``: (t, foot point (K, 2), distance (K,))."""
+def _project(segs: _Segments, rows: np.ndarray | slice, xy: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Project xy (2,) onto segments ``rows`` (indices, or a slice: all of them without a copy):
+    (t, foot point (K, 2), distance (K,))."""
     rel = xy - segs.start[rows]
     t = np.einsum("kd,kd->k", rel, segs.vec[rows]) / np.maximum(segs.length[rows] ** 2, 1e-12)
     t = np.clip(t, 0.0, 1.0)
@@ -119,12 +122,11 @@ def nearest_lane(
     if len(segs.lane) == 0:
         return None
     xy = np.asarray(xy, dtype=np.float64)
-    rows = np.arange(len(segs.lane))
-    t, foot, dist = _project(segs, rows, xy)
+    t, foot, dist = _project(segs, slice(None), xy)  # onto every segment
     cost = dist.copy()
     ok = dist <= max_dist_m
     if yaw is not None:
-        diff = np.abs(wrap_angle(np.arctan2(segs.vec[:, 1], segs.vec[:, 0]) - yaw))
+        diff = np.abs(wrap_angle(segs.heading - yaw))
         ok &= diff <= max_heading_diff_rad
         cost += HEADING_WEIGHT_M_PER_RAD * diff
     if not ok.any():

@@ -10,26 +10,46 @@ respect to the points. Guidance projects predicted positions onto target lane po
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
 
-def _closest_segment(points: Tensor, start: Tensor, vec: Tensor, valid: Tensor) -> Tensor:
-    """Index (B, Q) of the closest segment for points (B, Q, 2) among segments start, vec (B, S, 2)
-    with valid (B, S), computed with matrix products and without gradient."""
+@dataclass(frozen=True, eq=False)
+class Segments:
+    """Segments of B polylines packed for a closest-segment search: start, vec (B, S, 2) each segment's
+    start and vector, valid (B, S) bool; and the terms of the search that depend on the segments alone,
+    len2 (B, S) |vec|² (at least 1e-9), start_vec (B, S) start·vec, start2 (B, S) |start|²."""
+
+    start: Tensor
+    vec: Tensor
+    valid: Tensor
+    len2: Tensor
+    start_vec: Tensor
+    start2: Tensor
+
+    @classmethod
+    def of(cls, start: Tensor, vec: Tensor, valid: Tensor) -> Segments:
+        """The segments start, vec (B, S, 2) with valid (B, S), their terms computed (no gradient)."""
+        with torch.no_grad():
+            len2 = (vec * vec).sum(-1).clamp_min(1e-9)
+            return cls(start, vec, valid, len2, (start * vec).sum(-1), (start * start).sum(-1))
+
+
+def _closest_segment(points: Tensor, seg: Segments) -> Tensor:
+    """Index (B, Q) of the closest segment for points (B, Q, 2) among the segments ``seg`` (B, S),
+    computed with matrix products and without gradient. The (B, Q, S) terms are updated in place
+    (four of them, not a dozen): each value is the one of |p - a|² - 2 t (p - a)·v + t² |v|²
+    evaluated in that order."""
     with torch.no_grad():
-        len2 = (vec * vec).sum(-1).clamp_min(1e-9)  # (B, S)
-        along = points @ vec.transpose(1, 2) - (start * vec).sum(-1)[:, None]  # (B, Q, S): (p - a)·v
-        t = (along / len2[:, None]).clamp(0.0, 1.0)
-        rel2 = (
-            (points * points).sum(-1)[..., None]
-            - 2 * points @ start.transpose(1, 2)
-            + (start * start).sum(-1)[:, None]
-        )  # (B, Q, S): |p - a|²
-        dist2 = rel2 - 2 * t * along + t * t * len2[:, None]  # |p - a - t v|²
-        dist2 = dist2.masked_fill(~valid[:, None], float("inf"))
-        return dist2.argmin(-1)
+        along = (points @ seg.vec.transpose(1, 2)).sub_(seg.start_vec[:, None])  # (B, Q, S): (p - a)·v
+        t = torch.div(along, seg.len2[:, None]).clamp_(0.0, 1.0)
+        dist2 = (points @ seg.start.transpose(1, 2)).mul_(-2.0)  # (B, Q, S): -2 p·a
+        dist2.add_((points * points).sum(-1)[..., None]).add_(seg.start2[:, None])  # |p - a|²
+        dist2.sub_((t * 2.0).mul_(along))  # - 2 t (p - a)·v
+        dist2.add_(t.mul_(t).mul_(seg.len2[:, None]))  # + t² |v|²: |p - a - t v|²
+        return dist2.masked_fill_(~seg.valid[:, None], float("inf")).argmin(-1)
 
 
 def _foot(points: Tensor, start: Tensor, vec: Tensor, k: Tensor) -> tuple[Tensor, Tensor]:
@@ -46,7 +66,7 @@ def _locate(points: Tensor, line: Tensor) -> tuple[Tensor, Tensor, Tensor, Tenso
     flat = points.reshape(1, -1, 2)  # (..., 2) -> (1, Q, 2)
     start, vec = line[None, :-1], (line[1:] - line[:-1])[None]  # (1, S, 2)
     valid = torch.ones(start.shape[:2], dtype=torch.bool, device=line.device)
-    return flat, start, vec, _closest_segment(flat, start, vec, valid)
+    return flat, start, vec, _closest_segment(flat, Segments.of(start, vec, valid))
 
 
 def _arc(flat: Tensor, start: Tensor, vec: Tensor, k: Tensor) -> Tensor:
@@ -102,29 +122,54 @@ def point_at(line: Tensor, s_m: Tensor) -> tuple[Tensor, Tensor]:
     return line[k] + t * d, torch.atan2(d[1], d[0])
 
 
+@dataclass(frozen=True, eq=False)
+class PackedPolylines:
+    """B polylines (or None) packed once for :func:`project_onto_packed`: their segments (B, S), a
+    dummy first one for a row without a polyline (M >= 2), and has (B,) bool, the rows with one."""
+
+    segments: Segments
+    has: Tensor
+
+
+def pack_polylines(lines: list[Tensor | None], like: Tensor) -> PackedPolylines | None:
+    """The polylines (M_b, 2) or None of B rows packed in ``like``'s dtype and device; None when no row
+    has a polyline of two points or more."""
+    n_b = len(lines)
+    has = torch.tensor([line is not None and line.shape[0] >= 2 for line in lines], device=like.device)
+    if not bool(has.any()):
+        return None
+    n_seg = max(line.shape[0] - 1 for line in lines if line is not None and line.shape[0] >= 2)
+    start = like.new_zeros(n_b, n_seg, 2)
+    vec = like.new_zeros(n_b, n_seg, 2)
+    valid = torch.zeros(n_b, n_seg, dtype=torch.bool, device=like.device)
+    for b, line in enumerate(lines):
+        if line is not None and line.shape[0] >= 2:
+            m = line.shape[0] - 1
+            start[b, :m], vec[b, :m], valid[b, :m] = line[:-1], line[1:] - line[:-1], True
+    valid[~has, 0] = True  # a dummy segment; these rows keep their own positions
+    return PackedPolylines(Segments.of(start, vec, valid), has)
+
+
 def project_onto_polylines(
     pos_world: Tensor, yaw_world: Tensor, lines: list[Tensor | None]
 ) -> tuple[Tensor, Tensor]:
     """Per-vehicle projection: pos_world (B, N, T, 2), yaw_world (B, N, T, 1), lines: B polylines
     (M_b, 2) or None -> projected positions (B, N, T, 2) and yaws (B, N, T, 1), local world frame.
     A vehicle whose line is None keeps its own positions and yaws (zero distance)."""
-    n_b = pos_world.shape[0]
-    has = torch.tensor([line is not None and line.shape[0] >= 2 for line in lines], device=pos_world.device)
-    if not bool(has.any()):
+    return project_onto_packed(pos_world, yaw_world, pack_polylines(lines, pos_world))
+
+
+def project_onto_packed(
+    pos_world: Tensor, yaw_world: Tensor, packed: PackedPolylines | None
+) -> tuple[Tensor, Tensor]:
+    """:func:`project_onto_polylines` onto polylines packed once (:func:`pack_polylines`; None: none)."""
+    if packed is None:
         return pos_world, yaw_world
-    n_seg = max(line.shape[0] - 1 for line in lines if line is not None and line.shape[0] >= 2)
-    start = pos_world.new_zeros(n_b, n_seg, 2)
-    vec = pos_world.new_zeros(n_b, n_seg, 2)
-    valid = torch.zeros(n_b, n_seg, dtype=torch.bool, device=pos_world.device)
-    for b, line in enumerate(lines):
-        if line is not None and line.shape[0] >= 2:
-            m = line.shape[0] - 1
-            start[b, :m], vec[b, :m], valid[b, :m] = line[:-1], line[1:] - line[:-1], True
-    valid[~has, 0] = True  # a dummy segment; these vehicles keep their own positions below
-    flat = pos_world.reshape(n_b, -1, 2)  # (B, N, T, 2) -> (B, Q, 2)
-    k = _closest_segment(flat, start, vec, valid)
-    foot, heading = _foot(flat, start, vec, k)
-    keep = has[:, None, None, None]
+    seg = packed.segments
+    flat = pos_world.reshape(pos_world.shape[0], -1, 2)  # (B, N, T, 2) -> (B, Q, 2)
+    k = _closest_segment(flat, seg)
+    foot, heading = _foot(flat, seg.start, seg.vec, k)
+    keep = packed.has[:, None, None, None]
     pos = torch.where(keep, foot.reshape(pos_world.shape), pos_world)
     yaw = torch.where(keep, heading.reshape(yaw_world.shape), yaw_world)
     return pos, yaw

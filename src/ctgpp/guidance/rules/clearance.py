@@ -14,7 +14,7 @@ from torch import Tensor
 
 from ctgpp.geometry import DISC_CLEARANCE_M, local_to_world
 from ctgpp.guidance.base import register_loss
-from ctgpp.guidance.rules.common import disc_layout, outline_points, world_states
+from ctgpp.guidance.rules.common import disc_layout, outline_points, squared_distance, world_states
 from ctgpp.guidance.rules.pair_guard import (
     PairGuard,
     PairLayout,
@@ -90,11 +90,11 @@ class NoCollision(PairGuard):
             keep = torch.tensor(kept, dtype=torch.bool, device=i.device)
             i, j = i[keep], j[keep]
         reach = (lay.reach[i] + lay.reach[j] + buffer)[:, None, None]
-        p, n_v, t_v = torch.nonzero(((pos[i] - pos[j]) ** 2).sum(-1) < reach**2, as_tuple=True)
+        p, n_v, t_v = torch.nonzero(squared_distance(pos[i], pos[j]) < reach**2, as_tuple=True)
         rep = lay.replayed
         vi, oi = torch.nonzero(boxes_near(lo, hi, rep.lo, rep.hi, buffer), as_tuple=True)
         reach = (lay.reach[vi] + rep.reach[oi] + buffer)[:, None, None]
-        close = ((pos[vi] - rep.xy[oi][:, None]) ** 2).sum(-1) < reach**2  # (P, N, T)
+        close = squared_distance(pos[vi], rep.xy[oi][:, None]) < reach**2  # (P, N, T)
         q, n_o, t_o = torch.nonzero(close & rep.valid[oi][:, None], as_tuple=True)
         return (i[p], j[p], n_v, t_v), (vi[q], oi[q], n_o, t_o)
 
@@ -162,7 +162,7 @@ class ClearAhead(PairGuard):
         n_b = probe.shape[0]
         offsets, radii, reach = lay.offsets, lay.radius, lay.reach  # (B, P, 2), (B, P), (B,)
         with torch.no_grad():
-            d2 = ((probe.detach()[:, None] - pos[None]) ** 2).sum(-1)  # (A, B, N, T)
+            d2 = squared_distance(probe.detach()[:, None], pos[None])  # (A, B, N, T)
             near = d2 < ((radius[:, None] + reach[None] + self.buffer_m)[..., None, None]) ** 2
             near &= moving[:, None]
             near &= ~torch.eye(n_b, dtype=torch.bool, device=probe.device)[..., None, None]
@@ -179,7 +179,7 @@ class ClearAhead(PairGuard):
     ) -> tuple[Tensor, Tensor, Tensor]:
         """The same against the replayed agents' predicted outlines."""
         with torch.no_grad():
-            d2 = ((probe.detach()[:, None] - rep.xy[None, :, None]) ** 2).sum(-1)  # (A, O, N, T)
+            d2 = squared_distance(probe.detach()[:, None], rep.xy[None, :, None])  # (A, O, N, T)
             limit = (radius[:, None] + rep.reach[None] + self.buffer_m)[..., None, None]
             near = (d2 < limit**2) & moving[:, None] & rep.valid[None, :, None]
             a_i, o_i, n_i, t_i = torch.nonzero(near, as_tuple=True)

@@ -82,6 +82,14 @@ def steered_path(x: Tensor, dt_s: float) -> Tensor:
     return torch.cat([x[..., :2].detach() + moved, x[..., 2:]], dim=-1)
 
 
+def squared_distance(a: Tensor, b: Tensor) -> Tensor:
+    """|a − b|² (...) m² of points a, b (..., 2) broadcast together: ``((a - b) ** 2).sum(-1)`` bit for
+    bit (a sum of two squares either way), without PyTorch's reduction over a last dimension of two,
+    which costs more than the arithmetic (on the guards' (A, O, N, T) distances, ~3×)."""
+    dx, dy = a[..., 0] - b[..., 0], a[..., 1] - b[..., 1]
+    return dx * dx + dy * dy
+
+
 def disc_layout(extent: Tensor) -> tuple[Tensor, Tensor]:
     """Discs tracing boxes of extent (..., 2) length, width m as capsules: NUM_DISCS discs of radius
     half the width (...) m, centred evenly along the length (offsets (..., D) m) from half a width

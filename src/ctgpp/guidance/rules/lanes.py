@@ -20,7 +20,7 @@ import ctgpp.guidance.rules.turns  # noqa: F401  (registers turn_at_next_interse
 from ctgpp.guidance.base import register_loss
 from ctgpp.guidance.context import GuidanceBatch
 from ctgpp.guidance.helpers import get_current_lane_projection
-from ctgpp.guidance.lane_helpers import get_lane_paths, lane_offset, lane_path_distance
+from ctgpp.guidance.lane_helpers import get_lane_paths, lane_offset, lane_path_distance, lane_path_table
 from ctgpp.guidance.rules.common import (
     Rule,
     across_heading,
@@ -88,7 +88,7 @@ class KeepLane(Rule):
             rows[check_vehicle(self.vehicle, data_batch, n_b)] = True
         if agt_mask is not None:  # the lanes of vehicles left out are not even looked up
             rows = [r and bool(m) for r, m in zip(rows, agt_mask.tolist(), strict=True)]
-        paths = [get_lane_paths(data_batch, b) if rows[b] else [] for b in range(n_b)]
+        paths = lane_path_table(data_batch, rows, x)  # the lane paths of the vehicles in ``rows``
         pos, yaw = world_states(steered_path(x, data_batch.dt_s), data_batch)  # (B, N, T, 2), (B, N, T)
         dist, _ = lane_path_distance(across_heading(pos, yaw), paths)  # (B, N, T): steers, never brakes
         now = [self._distance_now(data_batch, b) if rows[b] else 0.0 for b in range(n_b)]
