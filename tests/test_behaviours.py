@@ -72,6 +72,7 @@ def _rule_args(scene_id: str, start: float) -> list[str]:
         "lane_change": "vehicle=2,side=left",
         "move_to_rightmost_lane": "vehicle=17",
         "no_collision": "",
+        "overtake": "vehicle=18,other=17",
         "no_offroad": "",
         "reach_ahead": "vehicle=17,distance_m=30",
         "reach_point": f"vehicle=17,x={x + 30:.1f},y={y:.1f}",

@@ -250,7 +250,8 @@ def test_every_compiled_loss_keeps_the_contract(batch: GuidanceBatch, x: torch.T
     obs = real_observation("scene-0553", 30)
     on_0553 = (build_guidance_batch(obs), logged_x(obs)[0][:, : x.shape[1]])
     cases = [(q, batch, x) for q in _contract_queries(batch)]
-    for q in ("vehicle 2 changes to the left lane", "vehicle 2 moves one lane over to the left"):
+    for q in ("vehicle 2 changes to the left lane", "vehicle 2 moves one lane over to the left",
+              "vehicle 2 overtakes vehicle 0"):
         cases.append((q, *on_0553))
     drifting = x.clone()
     drifting[0, ..., 1] += torch.linspace(0.0, 6.0, x.shape[2])  # vehicle 0 drifts 6 m to its left

@@ -30,6 +30,7 @@ def active_params(batch: GuidanceBatch) -> dict[str, dict]:
         "follow_lane": {"vehicle": None},
         "keep_lane": {"vehicle": None, "tolerance_m": 0.0},
         "cut_in": {"vehicle": 2, "ahead_of": 0},
+        "overtake": {"vehicle": 1, "other": 0},
         "stay_side_of": {"vehicle": 2, "other": 0, "side": "right"},
         "same_direction": {"vehicle": 3, "other": 1},
         "stay_away": {"vehicle": 1, "other": 2, "min_m": 100.0},

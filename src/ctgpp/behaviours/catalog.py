@@ -220,3 +220,11 @@ lane_change_rule(
     ("vehicle 3 should cut in ahead of vehicle 7",),
     window="t = 0 (outside the lane) and the last step both are present (inside, ahead)",
 )
+lane_change_rule(
+    "overtake", "A vehicle overtakes another: it starts behind it (bumper behind bumper) and ends ahead of "
+    "it (rear bumper past the other's front bumper), while the other keeps moving (at least half its "
+    "start speed); the other's lane must have a same-direction lane beside it to pass in.",
+    "m", "how far its rear bumper is short of the other's front bumper at the end",
+    ("vehicle 3 should overtake vehicle 7", "vehicle 2 passes vehicle 5"),
+    window=lane_changes.OVERTAKE_WINDOW,
+)

@@ -1,5 +1,5 @@
-"""Measures and checks of ending in another lane: a lane change to the same-direction lane on one
-side, the move to the rightmost lane, and a cut-in ahead of another vehicle.
+"""Measures and checks of ending in another lane or place: a lane change to the same-direction lane on
+one side, the move to the rightmost lane, a cut-in ahead of another vehicle and an overtake.
 
 They read the simulated track (``rollout.sim``) and the scene's lane graph only — never a guidance
 loss. The lane a vehicle starts on is taken at t = 0, the pose its guidance plans from; the target the
@@ -23,13 +23,12 @@ from ctgpp.behaviours.lane_positions import chain_distance, end_lane, lanes_alon
 from ctgpp.behaviours.tracks import Track, both_valid, held_from, track, wrapped_deg
 from ctgpp.interfaces import Rollout
 from ctgpp.scene.lane_paths import lanes_beside, same_direction_neighbour
-from ctgpp.scene.lanes import LaneProjection, nearest_lane, project_to_lane
+from ctgpp.scene.lanes import IN_LANE_M, LANE_HEADING_DEG, LaneProjection, nearest_lane, project_to_lane
 from ctgpp.scene.types import LaneGraph
 from ctgpp.scene.vehicles import MOVING_SPEED_MPS
 
-IN_LANE_M = 1.75  # half a lane: lateral offset from a centerline that counts as inside the lane
-LANE_HEADING_DEG = 30.0  # a vehicle in a lane heads its way within this
 KEEP_MOVING_SHARE = 0.5  # cut in: the other keeps at least this share of its start speed
+OVERTAKE_MAX_LATERAL_M = 7.0  # an overtake ends on the other's road: at most two lanes to its side
 
 Params = Mapping[str, Any]
 
@@ -177,3 +176,95 @@ def cut_in_check(rollout: Rollout, p: Params, vehicles: Vehicles) -> Verdict:
     (0, gap_m] m, and the other, moving at the start, never drops under half its start speed."""
     ok, _, said = _cut_in(rollout, p)
     return Verdict(ok, said, "t = 0 (outside the lane) and the last step both are present (inside, ahead)")
+
+
+def _along(xy: np.ndarray, origin: np.ndarray, heading: float) -> float:
+    """How far (m) ``xy`` lies ahead of ``origin`` along ``heading`` (negative: behind)."""
+    rel = xy - origin
+    return float(rel[0] * math.cos(heading) + rel[1] * math.sin(heading))
+
+
+def overtake_precondition(lanes: LaneGraph, starts: Starts, p: Params) -> str | None:
+    """An overtake needs the vehicle behind the other at the start and a same-direction lane beside the
+    other's lane to pass in."""
+    a, b = int(p["vehicle"]), int(p["other"])
+    if a not in starts or b not in starts:
+        return None
+    (xy_a, _), (xy_b, yaw_b) = starts[a], starts[b]
+    if _along(xy_a, xy_b, yaw_b) >= 0.0:
+        return f"vehicle {a} is not behind vehicle {b} at the start: nothing to overtake"
+    lane = nearest_lane(lanes, xy_b, yaw_b)
+    if lane is None:
+        return f"vehicle {b} starts on no lane: no lane beside it to pass in"
+    sides = ("left", "right") if p.get("side") is None else (p["side"],)
+    if all(same_direction_neighbour(lanes, lane, side) is None for side in sides):  # type: ignore[arg-type]
+        where = "beside it" if p.get("side") is None else f"on its {p['side']}"
+        return f"vehicle {b}'s lane (lane {lane.lane}) has no same-direction lane {where} to pass in"
+    return None
+
+
+def _along_path(point: np.ndarray, path: np.ndarray) -> tuple[float, float]:
+    """How far (m) along the polyline ``path`` (M, 2) the foot of ``point`` lies, its last segment
+    continued straight ahead, and the point's distance (m) from the path. Segments shorter than 1 cm
+    (a vehicle standing) are skipped; with none, the path's first point and its distance."""
+    start, vec = path[:-1], np.diff(path, axis=0)  # (S, 2)
+    length = np.linalg.norm(vec, axis=1)  # (S,)
+    keep = length > 0.01
+    if not keep.any():
+        return 0.0, float(np.linalg.norm(point - path[0]))
+    before = np.concatenate([[0.0], np.cumsum(length)[:-1]])[keep]  # (K,) arc length at each start
+    start, vec, length = start[keep], vec[keep], length[keep]
+    t = ((point - start) * vec).sum(1) / length**2  # (K,)
+    t = np.clip(t, 0.0, np.where(np.arange(len(t)) == len(t) - 1, np.inf, 1.0))
+    dist = np.linalg.norm(start + t[:, None] * vec - point, axis=1)
+    k = int(np.argmin(dist))
+    return float(before[k] + t[k] * length[k]), float(dist[k])
+
+
+def _overtake(rollout: Rollout, p: Params) -> tuple[bool, float, str, float | None]:
+    """(satisfied, violation m, what was measured, when it got ahead). "Ahead" and "to its side" are
+    along the path the other drove (its track from t = 0, continued straight past its end), so a
+    curving road does not put a vehicle that follows it off to the side."""
+    a, b = track(rollout, p["vehicle"]), track(rollout, p["other"])
+    both = both_valid(a, b)
+    if not both.any():
+        return False, math.nan, "the two vehicles are never present together", None
+    clear = float(a.extent[0] + b.extent[0]) / 2  # centre distance at which the bumpers are level
+    start = _along(a.xy0, b.xy0, b.yaw0)
+    path = np.concatenate([[b.xy0], b.xy[b.valid]])  # (M, 2) the other's track
+    ahead = np.full(len(both), -math.inf)  # (T,) m, the vehicle ahead of the other along its path
+    for step in np.flatnonzero(both):
+        ahead[step] = _along_path(a.xy[step], path)[0] - _along_path(b.xy[step], path)[0]
+    k = int(np.flatnonzero(both)[-1])
+    lateral = _along_path(a.xy[k], path)[1]
+    passed = np.flatnonzero(ahead > clear)
+    slowest = float(b.speed[b.valid].min(initial=b.speed0))
+    keeps = b.speed0 >= MOVING_SPEED_MPS and slowest >= KEEP_MOVING_SHARE * b.speed0
+    behind = start < -clear
+    ok = bool(behind and ahead[k] > clear and lateral <= OVERTAKE_MAX_LATERAL_M and keeps)
+    done = a.time(int(passed[0])) if ok and len(passed) else None
+    said = (f"starts {-start:.1f} m behind the other (needs > {clear:.1f}, bumper behind bumper); ends "
+            f"{ahead[k]:.1f} m ahead of it along its path (needs > {clear:.1f}) and {lateral:.1f} m to its "
+            f"side (needs <= {OVERTAKE_MAX_LATERAL_M:g}); the other from {b.speed0:.1f} m/s, slowest "
+            f"{slowest:.1f} m/s (needs >= {KEEP_MOVING_SHARE:g} of its start, moving)")
+    return ok, max(clear - float(ahead[k]), 0.0), said, done
+
+
+def overtake_violation(rollout: Rollout, p: Params, vehicles: Vehicles) -> float:
+    """At the end: how far (m) the vehicle's rear bumper is short of the other's front bumper (0 when
+    past it)."""
+    return _overtake(rollout, p)[1]
+
+
+def overtake_check(rollout: Rollout, p: Params, vehicles: Vehicles) -> Verdict:
+    """The vehicle passes the other while the other keeps moving: it starts behind it (bumper behind
+    bumper, along the other's heading), ends ahead of it along the other's path (rear bumper past the
+    other's front bumper) on its road (at most two lanes, ``OVERTAKE_MAX_LATERAL_M``, to its side) and
+    the other, moving at the start, never drops under half its start speed. Achieved when it first
+    gets ahead."""
+    ok, _, said, done = _overtake(rollout, p)
+    return Verdict(ok, said, OVERTAKE_WINDOW, done)
+
+
+
+OVERTAKE_WINDOW = "t = 0 (behind) and the last step both are present (ahead)"

@@ -16,6 +16,8 @@ import numpy as np
 from ctgpp.geometry import wrap_angle
 from ctgpp.scene.types import LaneGraph
 
+IN_LANE_M = 1.75  # half a lane: lateral offset from a centerline that counts as inside the lane
+LANE_HEADING_DEG = 30.0  # a vehicle in a lane heads its way within this
 HEADING_WEIGHT_M_PER_RAD = 2.0  # nearest_lane: 1 rad of misalignment costs as much as 2 m of distance
 
 

@@ -18,7 +18,6 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ctgpp.behaviours.lane_changes import IN_LANE_M, LANE_HEADING_DEG
 from ctgpp.geometry import wrap_angle
 from ctgpp.guidance.base import register_loss
 from ctgpp.guidance.context import GuidanceBatch
@@ -26,12 +25,13 @@ from ctgpp.guidance.lane_helpers import ramp_weights, signed_offset
 from ctgpp.guidance.lane_paths import EPISODE_REACH_MAX_M, get_adjacent_lane, get_rightmost_lane, reach_m
 from ctgpp.guidance.rules.common import Rule, apply_mask, check_vehicle, past_poses, soft_abs, world_states
 from ctgpp.guidance.scope import LossScope
-from ctgpp.scene.lanes import lane_points_ahead, nearest_lane
+from ctgpp.scene.lanes import IN_LANE_M, LANE_HEADING_DEG, lane_points_ahead, nearest_lane
 from ctgpp.scene.polylines import project_onto_polyline
 
 EPISODE_REACH_S = 15.0  # committed target lanes reach this long ahead (:func:`reach_m`)
 # a lane is *reached* (a sequence's next stage may begin) as the checks count a vehicle in it
-# (behaviours/lane_changes.py): within half a lane of its centerline, heading its way within 30°
+# (scene/lanes.py, behaviours/lane_changes.py): within half a lane of its centerline, heading its way
+# within 30°
 REACHED_M = IN_LANE_M
 REACHED_DEG = LANE_HEADING_DEG
 

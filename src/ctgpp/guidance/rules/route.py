@@ -1,5 +1,6 @@
 """Rules that steer a vehicle along a lane path to a target (DESIGN.md, Language interface): into the
-lane of another vehicle, ahead of it (cut in), or through a point (reach).
+lane of another vehicle, ahead of it (cut in), past it in the lane beside (overtake), or through a
+point (reach).
 
 Both pull the vehicle's predicted positions toward a lane centerline (:func:`signed_offset`, weighted
 up over the first seconds) besides their target term, so that the sampler is steered along the lanes —
@@ -17,8 +18,9 @@ import torch
 from torch import Tensor
 
 from ctgpp.guidance.base import register_loss
+from ctgpp.guidance.context import GuidanceBatch
 from ctgpp.guidance.lane_helpers import get_route_to_point, ramp_weights, signed_offset
-from ctgpp.guidance.lane_paths import get_current_lane
+from ctgpp.guidance.lane_paths import get_adjacent_lane, get_current_lane
 from ctgpp.guidance.rules.common import Rule, apply_mask, check_vehicle, soft_abs, world_states
 from ctgpp.guidance.rules.motion import GoalWaypoint, _scatter
 from ctgpp.guidance.rules.relative import relative_position
@@ -26,6 +28,14 @@ from ctgpp.guidance.scope import LossScope
 
 CUT_IN_RAMP_S = 3.0  # a cut-in is a lane change: its lane offsets count fully after 3 s
 KEEP_MOVING_AIM = 0.6  # the one cut in front of keeps this share of its speed (the verdict asks for 0.5)
+# an overtake aims this far past bumpers level at the end of the plan (the verdict asks for past)
+PASS_MARGIN_M = 2.0
+# while near or beside the other, an overtaking vehicle keeps a lane's width to its side: two half
+# lanes (scene/lanes.py IN_LANE_M), from this far behind bumpers level
+PASS_LATERAL_M = 3.5
+PASS_APPROACH_M = 10.0
+# and never more than two lanes to its side (the verdict's bound: behaviours/lane_changes.py)
+PASS_MAX_LATERAL_M = 7.0
 ROUTE_RAMP_S = 0.5  # a route is followed from the start: the executed near term counts as much
 
 
@@ -77,6 +87,67 @@ class CutIn(Rule):
         w = ramp_weights(x.shape[2], data_batch.dt_s, CUT_IN_RAMP_S, x)
         keep_moving = torch.relu(KEEP_MOVING_AIM * data_batch.speed[b].to(x) - x[b, ..., 2]).mean(-1)  # (N,)
         return ((offsets + gap_cost) * w).sum(-1) + keep_moving
+
+
+@register_loss("overtake")
+class Overtake(Rule):
+    """A vehicle overtakes another: at the end of the plan its centre ``PASS_MARGIN_M`` beyond bumpers
+    level ahead of the other (the shortfall in m, in the other's predicted frame), and while it is
+    within ``PASS_APPROACH_M`` behind bumpers level or beside it, a lane's width (``PASS_LATERAL_M``)
+    to the side asked for, else the side of the other that has a same-direction lane (the left first;
+    the shortfall in m, mean over those steps), and at no step more than ``PASS_MAX_LATERAL_M`` to its
+    side (the excess in m, mean over the horizon: without it, a vehicle past the other drove off 55 m
+    to its side along another road, scene-1077). Those terms move only the overtaking vehicle (the
+    other is not slowed or pushed aside to be passed); the other keeps moving (its speed's shortfall
+    below ``KEEP_MOVING_AIM`` of its current speed, m/s). One cost per sample (N)."""
+
+    couples_agents: ClassVar[bool] = True
+    param_doc = {
+        "vehicle": ("", "displayed number of the vehicle that overtakes"),
+        "other": ("", "displayed number of the vehicle it overtakes"),
+        "side": ("", "'left' or 'right' of the other; None: the side with a same-direction lane, left first"),
+    }
+
+    def __init__(self, vehicle: int, other: int, side: str | None = None) -> None:
+        super().__init__()
+        if int(vehicle) == int(other):
+            raise ValueError(f"a vehicle cannot overtake itself (vehicle {vehicle})")
+        if side not in (None, "left", "right"):
+            raise ValueError(f"side must be 'left', 'right' or None, not {side!r}")
+        self.vehicle, self.other, self.pass_side = int(vehicle), int(other), side
+
+    def scope(self) -> LossScope:
+        """The overtaking vehicle leaves its lane; the one overtaken keeps its own."""
+        return LossScope.of((self.vehicle, self.other), leave_lane=[self.vehicle])
+
+    def side(self, data_batch: GuidanceBatch) -> float:
+        """+1 to pass on the other's left, -1 on its right: the side asked for, else the side with a
+        same-direction lane beside the other's lane at the episode's start (the left when both or
+        neither have one)."""
+        if self.pass_side is not None:
+            return 1.0 if self.pass_side == "left" else -1.0
+        start = data_batch.at_start()
+        key = ("overtake_side", self.other)
+        if key not in start.memo:
+            left = get_adjacent_lane(start, self.other, "left") is not None
+            right = get_adjacent_lane(start, self.other, "right") is not None
+            start.memo[key] = -1.0 if right and not left else 1.0
+        side: float = start.memo[key]
+        return side
+
+    def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
+        a = check_vehicle(self.vehicle, data_batch, x.shape[0])
+        b = check_vehicle(self.other, data_batch, x.shape[0])
+        passed = x.clone()
+        passed[b] = x[b].detach()  # the other is not slowed or pushed aside to be passed
+        lon, lat = relative_position(passed, data_batch, a, b)  # (N, T) in b's predicted frame
+        clear = (data_batch.extent[a, 0] + data_batch.extent[b, 0]).to(x) / 2  # bumpers level, m
+        ahead = torch.relu(clear + PASS_MARGIN_M - lon[:, -1])  # (N,)
+        near = ((lon > -clear - PASS_APPROACH_M) & (lon < clear)).detach().to(x)  # (N, T)
+        beside = (torch.relu(PASS_LATERAL_M - self.side(data_batch) * lat) * near).sum(-1)
+        beside = beside / near.sum(-1).clamp_min(1.0) + torch.relu(lat.abs() - PASS_MAX_LATERAL_M).mean(-1)
+        keep_moving = torch.relu(KEEP_MOVING_AIM * data_batch.speed[b].to(x) - x[b, ..., 2]).mean(-1)  # (N,)
+        return ahead + beside + keep_moving
 
 
 @register_loss("reach_point")

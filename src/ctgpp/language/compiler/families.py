@@ -30,6 +30,7 @@ from ctgpp.language.compiler.handlers import (
     lane_change,
     min_speed,
     offroad,
+    overtake,
     pace,
     reach,
     reach_ahead,
@@ -58,6 +59,7 @@ from ctgpp.language.compiler.phrases import (
     LANE_CHANGE,
     MIN_SPEED,
     OFFROAD,
+    OVERTAKE,
     PACE,
     REACH,
     REACH_ABOVE,
@@ -84,6 +86,7 @@ def _names_vehicle(c: Clause) -> bool:
 FAMILIES: tuple[tuple[str, Callable[[Clause], bool], Handler], ...] = (
     ("rear_end", lambda c: bool(c.has(REAR_END)), rear_end),
     ("cut_in", lambda c: bool(c.has(CUT_IN)), cut_in),
+    ("overtake", lambda c: bool(c.has(OVERTAKE)), overtake),
     ("keep_lane", lambda c: bool(c.has(KEEP_LANE)), keep_lane),
     ("follow_lane", lambda c: bool(c.has(FOLLOW_LANE)), follow_lane),
     ("rightmost_lane", lambda c: bool(c.has(RIGHTMOST)), rightmost),

@@ -84,6 +84,14 @@ def cut_in(c: Clause, ctx: Context) -> list[PartSpec]:
             for a, b in pairs(c, ctx, "a cut-in")]
 
 
+def overtake(c: Clause, ctx: Context) -> list[PartSpec]:
+    side = _side_word(c, r"\b(?:on|to|by)\s+(?:the\s+|its\s+|their\s+)?(?:left|right)\b") if c.has(
+        r"\b(?:on|to|by)\s+(?:the\s+|its\s+|their\s+)?(?:left|right)\b") else None
+    chosen = {} if side is None else {"side": side}
+    return [PartSpec("overtake", "overtake", {"vehicle": a, "other": b, **chosen})
+            for a, b in pairs(c, ctx, "an overtake")]
+
+
 def follow_lane(c: Clause, ctx: Context) -> list[PartSpec]:
     if not c.others and (c.everyone or (not c.vehicles and ctx.subject is None)):
         return [PartSpec("follow_lane", "follow_lane", {"vehicle": None})]

@@ -38,6 +38,14 @@ REAR_END = r"rear[- ]?end|from\s+behind|into\s+the\s+(?:back|rear)\s+of"
 
 CUT_IN = r"\bcut\w*\s+(?:in|off|ahead|in\s+front)\b|\bmerg\w*\s+(?:\w+\s+){0,2}?(?:ahead|in\s+front)\s+of"
 
+# "passes" only with a vehicle after it: "passes within 2 m of (x, y)" is a reach, "pass each other" is
+# refused (refusals.MANOEUVRES)
+_A_VEHICLE = r"(?:(?:vehicle|car|agent|truck)\s*#?\d+|v\d+|#\d+|(?:the\s+)?ego)\b"
+OVERTAKE = (
+    rf"\bovertak\w*|\bpass(?:es|ed|ing)?\s+(?:by\s+)?{_A_VEHICLE}"
+    rf"|\b(?:get|go|drive|move)(?:s|es|ing)?\s+past\s+{_A_VEHICLE}"
+)
+
 RIGHTMOST = r"right-?\s?most\s+lane|far(?:thest)?[- ]right\s+lane"
 
 FOLLOW_VEHICLE = r"\bfollow\w*|\btail\w*|\bbehind\b"
