@@ -66,7 +66,8 @@ def test_the_check_by_hand(log: Rollout) -> None:
     assert past.satisfied and past.done_s == pytest.approx(log.dt_s * (_last_second(log)[0] - log.current))
     assert behaviour.violation(_placed(log, clear + 3.0), params, None).value == 0.0
     assert not behaviour.verdict(_placed(log, clear - 1.0), params, None).satisfied  # bumpers overlap
-    assert not behaviour.verdict(_placed(log, clear + 3.0, side_m=10.0), params, None).satisfied  # off its road
+    off_its_road = _placed(log, clear + 3.0, side_m=10.0)
+    assert not behaviour.verdict(off_its_road, params, None).satisfied
 
 
 def test_the_other_must_keep_moving(log: Rollout) -> None:
