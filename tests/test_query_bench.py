@@ -54,12 +54,14 @@ def catalog() -> Catalog:
 
 def test_the_curated_cases_cover_every_family_on_mini_val(catalog: Catalog) -> None:
     """Every family on mini_val, but for the left lane change, which no vehicle that moves (> 2 m/s) at
-    a start of mini_val can make (shown here): it is on a mini_train scene."""
+    a start of mini_val can make (shown here), and the cut-in (mini_val's pair started inside the
+    other's lane, where no cut-in can start: its precondition, shown here): both on mini_train scenes."""
     cases = load_cases(default_cases())
     assert ISSUE_FAMILIES <= {c.family for c in cases}
-    elsewhere = {c.scene for c in cases if c.family == "change to the left lane"}
+    apart = {"change to the left lane", "cut in ahead of"}
+    elsewhere = {c.scene for c in cases if c.family in apart}
     assert elsewhere <= set(catalog.ids("mini_train"))
-    assert {c.scene for c in cases if c.family != "change to the left lane"} <= set(catalog.ids("mini_val"))
+    assert {c.scene for c in cases if c.family not in apart} <= set(catalog.ids("mini_val"))
     lanes_on_the_left = 0
     for scene_id in catalog.ids("mini_val"):
         scene = catalog.load(scene_id)
@@ -73,6 +75,12 @@ def test_the_curated_cases_cover_every_family_on_mini_val(catalog: Catalog) -> N
                 lane_change.impossible(scene.lanes, starts, {"vehicle": n, "side": "left"}) is None
                 for n in moving)
     assert lanes_on_the_left == 0
+    scene = catalog.load("scene-0103")
+    obs = initial_observation(scene, 3.0)
+    starts = {n: (obs.tracks.xy[a, obs.step].astype(np.float64), float(obs.tracks.yaw[a, obs.step]))
+              for n, a in enumerate(obs.controlled.tolist())}
+    why = get_behaviour("cut_in").impossible(scene.lanes, starts, {"vehicle": 0, "ahead_of": 2})
+    assert why is not None and "already in vehicle 2's lane" in why
 
 
 def test_a_bad_case_is_refused_before_any_simulation(catalog: Catalog, tmp_path: Path) -> None:

@@ -136,6 +136,20 @@ def _lane_offset(lanes: LaneGraph, lane: LaneProjection | None, xy: np.ndarray, 
     return abs(-rel[0] * math.sin(heading) + rel[1] * math.cos(heading))
 
 
+def cut_in_precondition(lanes: LaneGraph, starts: Starts, p: Params) -> str | None:
+    """A cut-in needs the vehicle outside the other's lane at the start (as the check asks: 1.75 m or
+    more from the centerline of the lane the other is on)."""
+    a, b = int(p["vehicle"]), int(p["ahead_of"])
+    if a not in starts or b not in starts:
+        return None
+    (xy_a, _), (xy_b, yaw_b) = starts[a], starts[b]
+    lat0 = _lane_offset(lanes, nearest_lane(lanes, xy_b, yaw_b), xy_a, xy_b, yaw_b)
+    if lat0 < IN_LANE_M:
+        return (f"vehicle {a} is already in vehicle {b}'s lane at the start ({lat0:.1f} m from its "
+                f"centerline): nothing to cut into")
+    return None
+
+
 def _cut_in(rollout: Rollout, p: Params) -> tuple[bool, float, str]:
     a, b = track(rollout, p["vehicle"]), track(rollout, p["ahead_of"])
     lanes, gap_m = rollout.scene.lanes, float(p["gap_m"])
