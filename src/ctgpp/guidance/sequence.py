@@ -7,10 +7,13 @@ re-plan a part guides only once each part it waits for guides and is reached
 (:meth:`~ctgpp.guidance.base.GuidanceLoss.reached`, judged on the simulated past up to the re-plan:
 a part once reached stays reached, and the loss keeps no memory of its own). A part that cannot tell
 whether it is reached (None) holds nothing back: what waits for it starts with it, as everything did
-before sequences guided. A vehicle whose every part still waits keeps its lane (``keep_lane``) until
-its turn: waiting for vehicle 20's lane change, vehicle 21 would otherwise drive as the model samples
-it, out of the lane guard's hold, since the sentence moves it across lanes. Before sequences guided,
-both vehicles of the paper's failure case changed lanes within 0.1 s of each other.
+before sequences guided. A vehicle with a part that waits keeps its pace (:class:`KeepPace`: a part
+that waits no longer keeps it going as a turn's speed terms did, and the model slowed vehicle 21 of
+the paper's failure case to 1.6 m/s in the middle of its lane change), and one whose every part
+waits also keeps its lane (``keep_lane``): waiting for vehicle 20's lane change, vehicle 21 would
+otherwise drive as the model samples it, out of the lane guard's hold, since the sentence moves it
+across lanes. Before sequences guided, both vehicles of the failure case changed lanes within 0.1 s
+of each other (docs/decisions/sequences.md).
 """
 
 from __future__ import annotations
@@ -56,11 +59,13 @@ class KeepPace(GuidanceLoss):
 class InOrder(GuidanceLoss):
     """``parts``: the losses of a sentence (each weighs 1, as in a
     :class:`~ctgpp.guidance.composite.CompositeLoss`); ``waits[k]``: the parts (indices, earlier in
-    ``parts``) that part k waits for. A part is *on* when each part it waits for is on and reached.
+    ``parts``) that part k waits for. A part is *on* when each part it waits for is on and reached (or
+    cannot tell).
 
-    The cost is the sum of the parts that are on and of ``keep_lane`` for each vehicle that only waiting
-    parts move; ``constraints`` are those of the parts that are on (a turn's route is driven only once
-    the turn is on); ``scope`` is every part's, so the guards leave the whole manoeuvre to the loss.
+    The cost is the sum of the parts that are on, of ``KeepPace`` for each vehicle a waiting part
+    moves and of ``keep_lane`` for each vehicle that only waiting parts move; ``constraints`` are
+    those of the parts that are on (a turn's route is driven only once the turn is on); ``scope`` is
+    every part's, so the guards leave the whole manoeuvre to the loss.
     """
 
     def __init__(self, parts: Sequence[GuidanceLoss], waits: Sequence[Sequence[int]]) -> None:
@@ -128,4 +133,4 @@ def _vehicles(loss: GuidanceLoss) -> frozenset[int]:
     return frozenset(loss.scope().moves)
 
 
-__all__ = ["InOrder"]
+__all__ = ["InOrder", "KeepPace"]
