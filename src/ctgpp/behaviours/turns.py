@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from ctgpp.behaviours.base import Vehicles, Verdict
+from ctgpp.behaviours.base import Starts, Vehicles, Verdict
 from ctgpp.behaviours.lane_positions import lanes_along, with_start
 from ctgpp.behaviours.tracks import Track, held_from, track, wrapped_deg
 from ctgpp.interfaces import Rollout
@@ -28,6 +28,21 @@ TURN_MATCH_DEG = 15.0  # a turn: the heading change within this of the turn path
 MOVING_STEPS = "t = 0 to the end, steps at which the vehicle moves"  # the window a turn is judged on
 
 Params = Mapping[str, Any]
+
+
+def turn_precondition(lanes: LaneGraph, starts: Starts, p: Params) -> str | None:
+    """A turn needs a way through an intersection ahead that turns that way (the path the check
+    measures against: :func:`~ctgpp.scene.lane_paths.turn_path` from the lane the vehicle starts on)."""
+    number = int(p["vehicle"])
+    if number not in starts:
+        return None
+    xy0, yaw0 = starts[number]
+    start = nearest_lane(lanes, xy0, yaw0)
+    if start is None:
+        return f"vehicle {number} starts on no lane: no intersection ahead to turn at"
+    if turn_path(lanes, start, p["direction"]) is None:
+        return f"no intersection within 150 m ahead of vehicle {number} has a way {p['direction']}"
+    return None
 
 
 def _valid(rollout: Rollout, number: int) -> Track:
