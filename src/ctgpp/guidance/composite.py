@@ -44,10 +44,7 @@ class CompositeLoss(GuidanceLoss):
 
     def scope(self) -> LossScope:
         """Every part's scope together."""
-        out = LossScope.nothing()
-        for loss in self.losses:
-            out = out.union(loss.scope())
-        return out
+        return joined_scope(self.losses)
 
     def constraints(self, data_batch: Any) -> PlanConstraints:
         """The constraints of every part with a positive weight (a part weighed 0 or less asks
@@ -63,6 +60,14 @@ class CompositeLoss(GuidanceLoss):
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         pairs = zip(self.losses, self.weights, strict=True)
         return join_costs([w * loss(x, data_batch, agt_mask) for loss, w in pairs])
+
+
+def joined_scope(losses: Sequence[GuidanceLoss]) -> LossScope:
+    """The scope of several losses together ("and")."""
+    out = LossScope.nothing()
+    for loss in losses:
+        out = out.union(loss.scope())
+    return out
 
 
 def all_reached(answers: Sequence[bool | None]) -> bool | None:
@@ -142,6 +147,7 @@ __all__ = [
     "MAX_SPEED_MPS",
     "CompositeLoss",
     "all_reached",
+    "joined_scope",
     "ParamInfo",
     "RuleInfo",
     "check_quantity",

@@ -21,16 +21,15 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
-import torch
 from torch import Tensor
 
 from ctgpp.guidance.base import GuidanceLoss
-from ctgpp.guidance.composite import all_reached, join_costs
+from ctgpp.guidance.composite import all_reached, join_costs, joined_scope
 from ctgpp.guidance.constraints import PlanConstraints, collide_pairs
-from ctgpp.guidance.rules.common import apply_mask, check_vehicle, time_weights
+from ctgpp.guidance.rules.common import apply_mask, check_vehicle
 from ctgpp.guidance.rules.lane_change import one_row
 from ctgpp.guidance.rules.lanes import KeepLane
-from ctgpp.guidance.rules.turns import NEAR_TERM_DECAY, free_speed
+from ctgpp.guidance.rules.turns import near_term_shortfall
 from ctgpp.guidance.scope import LossScope
 
 
@@ -51,9 +50,7 @@ class KeepPace(GuidanceLoss):
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         row = check_vehicle(self.vehicle, data_batch, x.shape[0])
         now = data_batch.speed[row].to(x)
-        speed = free_speed(x[row], now, data_batch.dt_s)  # (N, T) m/s
-        near = time_weights(speed.shape[-1], NEAR_TERM_DECAY, speed)  # (T,)
-        return apply_mask(one_row(x, row, (torch.relu(now - speed) * near).sum(-1)), agt_mask)
+        return apply_mask(one_row(x, row, near_term_shortfall(x[row], now, now, data_batch.dt_s)), agt_mask)
 
 
 class InOrder(GuidanceLoss):
@@ -89,10 +86,7 @@ class InOrder(GuidanceLoss):
         return any(loss.couples_agents for loss in self.parts)
 
     def scope(self) -> LossScope:
-        out = LossScope.nothing()
-        for loss in self.parts:
-            out = out.union(loss.scope())
-        return out
+        return joined_scope(self.parts)
 
     def on(self, data_batch: Any) -> list[bool]:
         """Which parts guide at the re-plan of ``data_batch`` (kept per batch)."""

@@ -37,6 +37,15 @@ def free_speed(x_row: Tensor, speed_now: Tensor, dt_s: float) -> Tensor:
     return speed_now + torch.cumsum(x_row[..., 4], dim=-1) * dt_s
 
 
+def near_term_shortfall(x_row: Tensor, speed_now: Tensor, floor: Tensor | float, dt_s: float) -> Tensor:
+    """(N,) m/s: how far one vehicle's speeds (x_row (N, T, 6) from ``speed_now``, without the clip at
+    zero: :func:`free_speed`) fall short of ``floor``, weighted ``NEAR_TERM_DECAY``**t (normalized):
+    the next seconds first."""
+    speed = free_speed(x_row, speed_now, dt_s)  # (N, T)
+    near = time_weights(speed.shape[-1], NEAR_TERM_DECAY, speed)  # (T,)
+    return (torch.relu(floor - speed) * near).sum(-1)
+
+
 @register_loss("turn_at_next_intersection")
 class TurnAtNextIntersection(CommittedLaneRule):
     """A vehicle turns left or right (or goes straight) at the next intersection ahead: the mean
@@ -115,9 +124,8 @@ class TurnAtNextIntersection(CommittedLaneRule):
     def speed_shortfall(self, x_row: Tensor, data_batch: GuidanceBatch, row: int) -> Tensor:
         """(N,) m/s: how far vehicle ``row``'s speeds (x_row (N, T, 6), without the clip at zero) fall
         short of ``min_speed_mps``, weighted ``NEAR_TERM_DECAY``**t (normalized)."""
-        speed = free_speed(x_row, data_batch.speed[row].to(x_row), data_batch.dt_s)  # (N, T)
-        near = time_weights(speed.shape[-1], NEAR_TERM_DECAY, speed)  # (T,) the next seconds first
-        return (torch.relu(self.min_speed_mps - speed) * near).sum(-1)
+        now = data_batch.speed[row].to(x_row)
+        return near_term_shortfall(x_row, now, self.min_speed_mps, data_batch.dt_s)
 
     def progress_shortfall(
         self, pos: Tensor, yaw: Tensor, line: Tensor, data_batch: GuidanceBatch, row: int
@@ -148,4 +156,4 @@ class TurnAtNextIntersection(CommittedLaneRule):
         return (pos[:, -1] - point).norm(dim=-1) + HEADING_M_PER_RAD * miss * moving  # (N,)
 
 
-__all__ = ["TurnAtNextIntersection", "free_speed"]
+__all__ = ["TurnAtNextIntersection", "free_speed", "near_term_shortfall"]
