@@ -119,6 +119,7 @@ def test_an_opaque_loss_lifts_the_lane_guard_and_the_vehicle_pairs() -> None:
     assert len(collide_pairs(scope, 4)) == 6
     report = guard_report(GuardConfig(), scope, 4)
     assert report["addressed"] == "unknown" and report["lane"]["vehicles"] == []
+    assert report["follow"]["vehicles"] == []  # an opaque loss may set any vehicle's pace
 
 
 def test_scopes_join_and_restrict() -> None:
@@ -259,11 +260,12 @@ def test_metrics_record_the_guards(guards: str, tmp_path: Path) -> None:
     if guards == "off":
         assert record["ran"] == []
         return
-    assert record["ran"] == ["offroad", "collision", "lane"] and record["addressed"] == [1, 2]
+    assert record["ran"] == ["offroad", "collision", "lane", "follow"] and record["addressed"] == [1, 2]
     assert record["collision"]["exempt_pairs"] == [[1, 2]]
     moving = record["offroad"]["vehicles"]
     assert 1 in moving and 2 in moving and not set(record["held"]) & set(moving)
     assert set(record["lane"]["vehicles"]) == set(moving) - {1, 2}
+    assert set(record["follow"]["vehicles"]) == set(moving) - {1, 2}  # the pair sets its own pace
 
 
 def test_policies_without_diffusion_take_no_guards(tmp_path: Path) -> None:

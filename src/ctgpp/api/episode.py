@@ -121,7 +121,7 @@ def simulate(
     history_s: logged seconds before the start (default 3 s, less down to 1 s where the scene is
     short). checkpoint: the model directory (default: the shipped model). sampling, guidance: the
     sampler and Algorithm 2's settings (default: the ``fast`` preset). guards: the realism guards,
-    ``"on"`` (default), ``"off"`` or a comma-separated subset of ``offroad,collision,lane``. stages:
+    ``"on"`` (default), ``"off"`` or a comma-separated subset of ``offroad,collision,lane,follow``. stages:
     the plan stages beyond the paper, ``"on"`` (default), ``"off"`` or a subset of ``steer,cap,brake``
     (:mod:`ctgpp.policies.stages`), whatever the guards.
     policies: the :class:`~ctgpp.policies.factory.PolicyFactory` that makes the policy, for many

@@ -158,7 +158,8 @@ def add_guard_args(parser: argparse.ArgumentParser, default: str) -> None:
         metavar="on|off|" + ",".join(GUARD_NAMES),
         help=f"realism guards of the diffusion policies (default: {default}): every vehicle the rule or "
         "query does not send elsewhere stays on the road (offroad), out of collisions with every agent "
-        "(collision) and in its lane (lane); a comma-separated subset runs only those",
+        "(collision), in its lane (lane) and, where the query does not set its pace, no further behind "
+        "the vehicle ahead than drivers are (follow); a comma-separated subset runs only those",
     )
     parser.add_argument(
         "--no-guards", dest="guards", action="store_const", const="off", help="the same as --guards off"

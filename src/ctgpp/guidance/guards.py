@@ -1,7 +1,7 @@
 """Realism guards (DESIGN.md, Closed loop): every vehicle stays on the road, out of collisions with
 every agent and in its lane, except where the rule or query asks otherwise.
 
-The guards are three rules of the library, composed (:class:`RealismGuards`, a guidance loss like
+The guards are four rules of the library, composed (:class:`RealismGuards`, a guidance loss like
 any other) and added to the rule's or query's loss by :func:`with_guards`:
 
 - ``offroad``: :class:`~ctgpp.guidance.rules.motion.NoOffroad` for every vehicle that is on the road
@@ -25,6 +25,12 @@ any other) and added to the rule's or query's loss by :func:`with_guards`:
   another, both vehicles of a collision and the one that rear-ends). Its gradient steers and never
   brakes, on a bend too (:class:`~ctgpp.guidance.rules.lanes.KeepLane`): braking is the collision
   guard's to ask.
+- ``follow``: :class:`~ctgpp.guidance.rules.following.KeepUp` — no vehicle falls further behind the
+  vehicle ahead in its lane than drivers do (its gap at the re-plan, or 4 m plus 1.5 s at the leader's
+  speed), so that a queue discharges when its head drives off — for every vehicle the loss does not
+  address (:meth:`LossScope.leaves_pace`: a loss that stops, slows or spaces a vehicle sets its pace
+  itself). Its gradient only speeds a vehicle up along its heading; the leader is found at the re-plan
+  from what the planner knows then (docs/decisions/follow.md).
 
 An opaque loss (a language model's program) may do anything to any vehicle: only the off-road
 guard, and the collision guard against replayed agents, apply then.
@@ -62,11 +68,12 @@ from ctgpp.guidance.constraints import PlanConstraints, collide_pairs
 from ctgpp.guidance.context import GuidanceBatch
 from ctgpp.guidance.rules.clearance import ClearAhead, NoCollision
 from ctgpp.guidance.rules.common import sample_sdf
+from ctgpp.guidance.rules.following import GAP_S, MIN_GAP_M, KeepUp
 from ctgpp.guidance.rules.lanes import KeepLane
 from ctgpp.guidance.rules.motion import NoOffroad
 from ctgpp.guidance.scope import LossScope
 
-GUARD_NAMES = ("offroad", "collision", "lane")
+GUARD_NAMES = ("offroad", "collision", "lane", "follow")
 COLLISION_WEIGHT = 1.0  # 5 measured worse (docs/decisions/guards.md)
 LANE_TOLERANCE_M = 1.5  # 1.0 and 2.0 measured worse (with the steering lane guard too, on Peachtree)
 HEADWAY_S = 0.5  # the road kept clear ahead, in seconds at the vehicle's speed; 1.0 measured no better
@@ -80,7 +87,7 @@ GUARDS_FIRST = 100.0
 class GuardConfig:
     """Which realism guards run (``guards``, a subset of ``GUARD_NAMES``) and how they weigh.
 
-    Default: all three (``ctgpp simulate``); :meth:`off` runs none (the paper's protocol, ``ctgpp
+    Default: all four (``ctgpp simulate``); :meth:`off` runs none (the paper's protocol, ``ctgpp
     evaluate``). ``rule_weight`` weighs the rule's or query's loss against the guards; ``headway_s``
     is how far ahead (seconds at its speed) the collision guard keeps a vehicle's road clear (0: only
     the boxes of the plan).
@@ -90,6 +97,7 @@ class GuardConfig:
     offroad_weight: float = 1.0
     collision_weight: float = COLLISION_WEIGHT
     lane_weight: float = 1.0
+    follow_weight: float = 1.0
     rule_weight: float = 1.0
     offroad_margin_m: float = 0.5
     collision_buffer_m: float = DISC_CLEARANCE_M
@@ -138,6 +146,7 @@ class RealismGuards(GuidanceLoss):
         self.config, self.addressed = config, scope
         self.offroad = NoOffroad(config.offroad_margin_m)
         self.lane = KeepLane(None, config.lane_tolerance_m)
+        self.follow = KeepUp()
         self._pair_guards: dict[int, tuple[NoCollision, ClearAhead]] = {}
 
     @property
@@ -180,6 +189,9 @@ class RealismGuards(GuidanceLoss):
         if "lane" in cfg.guards:
             keeps = torch.tensor([self.addressed.keeps_lane(v) for v in range(n_b)], device=x.device)
             per_vehicle = per_vehicle + cfg.lane_weight * self.lane(x, data_batch, mask & keeps)
+        if "follow" in cfg.guards:
+            free = torch.tensor([self.addressed.leaves_pace(v) for v in range(n_b)], device=x.device)
+            per_vehicle = per_vehicle + cfg.follow_weight * self.follow(x, data_batch, mask & free)
         if "collision" not in cfg.guards:
             return per_vehicle
         overlap, ahead = self.pair_guards(n_b)
@@ -274,6 +286,9 @@ def guard_report(
         kept = [v for v in moving if scope.keeps_lane(v)]
         tolerance = config.lane_tolerance_m
         report["lane"] = {"vehicles": kept, "weight": config.lane_weight, "tolerance_m": tolerance}
+    if "follow" in config.guards:
+        report["follow"] = {"vehicles": [v for v in moving if scope.leaves_pace(v)],
+                            "weight": config.follow_weight, "min_gap_m": MIN_GAP_M, "gap_s": GAP_S}
     return report
 
 

@@ -106,6 +106,12 @@ class LossScope:
         """Whether the loss leaves ``vehicle`` in its lane (the lane guard may hold it there)."""
         return self.leave_lane is not None and int(vehicle) not in self.leave_lane
 
+    def leaves_pace(self, vehicle: int) -> bool:
+        """Whether the loss leaves ``vehicle``'s pace alone: it addresses it not at all (the follow
+        guard may then ask it to keep up with the vehicle ahead; a loss that addresses it — a stop, a
+        speed, a following distance — sets its pace itself)."""
+        return self.vehicles is not None and int(vehicle) not in self.vehicles
+
     def may_collide(self, a: int, b: int) -> bool:
         """Whether the loss may ask vehicles a and b to collide (the collision guard lets them)."""
         return self.collide is None or pair(a, b) in self.collide
