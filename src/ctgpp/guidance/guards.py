@@ -1,5 +1,6 @@
 """Realism guards (DESIGN.md, Closed loop): every vehicle stays on the road, out of collisions with
-every agent and in its lane, except where the rule or query asks otherwise.
+every agent and in its lane, and keeps up with the vehicle ahead, except where the rule or query asks
+otherwise.
 
 The guards are four rules of the library, composed (:class:`RealismGuards`, a guidance loss like
 any other) and added to the rule's or query's loss by :func:`with_guards`:
