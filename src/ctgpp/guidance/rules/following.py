@@ -39,12 +39,14 @@ follows is rarely the traffic it queues with.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import torch
 from torch import Tensor
 
+from ctgpp.geometry import world_to_local, wrap_angle
 from ctgpp.guidance.context import GuidanceBatch
 from ctgpp.guidance.prediction import AT_REST_MPS
 from ctgpp.guidance.rules.common import Rule, apply_mask, world_states
@@ -57,13 +59,15 @@ GAP_S = 1.5  # plus this many seconds at the leader's speed
 LOOK_AHEAD_M = 40.0  # a leader is found this far ahead at most, centre to centre
 
 
+@dataclass(frozen=True, eq=False)
 class Leaders:
     """Each vehicle's leader at a re-plan (the module's note). index: (B,) long, the leader's row in
     the vehicles followed by the replayed agents (B + o), −1 for none; gap0: (B,) m, the bumper gap at
     the re-plan along the vehicle's heading; length: (B,) m, half the two lengths summed."""
 
-    def __init__(self, index: Tensor, gap0: Tensor, length: Tensor) -> None:
-        self.index, self.gap0, self.length = index, gap0, length
+    index: Tensor
+    gap0: Tensor
+    length: Tensor
 
     @classmethod
     def of(cls, data_batch: GuidanceBatch, look_ahead_m: float = LOOK_AHEAD_M) -> Leaders:
@@ -85,11 +89,9 @@ class Leaders:
         yaw = np.concatenate([pose[:, 2], known.yaw[obs[rows], step]])
         length = np.concatenate([batch.extent.detach().cpu().double().numpy()[:, 0],
                                  batch.obstacles_extent.detach().cpu().double().numpy()[rows, 0]])
-        head = np.stack([np.cos(pose[:, 2]), np.sin(pose[:, 2])], -1)  # (B, 2)
-        d = xy[None] - pose[:, None, :2]  # (B, B + R, 2)
-        lon = (d * head[:, None]).sum(-1)
-        lat = d[..., 1] * head[:, None, 0] - d[..., 0] * head[:, None, 1]
-        turn = np.abs((yaw[None] - pose[:, None, 2] + math.pi) % (2 * math.pi) - math.pi)
+        rel = world_to_local(xy[None], pose[:, None, :2], pose[:, None, 2])  # (B, B + R, 2)
+        lon, lat = rel[..., 0], rel[..., 1]
+        turn = np.abs(wrap_angle(yaw[None] - pose[:, None, 2]))
         ahead = (lon > 0) & (lon <= look_ahead_m) & (np.abs(lat) <= IN_LANE_M)
         ahead &= turn <= math.radians(LANE_HEADING_DEG)
         ahead[np.arange(n_b), np.arange(n_b)] = False
@@ -137,11 +139,9 @@ class KeepUp(Rule):
         pos, yaw = world_states(x, data_batch)  # (B, N, T, 2), (B, N, T)
         lead_xy, lead_yaw, lead_v, lead_valid = self._leader_states(x, pos.detach(), yaw.detach(),
                                                                     data_batch, leaders)
-        heading = torch.stack([torch.cos(yaw), torch.sin(yaw)], -1).detach()  # (B, N, T, 2)
-        d = lead_xy - pos  # gradient through the follower's position alone
-        lon = (d * heading).sum(-1)  # (B, N, T)
-        lat = (d[..., 1] * heading[..., 0] - d[..., 0] * heading[..., 1]).detach()
-        turn = torch.remainder(lead_yaw - yaw.detach() + math.pi, 2 * math.pi) - math.pi
+        rel = world_to_local(lead_xy, pos, yaw.detach())  # (B, N, T, 2): the follower's position alone
+        lon, lat = rel[..., 0], rel[..., 1].detach()  # carries the gradient, along its heading only
+        turn = wrap_angle(lead_yaw - yaw.detach())
         inside = lead_valid & (lon.detach() > 0) & (lat.abs() <= IN_LANE_M)
         inside &= turn.abs() <= math.radians(LANE_HEADING_DEG)
         inside &= has[:, None, None]
