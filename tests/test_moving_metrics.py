@@ -161,6 +161,19 @@ def test_the_first_partner_is_the_closest_of_those_hit_at_the_first_step():
     assert o.hit_step[0] == 27 and o.partner[0] == 2
 
 
+def test_fail_present_at_start_leaves_out_agents_that_enter_later():
+    # crash_scene with its pedestrian logged only from step 15 (after the start, CURRENT = 10): N still
+    # hits it at step 18, which fail counts and fail, present at start does not; M (the parked car),
+    # Q and R (each other) are hit by agents present at the start
+    r = crash_scene()
+    r.sim.valid[5, :15] = False
+    m = compute_metrics(r, MOVING_METRICS)
+    assert m["moving_fail"] == 1.0
+    assert m["moving_fail_present"] == 0.75
+    o = vehicle_outcomes(r)
+    assert o.hit_step.tolist()[:4] == [27, 18, 29, 29] and o.hit_present_step.tolist()[:4] == [27, -1, 29, 29]
+
+
 # ---------------------------------------------------------------- off-road and beyond the map
 
 
@@ -395,7 +408,7 @@ def test_pooled_over_vehicles_not_episodes():
     assert s.mean["moving_fail"] == pytest.approx(0.5, abs=1e-6) and s.mean["ade_10s"] == pytest.approx(2.0)
     table = moving_table([s])
     assert "## Vehicles that move\n" in table
-    row = "| none | constvel | 4 | 0 | 0.500 |" + " - |" * 8 + " 2.000 |" + " - |" * 6  # 0 turns
+    row = "| none | constvel | 4 | 0 | 0.500 |" + " - |" * 9 + " 2.000 |" + " - |" * 6  # 0 turns
     assert row in table.splitlines()
 
 

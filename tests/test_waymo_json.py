@@ -39,7 +39,9 @@ pytestmark = pytest.mark.skipif(not WAYMO.is_dir(), reason=f"the Waymo GPUDrive 
 
 @pytest.fixture(scope="module")
 def scenes() -> dict[str, Scene]:
-    return {key: load_waymo_json(WAYMO / name) for key, name in FILES.items()}
+    """The scenes with their tracks as the files hold them (the joining of fragments is
+    tests/test_stitching.py's)."""
+    return {key: load_waymo_json(WAYMO / name, stitch=False) for key, name in FILES.items()}
 
 
 def _raw(key: str) -> dict:

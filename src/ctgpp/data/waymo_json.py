@@ -40,6 +40,7 @@ from scipy import ndimage
 
 from ctgpp.data.lane_topology import detect_intersections, reconstruct_connectivity
 from ctgpp.data.nuscenes_drivable import rasterize_polygons
+from ctgpp.data.stitching import stitch_fragments
 from ctgpp.data.timebase import SIM_DT_S, finite_tracks
 from ctgpp.geometry import wrap_angle
 from ctgpp.scene.types import AgentTracks, AgentType, DrivableArea, LaneGraph, Scene
@@ -214,8 +215,11 @@ def _read(path: Path) -> dict[str, Any]:
     return raw
 
 
-def load_waymo_json(path: Path) -> Scene:
+def load_waymo_json(path: Path, stitch: bool = True) -> Scene:
     """Read one GPUDrive / Nocturne ``.json.gz`` scene as a :class:`Scene` (see the module docstring).
+
+    ``stitch``: join the fragments of one vehicle's track (:mod:`ctgpp.data.stitching`); False reads
+    the tracks as the file holds them.
 
     Scene id ``waymo-<scenario_id>``, dataset ``"waymo"``, dt 0.1 s. The drivable raster covers the
     valid agent positions plus ``DRIVABLE_MARGIN_M``. Raises ``FileNotFoundError`` for a missing file
@@ -225,6 +229,8 @@ def load_waymo_json(path: Path) -> Scene:
     raw = _read(path)
     try:
         agents, ego = _tracks(raw)
+        if stitch:
+            agents, _ = stitch_fragments(agents, SIM_DT_S, keep=ego)
         if not agents.valid.any():
             raise ValueError("no agent has a valid, finite position")
         lanes = _lanes(raw["roads"])

@@ -29,6 +29,7 @@ COLUMNS = (("fail", "fail"), ("rule_violation", "violation"), ("real", "real"), 
 # the second table's columns: the moving vehicles' figures (record column, header)
 MOVING_COLUMNS = (
     ("moving_fail", "fail"),
+    ("moving_fail_present", "fail, present at start"),
     ("moving_collision_rate", "collision"),
     ("moving_offroad_rate", "off-road"),
     ("first_partner_held", "hit held first"),
@@ -146,7 +147,9 @@ def moving_table(summaries: Sequence[Summary], sets: Sequence[str] = ()) -> str:
         "Controlled vehicles that move: faster than 0.5 m/s at the start, or carried more than 2 m from "
         "their start in the log or in the simulation (moving: their count per seed), pooled over "
         "vehicles: per seed, the share (or mean) over all the moving vehicles of its episodes; mean ± "
-        "sample std over seeds. fail: collides (with any agent) or goes off-road; hit held first: its "
+        "sample std over seeds. fail: collides (with any agent) or goes off-road; fail, present at start: "
+        "collides with an agent present at the start (the agents the Waymo Sim Agents Challenge "
+        "simulates; agents that enter later are left out) or goes off-road; hit held first: its "
         "first collision is with a held vehicle (one that moves in neither); lane-leave: > 2 m from "
         "every centerline within 45° of its heading; stop: slower than 0.2 m/s at some step; yaw sign "
         "changes: of the yaw rate outside ±0.001 rad/s, per 10 s; ADE / FDE (m) to the log over the "

@@ -7,6 +7,9 @@ simulation), each a share of them or a mean over them, per episode:
 
 - ``moving_fail``: collides or goes off-road; ``moving_collision_rate``; ``moving_offroad_rate``
   (centre off the drivable area), leaving out the vehicles beyond the map;
+- ``moving_fail_present``: collides with an agent present at the start, or goes off-road: the
+  count of the Waymo Sim Agents Challenge, whose scenes hold only the agents present at the start
+  (ours also replay the agents that enter later, and ``moving_fail`` counts them);
 - ``beyond_map``: its log leaves the mapped area or it drives off the raster's edge
   (``offroad.beyond_map_steps``), reported apart and never counted as off-road (its collisions
   still count);
@@ -50,6 +53,7 @@ from ctgpp.metrics.registry import MetricValue, register_metric
 
 MOVING_METRICS = (
     "moving_fail",
+    "moving_fail_present",
     "moving_collision_rate",
     "moving_offroad_rate",
     "beyond_map",
@@ -109,6 +113,13 @@ def moving_fail(rollout: Rollout) -> MetricValue:
     """Share of the moving vehicles that collide or go off-road (beyond the map is not off-road)."""
     o = vehicle_outcomes(rollout)
     return _share(rollout, (o.hit_step >= 0) | (o.offroad_step >= 0))
+
+
+@register_metric("moving_fail_present")
+def moving_fail_present(rollout: Rollout) -> MetricValue:
+    """Share of the moving vehicles that collide with an agent present at the start or go off-road."""
+    o = vehicle_outcomes(rollout)
+    return _share(rollout, (o.hit_present_step >= 0) | (o.offroad_step >= 0))
 
 
 @register_metric("moving_collision_rate")

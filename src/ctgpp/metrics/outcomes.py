@@ -45,9 +45,11 @@ class VehicleOutcomes:
     0.5 m/s at the start. log_moved_m / sim_moved_m (C,) m: the farthest the log / the simulation
     carries it from its start position (``motion.farthest_from_start``; NaN when the log holds no
     future step of it). hit_step / partner: the first collision (with any
-    agent, replayed ones included) and the agent hit then. offroad_step: the first off-road step of
-    a vehicle that stays on the map (-1 for one beyond the map: it is reported by ``beyond_step``,
-    see ``offroad.beyond_map_steps``). lane_step: first step > 2 m from every same-direction
+    agent, replayed ones included) and the agent hit then. hit_present_step: the first collision
+    with an agent present at the start (valid at the current step): the agents the Waymo Sim Agents
+    Challenge simulates, whose scenes hold no agent that enters later. offroad_step: the first
+    off-road step of a vehicle that stays on the map (-1 for one beyond the map: it is reported by
+    ``beyond_step``, see ``offroad.beyond_map_steps``). lane_step: first step > 2 m from every same-direction
     centerline (``lane_keeping``), measured for the moving vehicles only (-1 for held ones) and up
     to where a vehicle goes beyond the map (-1 when it leaves the lanes there: past the end of the
     mapped road there are none to keep).
@@ -64,6 +66,7 @@ class VehicleOutcomes:
     sim_moved_m: np.ndarray
     hit_step: np.ndarray
     partner: np.ndarray
+    hit_present_step: np.ndarray
     offroad_step: np.ndarray
     beyond_step: np.ndarray
     lane_step: np.ndarray
@@ -99,6 +102,8 @@ def vehicle_outcomes(rollout: Rollout) -> VehicleOutcomes:
     sim_moved = farthest_from_start(rollout.sim, agents, rollout.current, rollout.future)
     moving = ~at_rest | (np.nan_to_num(log_moved) > MOVED_M) | (np.nan_to_num(sim_moved) > MOVED_M)
     hit_step, partner = first_contacts(rollout.sim, agents, rollout.future)
+    present = rollout.sim.valid[:, rollout.current]  # (A,)
+    hit_present, _ = first_contacts(rollout.sim, agents, rollout.future, among=present)
     beyond = beyond_map_steps(rollout, agents)
     offroad = first_step(offroad_steps(rollout, agents), rollout.future, rollout.sim.num_steps)
     lane = np.full(len(agents), -1, dtype=np.int64)
@@ -114,6 +119,7 @@ def vehicle_outcomes(rollout: Rollout) -> VehicleOutcomes:
         sim_moved_m=sim_moved,
         hit_step=hit_step,
         partner=partner,
+        hit_present_step=hit_present,
         offroad_step=np.where(beyond >= 0, -1, offroad),
         beyond_step=beyond,
         lane_step=lane,
