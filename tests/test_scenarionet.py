@@ -260,6 +260,33 @@ def test_waymo_style_connectivity_is_used(tmp_path: Path) -> None:
     assert not scene.drivable.is_drivable(np.array([10.0, 4.5]))
 
 
+@pytest.mark.parametrize(("dataset", "tracks_read"), [("waymo", ["a"]), ("nuscenes", ["a", "b"])])
+def test_waymo_fragments_are_joined(tmp_path: Path, dataset: str, tracks_read: list[str]) -> None:
+    # car a drives 10 m/s along x for steps 0-20, car b from step 26 where a would be (x = 26): one
+    # car the Waymo tracker lost for 0.5 s; other data sets' tracks are read as they are
+    def state(first: int, last: int) -> dict:
+        steps = np.arange(40)
+        ok = (steps >= first) & (steps <= last)
+        position = np.stack([steps * 1.0, np.zeros(40), np.zeros(40)], axis=1)
+        return {"position": position, "heading": np.zeros(40), "velocity": np.tile([10.0, 0.0], (40, 1)),
+                "valid": ok.astype(float), "length": np.full((40, 1), 4.5), "width": np.full((40, 1), 2.0)}
+
+    raw = {
+        "id": "toy", "length": 40, "dynamic_map_states": {},
+        "metadata": {"map": "nowhere", "sample_rate": 0.1, "dataset": dataset},
+        "tracks": {
+            "a": {"type": "VEHICLE", "state": state(0, 20)},
+            "b": {"type": "VEHICLE", "state": state(26, 39)},
+        },
+        "map_features": {},
+    }
+    path = tmp_path / "toy.pkl"
+    path.write_bytes(pickle.dumps(raw))
+    scene = load_scenarionet(path, tmp_path)
+    assert list(scene.agents.ids) == tracks_read
+    assert int(scene.agents.valid.sum()) == 21 + 14
+
+
 @pytest.mark.parametrize("protocol", [2, 4, 5])
 def test_plain_data_round_trips(tmp_path: Path, protocol: int) -> None:
     from collections import defaultdict

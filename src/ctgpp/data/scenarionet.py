@@ -20,6 +20,7 @@ import numpy as np
 from ctgpp.data.lane_topology import detect_intersections, reconstruct_connectivity
 from ctgpp.data.nuscenes_drivable import nuscenes_drivable, rasterize_polygons
 from ctgpp.data.safe_pickle import safe_load
+from ctgpp.data.stitching import stitch_fragments
 from ctgpp.data.timebase import SIM_DT_S, check_dt, finite_tracks
 from ctgpp.scene.types import AgentTracks, AgentType, DrivableArea, LaneGraph, Scene
 
@@ -207,9 +208,11 @@ def load_scenarionet(path: Path, drivable_dir: Path | None = None) -> Scene:
         agents, ego = _tracks(raw, path)
         if not agents.valid.any():
             raise ValueError(f"{path}: no agent of the scenario has a valid, finite position")
+        dt_s = _dt_s(meta)
+        if str(meta.get("dataset", "")).lower() == "waymo":  # its tracker's lost-and-found ids
+            agents, _ = stitch_fragments(agents, dt_s, keep=ego)
         lanes, polygons = _lanes(raw["map_features"])
         map_name = str(meta.get("map", ""))
-        dt_s = _dt_s(meta)
         drivable = _drivable(agents, lanes, polygons, map_name, drivable_dir)
     except (KeyError, TypeError, IndexError, AttributeError) as err:
         raise ValueError(f"{path}: malformed ScenarioNet scenario ({type(err).__name__}: {err})") from None
