@@ -1,5 +1,6 @@
 """How often one query is met over seeds, per sampler preset: ``ctgpp.simulate`` with the realism
-guards on (as ``ctgpp simulate``), the query's verdict and whether any other moving vehicle collided.
+guards on (as ``ctgpp simulate``), the query's verdict, whether any other moving vehicle collided and
+the fail rate of all vehicles (and of the moving ones).
 
     python scripts/query_seeds.py "vehicle 1 should collide with vehicle 2" --scene scene-0103 \\
         --presets ddim@99.75.40.0-n2-lr0.9,ddim6-n2-lr0.9 --seeds 10
@@ -45,7 +46,11 @@ def main() -> None:
             met += bool(result.query.get("satisfied"))
             clean += not others
             print(
-                f"{name} seed {seed}: met {result.query.get('satisfied')}, other vehicles colliding {others}",
+                f"{name} seed {seed}: met {result.query.get('satisfied')}, "
+                f"other vehicles colliding {others}, "
+                f"fail of all vehicles {result.metrics['fail']:.3f} "
+                f"(moving {result.metrics['moving_fail']:.3f}); "
+                f"{'; '.join(p['measured'] for p in result.query.get('parts', []))}",
                 flush=True,
             )
         seconds = (time.monotonic() - start) / args.seeds

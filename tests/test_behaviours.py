@@ -85,6 +85,7 @@ def _rule_args(scene_id: str, start: float) -> list[str]:
         "stop_region": f"vehicle=17,x={x:.1f},y={y:.1f},radius=5",
         "target_speed": "speed=8",
         "turn_at_next_intersection": "vehicle=17,direction=left",
+        "u_turn": "vehicle=17",
     }
     assert set(rules) == set(behaviours())  # a new behaviour needs its line here
     texts = [f"{name}:{params}" if params else name for name, params in rules.items()]

@@ -234,6 +234,7 @@ def _contract_queries(batch: GuidanceBatch) -> list[str]:
         "vehicle 0 moves to the rightmost lane",
         "vehicle 0 turns right at the next intersection",
         "vehicle 3 turns left at the next intersection",
+        "vehicle 0 makes a U-turn",
         "everyone stays on the road",
         "every vehicle keeps its acceleration under 0.05 m/s²",
         f"vehicle 0 should reach its goal waypoint ({far[0]:.1f}, {far[1]:.1f})",

@@ -137,7 +137,7 @@ def test_a_different_reading_is_not_the_compilers(server: CannedServer) -> None:
 BAD = [
     (calls({"behaviour": "stop", "vehicles": [40]}), "names vehicle 40, which is not in the scene"),
     (calls({"behaviour": "collision", "vehicle_a": 1, "vehicle_b": 99}), "names vehicle 99"),
-    (calls({"behaviour": "u_turn", "vehicle": 1}), "unknown behaviour 'u_turn'"),
+    (calls({"behaviour": "three_point_turn", "vehicle": 1}), "unknown behaviour 'three_point_turn'"),
     (calls({"behaviour": "speed_limit", "limit_mps": "fast"}),
      "parameter 'limit_mps' is 'fast': expected a finite number"),
     (calls({"behaviour": "lane_change", "vehicle": 1, "side": "up"}), "expected one of left, right"),

@@ -48,8 +48,8 @@ def test_score_counts_a_changed_qualifier_as_wrong() -> None:
     assert score(_row("vehicle 5 stops within 4 s", [STOP_5])).verdict == "wrong"  # a window dropped
     assert score(_row("vehicle 4 stops", [STOP_5])).verdict == "wrong"  # another vehicle
     assert score(_row("vehicle 5 stops", "refuse")).verdict == "wrong"  # compiled where it must refuse
-    assert score(_row("vehicle 5 makes a U-turn", [STOP_5])).verdict == "refused"
-    assert score(_row("vehicle 5 makes a U-turn", "refuse")).verdict == "understood"
+    assert score(_row("vehicle 5 does a three-point turn", [STOP_5])).verdict == "refused"
+    assert score(_row("vehicle 5 does a three-point turn", "refuse")).verdict == "understood"
 
 
 def test_a_stop_at_a_time_is_a_stop_then_not_before() -> None:
@@ -84,7 +84,7 @@ def test_a_time_gap_is_refused_by_name() -> None:
 @pytest.mark.parametrize(("query", "named"), [
     ("vehicle 3 backs up 10 m", "driving in reverse"),
     ("vehicles 1 and 2 pass each other", "pass each other"),
-    ("vehicle 4 makes a U-turn", "U-turn"),
+    ("vehicle 4 does a three-point turn", "three-point turn"),
 ])
 def test_an_unsupported_manoeuvre_is_refused_by_name_without_suggestions(query: str, named: str) -> None:
     with pytest.raises(UnsupportedQuery, match="not a supported manoeuvre") as info:

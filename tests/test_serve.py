@@ -33,7 +33,7 @@ CHROMEDRIVER = Path("/usr/bin/chromedriver")
 SECRET_KEY = "sk-test-serve-5f1c0b7e-never-shown"
 LLM_MODEL = "local-test-model"
 SENTENCE = "vehicle 1 should collide with vehicle 2"
-U_TURN = "the red car should make a U-turn quickly"
+THREE_POINT_TURN = "the red car should do a three-point turn quickly"
 PEACHTREE = "USA_Peach-4_1_T-1"  # 7.0 s of real NGSIM log: episodes up to 6 s
 START_TIMEOUT_S = 900.0  # limits, not expectations: torch loads in three processes, and the project
 RUN_TIMEOUT_S = 900.0  # machine is often shared by a training run and several test runs (load 10-13)
@@ -202,9 +202,9 @@ def test_a_refused_sentence_gets_the_closest_phrasings(server: Server) -> None:
     assert not any(s in answer["message"] for s in answer["suggestions"])
     # a manoeuvre the vocabulary lacks: refused by name, with no suggestion (the page shows no list)
     status, answer = server.request("/api/runs", {"scene": "embedded:scene-0103",
-                                                  "sentence": U_TURN})
+                                                  "sentence": THREE_POINT_TURN})
     assert status == 422 and answer["refused"] is True and answer["suggestions"] == []
-    assert "U-turn" in answer["message"]
+    assert "three-point turn" in answer["message"]
     status, answer = server.request("/api/runs", {"scene": "embedded:scene-0103",
                                                   "sentence": "vehicle 40 should stop"})
     assert status == 422 and "vehicles 0-11" in answer["message"]
@@ -422,10 +422,10 @@ def test_the_page_runs_a_sentence_and_plays_it(server: Server, browser: Any, tmp
     sentence.send_keys(" now")  # a new sentence: the refusal of the old one goes
     assert not refusal.is_displayed() and not browser.find_elements(By.CSS_SELECTOR, "#suggestions li")
     sentence.clear()
-    sentence.send_keys(U_TURN)
+    sentence.send_keys(THREE_POINT_TURN)
     browser.find_element(By.ID, "run").click()
     wait.until(ec.visibility_of_element_located((By.ID, "refusal")))
-    assert "U-turn" in browser.find_element(By.ID, "refusal-message").text
+    assert "three-point turn" in browser.find_element(By.ID, "refusal-message").text
     assert not browser.find_element(By.ID, "suggestions-wrap").is_displayed()  # no empty list
 
     sentence.clear()

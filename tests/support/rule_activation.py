@@ -27,6 +27,7 @@ def active_params(batch: GuidanceBatch) -> dict[str, dict]:
         "lane_change": {"vehicle": 2, "side": "left"},  # on scene-0553 (ON_0553 in test_guidance_losses)
         "move_to_rightmost_lane": {"vehicle": 0},
         "turn_at_next_intersection": {"vehicle": 0, "direction": "right"},
+        "u_turn": {"vehicle": 0},  # an opposite lane 4.3 m to its left
         "follow_lane": {"vehicle": None},
         "keep_lane": {"vehicle": None, "tolerance_m": 0.0},
         "cut_in": {"vehicle": 2, "ahead_of": 0},

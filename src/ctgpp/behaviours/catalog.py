@@ -8,7 +8,8 @@ There is one factory per kind of behaviour, reading that kind's module: :func:`m
 vehicle's speed, acceleration, the road, points: :mod:`~ctgpp.behaviours.motion`), :func:`pair_rule`
 (two vehicles: :mod:`~ctgpp.behaviours.pairs`) and, for the lane graph, :func:`lane_keeping_rule`
 (:mod:`~ctgpp.behaviours.lane_keeping`), :func:`lane_change_rule` (lane changes, the rightmost lane,
-cut-ins: :mod:`~ctgpp.behaviours.lane_changes`) and :func:`turn_rule` (:mod:`~ctgpp.behaviours.turns`).
+cut-ins: :mod:`~ctgpp.behaviours.lane_changes`), :func:`turn_rule` (:mod:`~ctgpp.behaviours.turns`) and
+:func:`u_turn_rule` (:mod:`~ctgpp.behaviours.u_turns`).
 ``measures`` names the pair ``<measures>_violation`` / ``<measures>_check`` of the module (the
 behaviour's name when not given); ``deadline`` how "within N s" reads
 (:data:`~ctgpp.behaviours.base.HOLDS`: from N s on; :data:`~ctgpp.behaviours.base.HAPPENS`: by N s),
@@ -20,7 +21,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from types import ModuleType
 
-from ctgpp.behaviours import lane_changes, lane_keeping, motion, pairs, turns
+from ctgpp.behaviours import lane_changes, lane_keeping, motion, pairs, turns, u_turns
 from ctgpp.behaviours.base import HAPPENS, HOLDS, Behaviour, register
 
 Factory = Callable[..., Behaviour]
@@ -46,6 +47,7 @@ pair_rule = _kind(pairs, pairs.EVERY_STEP, HOLDS)
 lane_keeping_rule = _kind(lane_keeping, lane_keeping.EVERY_STEP, HAPPENS)
 lane_change_rule = _kind(lane_changes, lane_changes.END, HAPPENS)
 turn_rule = _kind(turns, turns.MOVING_STEPS, HAPPENS)
+u_turn_rule = _kind(u_turns, u_turns.MOVING_STEPS, HAPPENS)
 
 # --- two vehicles ------------------------------------------------------------------------------------
 
@@ -212,6 +214,14 @@ turn_rule(
      "vehicle 5 should turn left at the next intersection",
      "vehicle 1 goes straight at the next intersection"),
     measures="turn",
+)
+u_turn_rule(
+    "u_turn", "A vehicle makes a U-turn where the map allows one (a lane running the other way within 15 m "
+    "to the side of its road over the 60 m ahead): its heading change while moving exceeds 150° and it "
+    "ends within half a lane of an opposite-direction lane's centerline, heading along it, still moving.",
+    "°", "how far the heading change while moving falls short of 180°",
+    ("vehicle 4 makes a U-turn", "vehicle 2 should do a U-turn", "vehicle 3 turns around"),
+    measures="u_turn",
 )
 lane_change_rule(
     "cut_in", "A vehicle cuts in ahead of another: it starts outside the other's lane and ends inside it, "

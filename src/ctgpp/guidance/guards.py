@@ -22,7 +22,7 @@ any other) and added to the rule's or query's loss by :func:`with_guards`:
 - ``lane``: :class:`~ctgpp.guidance.rules.lanes.KeepLane` — within ``lane_tolerance_m`` of one of its
   lane paths, turns included, never further than it is now — for every vehicle the loss leaves in
   its lane (:meth:`LossScope.keeps_lane`): not the vehicles it sends across lanes (lane change,
-  rightmost lane, turn, goal, reach a point, stop region, cut in, stay beside or head the way of
+  rightmost lane, turn, U-turn, goal, reach a point, stop region, cut in, stay beside or head the way of
   another, both vehicles of a collision and the one that rear-ends). Its gradient steers and never
   brakes, on a bend too (:class:`~ctgpp.guidance.rules.lanes.KeepLane`): braking is the collision
   guard's to ask.

@@ -1,7 +1,8 @@
 """Target lane polylines on the guidance batch: the lane a vehicle should follow, chosen
 non-differentiably from its current pose on the scene's lane graph (its current lane, a neighbour,
-the rightmost lane, or the path through the next intersection that turns a given way:
-:mod:`ctgpp.scene.lane_paths`), becomes a *target polyline* (M, 2) in the local world frame of the
+the rightmost lane, the path through the next intersection that turns a given way:
+:mod:`ctgpp.scene.lane_paths`, or a U-turn onto the opposite lane: :mod:`ctgpp.scene.u_turns`),
+becomes a *target polyline* (M, 2) in the local world frame of the
 :class:`~ctgpp.guidance.context.GuidanceBatch`, joined with its successors ahead. Predicted positions
 are then projected onto that polyline in torch (:mod:`ctgpp.scene.polylines`), so that the distance
 to the projection is differentiable with respect to the positions. Choices are cached per batch.
@@ -32,6 +33,7 @@ from ctgpp.scene.lane_paths import (
     turn_path,
 )
 from ctgpp.scene.lanes import LaneProjection, lanes_ahead, nearest_lane
+from ctgpp.scene.u_turns import UTurnPath, u_turn_path, u_turn_polyline
 
 
 def vehicle_lane(data_batch: GuidanceBatch, i: int) -> LaneProjection | None:
@@ -179,3 +181,46 @@ def get_turn_lane(data_batch: GuidanceBatch, i: int, direction: Direction) -> Te
         return _to_tensor(data_batch, line)
 
     return _memo(data_batch, ("turn", direction, i), build)
+
+
+# A U-turn begins where the vehicle can have slowed for it: its braking distance at this deceleration
+# (ordinary urban braking, below the 4 m/s² the steering stage brakes for bends at:
+# policies/stages/config.py), so a vehicle at 10 m/s turns about 17 m ahead, not in its own length
+U_TURN_BRAKE_MPS2 = 3.0
+
+
+def _vehicle_u_turn(data_batch: GuidanceBatch, i: int) -> tuple[UTurnPath, np.ndarray, np.ndarray] | None:
+    """Vehicle i's U-turn (:func:`~ctgpp.scene.u_turns.u_turn_path`, from its braking distance on, where
+    its arc lies on the drivable area), its world polyline reaching past the turn and the world point
+    where the turn's arc ends; looked up once per guidance batch. None off the lane graph or with no
+    opposite lane within reach."""
+    key = ("u_turn_path", i)
+    if key not in data_batch.memo:
+        proj = vehicle_lane(data_batch, i)
+        speed = float(data_batch.speed[i])
+        braking_m = speed**2 / (2 * U_TURN_BRAKE_MPS2)
+        scene = data_batch.scene
+        found = None if proj is None else u_turn_path(scene.lanes, proj, braking_m, scene.drivable)
+        if found is not None:
+            line, exit_xy = u_turn_polyline(data_batch.scene.lanes, found, _reach_m(data_batch, i))
+            data_batch.memo[key] = (found, line, exit_xy)
+        else:
+            data_batch.memo[key] = None
+    return data_batch.memo[key]
+
+
+def u_turn_exit(data_batch: GuidanceBatch, i: int) -> np.ndarray | None:
+    """World point (2,) m where vehicle i's U-turn (:func:`get_u_turn_lane`) joins the opposite lane,
+    or None where it has none."""
+    found = _vehicle_u_turn(data_batch, i)
+    return None if found is None else np.asarray(found[2], dtype=np.float64)
+
+
+def get_u_turn_lane(data_batch: GuidanceBatch, i: int) -> Tensor | None:
+    """Target polyline (M, 2), local world frame m, of vehicle i's U-turn: along its lane to where an
+    opposite lane lies beside the road (from its braking distance at ``U_TURN_BRAKE_MPS2`` on, where
+    the turn's arc lies on the drivable area: a gap in the median), round onto it
+    (:func:`~ctgpp.scene.u_turns.turn_arc`) and along it. None where no lane runs the other way
+    within reach (:func:`~ctgpp.scene.u_turns.u_turn_path`) or the vehicle is on no lane."""
+    found = _vehicle_u_turn(data_batch, i)
+    return None if found is None else _to_tensor(data_batch, found[1])

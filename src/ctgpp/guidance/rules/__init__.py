@@ -8,7 +8,7 @@ paper's rules; :mod:`.lanes` registers the map-aware ones with the relative, rou
   outlines of :mod:`.pair_guard`; :mod:`.interaction`: rules between two vehicles (keep_distance,
   collision).
 - :mod:`.lanes`: lane keeping; :mod:`.lane_change`: lane changes and the rightmost lane;
-  :mod:`.turns`: turns at the next intersection.
+  :mod:`.turns`: turns at the next intersection; :mod:`.u_turn`: U-turns.
 - :mod:`.relative`: one vehicle relative to another, and the wrappers for some vehicles;
   :mod:`.route`: cut-ins and points to reach; :mod:`.compare`: faster than, reach ahead.
 - :mod:`.timing`: a loss on a time window of the episode.

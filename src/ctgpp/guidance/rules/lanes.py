@@ -1,9 +1,9 @@
 """Lane keeping (DESIGN.md, Language interface): follow the current lane, keep to the lane paths
 ahead. Importing this module also registers the other map-aware rules the paper could not express —
 lane changes and the rightmost lane (:mod:`ctgpp.guidance.rules.lane_change`), turns at the next
-intersection (:mod:`ctgpp.guidance.rules.turns`), cut-ins and reaching a point along the lanes
-(:mod:`ctgpp.guidance.rules.route`) — with the rules of :mod:`ctgpp.guidance.rules.relative` and
-:mod:`ctgpp.guidance.rules.compare`.
+intersection (:mod:`ctgpp.guidance.rules.turns`), U-turns (:mod:`ctgpp.guidance.rules.u_turn`), cut-ins
+and reaching a point along the lanes (:mod:`ctgpp.guidance.rules.route`) — with the rules of
+:mod:`ctgpp.guidance.rules.relative` and :mod:`ctgpp.guidance.rules.compare`.
 """
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ import ctgpp.guidance.rules.compare  # noqa: F401  (registers faster_than and re
 import ctgpp.guidance.rules.relative  # noqa: F401  (registers the relative rules)
 import ctgpp.guidance.rules.route  # noqa: F401  (registers cut_in and reach_point)
 import ctgpp.guidance.rules.turns  # noqa: F401  (registers turn_at_next_intersection)
+import ctgpp.guidance.rules.u_turn  # noqa: F401  (registers u_turn)
 from ctgpp.guidance.base import register_loss
 from ctgpp.guidance.context import GuidanceBatch
 from ctgpp.guidance.helpers import get_current_lane_projection

@@ -4,7 +4,7 @@ rules library, with no model and no network.
 ``compile_query("vehicle 3 should cut in ahead of vehicle 7 and no collisions", 12)`` first rewrites the
 query into the compiler's wording (:mod:`ctgpp.language.compiler.normalise`: numbers in words, units,
 typos, "over one lane", "tell vehicle 3 to ...", lists; the parts keep the text as written, the
-compiled query says what it was read as), refuses a manoeuvre no behaviour is (overtaking, U-turns),
+compiled query says what it was read as), refuses a manoeuvre no behaviour is (three-point turns),
 then splits the query into clauses at "and", ",", ";", "while", "then", "after that", "but" (not
 inside "between 10 and 30 m", a point "(x, y)" or "one by one"; a piece that only names vehicles or
 times, such as "vehicle 1" in "vehicle 1 and vehicle 2 collide", is joined with the next one:

@@ -45,6 +45,7 @@ from ctgpp.language.compiler.handlers import (
     stop,
     target_speed,
     turn,
+    u_turn,
 )
 from ctgpp.language.compiler.patterns import Clause
 from ctgpp.language.compiler.phrases import (
@@ -73,6 +74,7 @@ from ctgpp.language.compiler.phrases import (
     STRAIGHT,
     TARGET_SPEED,
     TURN,
+    U_TURN,
     WITHIN,
 )
 
@@ -91,6 +93,7 @@ FAMILIES: tuple[tuple[str, Callable[[Clause], bool], Handler], ...] = (
     ("follow_lane", lambda c: bool(c.has(FOLLOW_LANE)), follow_lane),
     ("rightmost_lane", lambda c: bool(c.has(RIGHTMOST)), rightmost),
     ("lane_change", lambda c: bool(c.has(LANE_CHANGE)), lane_change),
+    ("u_turn", lambda c: bool(c.has(U_TURN)), u_turn),
     ("turn", lambda c: bool(c.has(TURN) or (c.has(STRAIGHT) and c.has(r"intersection|junction"))), turn),
     ("stay_side_of", lambda c: bool(c.has(SIDE_OF)) and _names_vehicle(c), side_of),
     ("same_direction", lambda c: bool(c.has(r"same\s+(?:direction|heading|way)|parallel\s+(?:to|with)")),

@@ -118,6 +118,26 @@ def turn(c: Clause, ctx: Context) -> list[PartSpec]:
             for v in subjects(c, ctx)]
 
 
+# what a U-turn cannot be told: where the map has it turn round (the first opposite lane beside the
+# road ahead, behaviours/u_turns.py) and which way (towards that lane): a place or a side the sentence
+# gives would be dropped, so it is refused by name
+U_TURN_PLACE = (r"\b(?:at|in|by|before|after|near)\s+(?:the\s+|a\s+|an\s+)?(?:next\s+|upcoming\s+|first\s+)?"
+                r"(?:intersection|junction|crossing|light|lights|corner|roundabout|end)\b")
+U_TURN_SIDE = r"\b(?:left|right)\b"
+
+
+def u_turn(c: Clause, ctx: Context) -> list[PartSpec]:
+    """A U-turn where the map allows one (no place or side: :data:`U_TURN_PLACE`, refused by name)."""
+    text = c.text.strip()
+    if (m := c.has(U_TURN_PLACE)) is not None:
+        raise QueryError(f"{text!r}: a U-turn {m.group(0)!r} is not supported: a U-turn is made where the "
+                         f"map has a lane running the other way beside the road ahead; leave the place out")
+    if (m := c.has(U_TURN_SIDE)) is not None:
+        raise QueryError(f"{text!r}: a U-turn to the {m.group(0)} is not supported: it turns towards the "
+                         f"lane running the other way, whichever side that is; leave the side out")
+    return [PartSpec("u_turn", "u_turn", {"vehicle": v}) for v in subjects(c, ctx)]
+
+
 def side_of(c: Clause, ctx: Context) -> list[PartSpec]:
     side = _side_word(c, SIDE_OF)
     return [PartSpec("stay_side_of", "stay_side_of", {"vehicle": a, "other": b, "side": side}, steers=(a,))

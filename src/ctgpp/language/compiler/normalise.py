@@ -34,7 +34,7 @@ _WORDS = """
 vehicle vehicles agent agents truck trucks should must would could always never
 change changes changing switch switches switching merge merges merging shift shifts lanes
 left right rightmost leftmost lane over into onto toward towards
-turn turns turning straight intersection junction crossing next
+turn turns turning straight intersection junction crossing next uturn uturns round
 collide collides colliding collision collisions crash crashes crashing smash accident accidents
 behind ahead front follow follows following followed tailgate tailing distance distances
 within close closer closest stay stays staying remain remains remaining keeps keeping
@@ -76,6 +76,7 @@ about around really quite rather little bigger smaller longer shorter ahead fron
 scene scenes seconds minute minutes episode during whole start begin begins beginning simply
 gently softly hardly quick quicker fastest slowest nearest farthest furthest behind beside
 together alongside across toward along because before after until since being doing having
+take takes taking took make makes making made
 """
 
 

@@ -21,6 +21,10 @@ TURN = (
     r"|\btak\w*\s+(?:a\s+)?(?:left|right)"
 )
 
+# a U-turn: "makes a U-turn", "does a u turn", "U-turns", "turns around" / "turns round" (a three-point
+# turn reverses, and stays refused: refusals.MANOEUVRES)
+U_TURN = r"\bu[- ]?turn\w*|\bturn\w*\s+(?:a)?round\b"
+
 STRAIGHT = r"\b(?:go|goes|going|drive\w*|continu\w*|head\w*|keep\w*\s+going)\s+straight"
 
 SIDE_OF = r"(?:on|to)\s+(?:the\s+)?(?:left|right)(?:[- ]hand)?\s+(?:side\s+)?of\b"

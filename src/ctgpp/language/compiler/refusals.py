@@ -1,8 +1,8 @@
 """What the offline query compiler refuses, and how it says so: a clause no family recognises
 (:class:`UnsupportedQuery`, with the closest supported phrasings), a manoeuvre the vocabulary does not
-have (passing each other, U-turns: :func:`check_manoeuvres`, with no suggestion), a vehicle outside the scene
-(:class:`VehicleOutOfRange`), a quantity out of physical range, a vehicle a clause names that no
-compiled part would involve, and a number or time of a clause that no compiled part reads
+have (passing each other, three-point turns: :func:`check_manoeuvres`, with no suggestion), a vehicle
+outside the scene (:class:`VehicleOutOfRange`), a quantity out of physical range, a vehicle a clause
+names that no compiled part would involve, and a number or time of a clause that no compiled part reads
 (:func:`check_numbers_used`, :func:`check_times`: :class:`QueryError`). Nothing is guessed, clipped
 or dropped.
 """
@@ -106,18 +106,18 @@ def check_none_dropped(clause: Clause, specs: list[PartSpec], text: str) -> None
 MANOEUVRES = (
     (r"\bpass(?:es|ed|ing)?\s+(?:each\s+other|one\s+another)|\bpass(?:es|ing)?\s*$",
      "two vehicles passing each other (name the one that overtakes: \"vehicle 2 overtakes vehicle 5\")"),
-    (r"\bu[- ]?turn\w*|\bturn\w*\s+around\b|\bturn\w*\s+back\b|\bthree[- ]point\s+turn|\b3[- ]point\s+turn",
-     "a U-turn"),
+    (r"\bthree[- ]point\s+turn|\b3[- ]point\s+turn|\bk[- ]turn\b",
+     "a three-point turn (it reverses; a U-turn that drives round is: \"vehicle 4 makes a U-turn\")"),
     (r"\brevers\w*|\bback(?:s|ing)?\s+up\b|\bbackwards?\b", "driving in reverse"),
     (r"\btwo\s+lanes\b|\b\d+\s+lanes\s+(?:over|to)\b", "changing more than one lane"),
     (r"\bhonk\w*|\bsignal\w*|\bindicat\w*|\bblinker|\bheadlight", "signals and lights (not simulated)"),
 )
 
 SUPPORTED = ("the supported manoeuvres are: a lane change one lane to the left or right, moving to the "
-             "rightmost lane, turning left or right or going straight at the next intersection, cutting in "
-             "ahead of a vehicle, overtaking a vehicle, stopping (at, by or within a time, or at a point), "
-             "following or keeping a distance, staying beside a vehicle, colliding, speeds and reaching a "
-             "point")
+             "rightmost lane, turning left or right or going straight at the next intersection, a U-turn "
+             "where the map allows one, cutting in ahead of a vehicle, overtaking a vehicle, stopping (at, "
+             "by or within a time, or at a point), following or keeping a distance, staying beside a "
+             "vehicle, colliding, speeds and reaching a point")
 
 
 def check_manoeuvres(query: str) -> None:
