@@ -21,9 +21,9 @@ stay invalid (unobserved, as any track's own gaps).
 
 The constants were read off the Waymo ``train`` split alone (``scripts/fragments.py``): of 3,177
 vehicle tracks that begin after a scene's first step with one ended in the 5 s before, the nearest
-carried-on end lies within 1.5 m for 934, against a background of about 10 (the pairs at 4–6 m,
+carried-on end lies within 1.5 m for 934, against a background of about 9 (the pairs at 4–6 m,
 scaled by area). Within 1.5 m the pairs outnumber the background at least 7 to 1 in every 1-s band
-of gap up to 5 s, at rest (38 to 1 and more) and moving (75 against 1.2 within 1 s, 7 against 0.9 at
+of gap up to 5 s, at rest (68 to 1 and more) and moving (75 against 1.2 within 1 s, 7 against 0.9 at
 2–3 s); beyond 1.5 m, for moving vehicles, they thin into it (11 at 1.5–2 m within 1 s, against 9 at
 3–4 m). 77 of the 934 turn by more than 30° (mostly parked cars whose heading flips); they are left
 apart, as a joined track would jump.
