@@ -11,6 +11,7 @@ never switches sideways while a lane goes on) or with the hysteresis of
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Mapping
 
 import numpy as np
 
@@ -25,6 +26,25 @@ from ctgpp.scene.lanes import (
 from ctgpp.scene.types import LaneGraph
 
 SUCCESSOR_DEPTH = 8
+
+
+def from_start_lane(
+    lanes: LaneGraph,
+    starts: Mapping[int, tuple[np.ndarray, float]],
+    number: int,
+    nowhere: str,
+    need: Callable[[LaneProjection], str | None],
+) -> str | None:
+    """The refusal of a manoeuvre made from the lane vehicle ``number`` starts on (``starts``: its
+    position and heading): ``need(lane)``; "vehicle N starts on no lane: ``nowhere``" where it starts
+    on none; None where ``starts`` lacks it (a missing vehicle is refused elsewhere)."""
+    if number not in starts:
+        return None
+    xy0, yaw0 = starts[number]
+    start = nearest_lane(lanes, xy0, yaw0)
+    if start is None:
+        return f"vehicle {number} starts on no lane: {nowhere}"
+    return need(start)
 
 
 def reachable(lanes: LaneGraph, start: int, depth: int = SUCCESSOR_DEPTH) -> set[int]:

@@ -16,11 +16,11 @@ from typing import Any
 import numpy as np
 
 from ctgpp.behaviours.base import Starts, Vehicles, Verdict
-from ctgpp.behaviours.lane_positions import lanes_along, with_start
+from ctgpp.behaviours.lane_positions import from_start_lane, lanes_along, with_start
 from ctgpp.behaviours.tracks import Track, held_from, track, wrapped_deg
 from ctgpp.interfaces import Rollout
 from ctgpp.scene.lane_paths import turn_path
-from ctgpp.scene.lanes import nearest_lane
+from ctgpp.scene.lanes import LaneProjection, nearest_lane
 from ctgpp.scene.types import LaneGraph
 from ctgpp.scene.vehicles import MOVING_SPEED_MPS
 
@@ -34,15 +34,13 @@ def turn_precondition(lanes: LaneGraph, starts: Starts, p: Params) -> str | None
     """A turn needs a way through an intersection ahead that turns that way (the path the check
     measures against: :func:`~ctgpp.scene.lane_paths.turn_path` from the lane the vehicle starts on)."""
     number = int(p["vehicle"])
-    if number not in starts:
+
+    def way(start: LaneProjection) -> str | None:
+        if turn_path(lanes, start, p["direction"]) is None:
+            return f"no intersection within 150 m ahead of vehicle {number} has a way {p['direction']}"
         return None
-    xy0, yaw0 = starts[number]
-    start = nearest_lane(lanes, xy0, yaw0)
-    if start is None:
-        return f"vehicle {number} starts on no lane: no intersection ahead to turn at"
-    if turn_path(lanes, start, p["direction"]) is None:
-        return f"no intersection within 150 m ahead of vehicle {number} has a way {p['direction']}"
-    return None
+
+    return from_start_lane(lanes, starts, number, "no intersection ahead to turn at", way)
 
 
 def _valid(rollout: Rollout, number: int) -> Track:

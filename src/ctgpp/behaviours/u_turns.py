@@ -29,10 +29,10 @@ from typing import Any
 import numpy as np
 
 from ctgpp.behaviours.base import Starts, Vehicles, Verdict
-from ctgpp.behaviours.lane_positions import with_start
+from ctgpp.behaviours.lane_positions import from_start_lane, with_start
 from ctgpp.behaviours.tracks import Track, held_from, track, wrapped_deg
 from ctgpp.interfaces import Rollout
-from ctgpp.scene.lanes import IN_LANE_M, LANE_HEADING_DEG, nearest_lane
+from ctgpp.scene.lanes import IN_LANE_M, LANE_HEADING_DEG, LaneProjection, nearest_lane
 from ctgpp.scene.types import LaneGraph
 from ctgpp.scene.u_turns import OPPOSITE_DEG, REACH_AHEAD_M, REACH_LATERAL_M, u_turn_path
 from ctgpp.scene.vehicles import MOVING_SPEED_MPS
@@ -48,17 +48,15 @@ def u_turn_precondition(lanes: LaneGraph, starts: Starts, p: Params) -> str | No
     """A U-turn needs a lane running the opposite way beside the road ahead of the vehicle
     (:func:`~ctgpp.scene.u_turns.u_turn_path`: within 60 m ahead, 2-15 m to the side)."""
     number = int(p["vehicle"])
-    if number not in starts:
+
+    def opposite(start: LaneProjection) -> str | None:
+        if u_turn_path(lanes, start) is None:
+            return (f"no opposite-direction lane within reach of vehicle {number} (lane {start.lane}): "
+                    f"none runs the other way within {REACH_LATERAL_M:g} m to its side over the "
+                    f"{REACH_AHEAD_M:g} m ahead")
         return None
-    xy0, yaw0 = starts[number]
-    start = nearest_lane(lanes, xy0, yaw0)
-    if start is None:
-        return f"vehicle {number} starts on no lane: no lane to turn round from"
-    if u_turn_path(lanes, start) is None:
-        return (f"no opposite-direction lane within reach of vehicle {number} (lane {start.lane}): none "
-                f"runs the other way within {REACH_LATERAL_M:g} m to its side over the "
-                f"{REACH_AHEAD_M:g} m ahead")
-    return None
+
+    return from_start_lane(lanes, starts, number, "no lane to turn round from", opposite)
 
 
 def _turned(t: Track) -> np.ndarray:

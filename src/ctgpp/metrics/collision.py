@@ -70,22 +70,28 @@ def collision_steps(tracks: AgentTracks, agents: np.ndarray, steps: slice) -> np
     return hits
 
 
-def first_contacts(
-    tracks: AgentTracks, agents: np.ndarray, steps: slice, among: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray]:
+def first_contacts(tracks: AgentTracks, agents: np.ndarray, steps: slice) -> tuple[np.ndarray, np.ndarray]:
     """Each agent's first collision: the step and the agent it overlaps then.
 
     Returns (step (C,), partner (C,)) int: the window index of the first step of ``steps`` at which
     the agent overlaps another, and that other agent's index (the one whose centre is closest when
-    it overlaps several at once); -1 for both when the agent never collides. ``among`` (A,) bool:
-    only overlaps with these agents count (None: with any).
+    it overlaps several at once); -1 for both when the agent never collides.
     """
+    return earliest_contacts(tracks, agents, steps, collision_contacts(tracks, agents, steps))
+
+
+def earliest_contacts(
+    tracks: AgentTracks,
+    agents: np.ndarray,
+    steps: slice,
+    contacts: tuple[np.ndarray, np.ndarray, np.ndarray],
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`first_contacts` among ``contacts`` (c, other, t), each (K,), from
+    :func:`collision_contacts` on the same arguments or a subset of them: the overlaps with some
+    agents only, computed once for several such subsets."""
     step = np.full(len(agents), -1, dtype=np.int64)
     partner = np.full(len(agents), -1, dtype=np.int64)
-    ci, aj, t = collision_contacts(tracks, agents, steps)
-    if among is not None:
-        keep = among[aj]  # (K,)
-        ci, aj, t = ci[keep], aj[keep], t[keep]
+    ci, aj, t = contacts
     if ci.size == 0:
         return step, partner
     w = np.arange(tracks.num_steps)[steps][t]  # (K,) window indices

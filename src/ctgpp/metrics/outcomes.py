@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ctgpp.interfaces import Rollout
-from ctgpp.metrics.collision import controlled_vehicle_indices, first_contacts
+from ctgpp.metrics.collision import collision_contacts, controlled_vehicle_indices, earliest_contacts
 from ctgpp.metrics.lane_keeping import lane_leave_steps
 from ctgpp.metrics.motion import (
     HORIZONS_S,
@@ -101,9 +101,12 @@ def vehicle_outcomes(rollout: Rollout) -> VehicleOutcomes:
     log_moved = farthest_from_start(rollout.log, agents, rollout.current, rollout.future)
     sim_moved = farthest_from_start(rollout.sim, agents, rollout.current, rollout.future)
     moving = ~at_rest | (np.nan_to_num(log_moved) > MOVED_M) | (np.nan_to_num(sim_moved) > MOVED_M)
-    hit_step, partner = first_contacts(rollout.sim, agents, rollout.future)
-    present = rollout.sim.valid[:, rollout.current]  # (A,)
-    hit_present, _ = first_contacts(rollout.sim, agents, rollout.future, among=present)
+    contacts = collision_contacts(rollout.sim, agents, rollout.future)  # (c, other, t), each (K,)
+    hit_step, partner = earliest_contacts(rollout.sim, agents, rollout.future, contacts)
+    ci, aj, t = contacts
+    present = rollout.sim.valid[aj, rollout.current]  # (K,) the other is there at the start
+    with_present = (ci[present], aj[present], t[present])
+    hit_present, _ = earliest_contacts(rollout.sim, agents, rollout.future, with_present)
     beyond = beyond_map_steps(rollout, agents)
     offroad = first_step(offroad_steps(rollout, agents), rollout.future, rollout.sim.num_steps)
     lane = np.full(len(agents), -1, dtype=np.int64)
