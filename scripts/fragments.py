@@ -20,9 +20,9 @@ from pathlib import Path
 import numpy as np
 
 from ctgpp.data.splits import waymo_split
+from ctgpp.data.stitching import candidates
 from ctgpp.data.waymo_json import SUFFIX, load_waymo_json
-from ctgpp.geometry import wrap_angle
-from ctgpp.scene.types import AgentTracks, AgentType
+from ctgpp.scene.types import AgentTracks
 
 EDGES_M = (0.0, 0.5, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0)
 BACKGROUND_M = (4.0, 6.0)
@@ -30,26 +30,14 @@ BACKGROUND_M = (4.0, 6.0)
 
 def nearest_ended(a: AgentTracks, dt_s: float, window_s: float) -> list[tuple[float, int, float, float]]:
     """(distance m, gap steps, heading difference rad, speed m/s) to the nearest carried-on ended
-    vehicle track, for each vehicle track that begins after step 0 with one ended in the window."""
-    has = a.valid.any(axis=1)
-    first = np.where(has, a.valid.argmax(axis=1), -1)
-    last = np.where(has, a.valid.shape[1] - 1 - a.valid[:, ::-1].argmax(axis=1), -1)
-    vehicle = has & (a.types == AgentType.VEHICLE)
+    vehicle track (:func:`ctgpp.data.stitching.candidates`), for each vehicle track that begins with
+    one ended in the window."""
     rows = []
-    for b in np.flatnonzero(vehicle & (first > 0)):
-        s = int(first[b])
-        ends = np.flatnonzero(vehicle & (last < s) & (last >= s - round(window_s / dt_s)))
-        if not len(ends):
-            continue
-        e = last[ends]
-        heading = a.yaw[ends, e]
-        carried = a.xy[ends, e] + (a.speed[ends, e] * (s - e) * dt_s)[:, None] * np.stack(
-            [np.cos(heading), np.sin(heading)], axis=-1)
-        miss = np.linalg.norm(carried - a.xy[b, s], axis=-1)
-        k = int(np.argmin(miss))
-        turn = abs(float(wrap_angle(a.yaw[b, s] - heading[k])))
-        fastest = max(float(a.speed[ends[k], e[k]]), float(a.speed[b, s]))
-        rows.append((float(miss[k]), int(s - e[k]), turn, fastest))
+    for c in candidates(a, dt_s, window_s):
+        k = int(np.argmin(c.miss_m))
+        end = int(c.ends[k])
+        fastest = max(float(a.speed[end, c.first - c.gap_steps[k]]), float(a.speed[c.begins, c.first]))
+        rows.append((float(c.miss_m[k]), int(c.gap_steps[k]), float(c.turn_rad[k]), fastest))
     return rows
 
 

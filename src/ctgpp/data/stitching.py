@@ -32,6 +32,7 @@ apart, as a joined track would jump.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -55,9 +56,24 @@ class Join:
     miss_m: float
 
 
-def find_joins(tracks: AgentTracks, dt_s: float, keep: int = -1) -> list[tuple[int, int, Join]]:
-    """The fragments that continue others: (earlier index, later index, join), each index at most once
-    on each side, nearest first. ``keep`` (an index, e.g. the ego) is never joined."""
+@dataclass(frozen=True, eq=False)
+class Candidates:
+    """The vehicle tracks ended shortly before vehicle track ``begins`` begins, at step ``first``:
+    ``ends`` (E,) their indices, ``gap_steps`` (E,) from each one's last step to ``first``, ``miss_m``
+    (E,) the distance from ``begins``' first position to each one's last position carried on at its
+    last speed and heading, ``turn_rad`` (E,) the headings' difference there."""
+
+    begins: int
+    first: int
+    ends: np.ndarray
+    gap_steps: np.ndarray
+    miss_m: np.ndarray
+    turn_rad: np.ndarray
+
+
+def candidates(tracks: AgentTracks, dt_s: float, window_s: float, keep: int = -1) -> Iterator[Candidates]:
+    """For each vehicle track with vehicle tracks ended up to ``window_s`` before it begins (never
+    ``keep``, an index), those tracks carried on to its start (:class:`Candidates`)."""
     valid = tracks.valid
     has = valid.any(axis=1)
     first = np.where(has, valid.argmax(axis=1), -1)  # (A,)
@@ -65,26 +81,32 @@ def find_joins(tracks: AgentTracks, dt_s: float, keep: int = -1) -> list[tuple[i
     vehicle = has & (tracks.types == AgentType.VEHICLE)
     if keep >= 0:
         vehicle[keep] = False
-    max_gap = int(round(MAX_GAP_S / dt_s))
-    candidates: list[tuple[float, int, int, int]] = []
+    window = int(round(window_s / dt_s))
     for begins in np.flatnonzero(vehicle).tolist():
         s = int(first[begins])
-        ends = np.flatnonzero(vehicle & (last < s) & (last >= s - max_gap))  # (E,) fragments ended before
+        ends = np.flatnonzero(vehicle & (last < s) & (last >= s - window))  # (E,) fragments ended before
         if not len(ends):
             continue
         e = last[ends]  # (E,)
-        gap_s = (s - e) * dt_s
         heading = tracks.yaw[ends, e]
-        carried = tracks.xy[ends, e] + (tracks.speed[ends, e] * gap_s)[:, None] * np.stack(
+        carried = tracks.xy[ends, e] + (tracks.speed[ends, e] * (s - e) * dt_s)[:, None] * np.stack(
             [np.cos(heading), np.sin(heading)], axis=-1
         )  # (E, 2)
         miss = np.linalg.norm(carried - tracks.xy[begins, s], axis=-1)  # (E,)
         turn = np.abs(wrap_angle(tracks.yaw[begins, s] - heading))  # (E,)
-        for k in np.flatnonzero((miss <= MAX_MISS_M) & (turn <= MAX_TURN_RAD)):
-            candidates.append((float(miss[k]), int(ends[k]), begins, int(s - e[k])))
+        yield Candidates(begins, s, ends, s - e, miss, turn)
+
+
+def find_joins(tracks: AgentTracks, dt_s: float, keep: int = -1) -> list[tuple[int, int, Join]]:
+    """The fragments that continue others: (earlier index, later index, join), each index at most once
+    on each side, nearest first. ``keep`` (an index, e.g. the ego) is never joined."""
+    pairs: list[tuple[float, int, int, int]] = []
+    for c in candidates(tracks, dt_s, MAX_GAP_S, keep):
+        for k in np.flatnonzero((c.miss_m <= MAX_MISS_M) & (c.turn_rad <= MAX_TURN_RAD)):
+            pairs.append((float(c.miss_m[k]), int(c.ends[k]), c.begins, int(c.gap_steps[k])))
     joins: list[tuple[int, int, Join]] = []
     continued, continuing = set(), set()
-    for miss_m, a, b, gap in sorted(candidates):  # nearest first
+    for miss_m, a, b, gap in sorted(pairs):  # nearest first
         if a in continued or b in continuing:
             continue
         continued.add(a)
