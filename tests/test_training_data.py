@@ -14,7 +14,8 @@ from safetensors.torch import load_file
 
 from ctgpp.data.batch import collate
 from ctgpp.data.mirror import mirror_batch, mirror_scene
-from ctgpp.data.sampling import is_turning, turn_weights, window_turns
+from ctgpp.cli.train_cmd import weighted_spec
+from ctgpp.data.sampling import is_turning, turn_weights, window_turns, window_weights
 from ctgpp.data.windows import build_window
 from ctgpp.model.config import ModelConfig
 from ctgpp.scene.types import AgentTracks, Scene
@@ -106,6 +107,40 @@ def test_turning_windows_are_drawn_with_the_chosen_share() -> None:
     assert (draws < 2).float().mean().item() == pytest.approx(0.5, abs=0.02)
     with pytest.raises(ValueError, match="turn share"):
         turn_weights(turning, 1.0)
+
+
+def test_weighted_data_sets_and_the_turn_share_compose_by_hand() -> None:
+    """Windows 0-1 of a data set weighted 3, 2-5 of one weighted 1; windows 0 and 2 turn. Without a
+    turn share the draws follow the weights (3, 3, 1, 1, 1, 1) / 10; with a share of 0.5 the turning
+    windows (mass 4/10) get 0.5 in proportion 3:1, the others 0.5 in proportion 3:1:1:1."""
+    base = np.array([3.0, 3.0, 1.0, 1.0, 1.0, 1.0])
+    turning = np.array([True, False, True, False, False, False])
+    assert turn_weights(turning, 0.0, base).tolist() == pytest.approx([0.3, 0.3, 0.1, 0.1, 0.1, 0.1])
+    assert turn_weights(turning, 0.3, base).tolist() == pytest.approx([0.3, 0.3, 0.1, 0.1, 0.1, 0.1])
+    weights = turn_weights(turning, 0.5, base).tolist()
+    assert weights == pytest.approx([0.375, 0.25, 0.125, 1 / 12, 1 / 12, 1 / 12])
+    with pytest.raises(ValueError, match="positive"):
+        turn_weights(turning, 0.5, np.array([1.0, 0.0, 1.0, 1.0, 1.0, 1.0]))
+
+
+def test_a_split_weighted_w_is_drawn_w_times_as_often(scene_0103: Scene) -> None:
+    scenes = [scene_0103, scene_0103]
+    items = [(0, 40), (0, 60), (1, 40), (1, 60)]
+    weights, turning = window_weights(items, scenes, 0.0, scene_weights=[4.0, 1.0])
+    assert turning is None and weights is not None
+    assert weights.tolist() == pytest.approx([0.4, 0.4, 0.1, 0.1])
+    assert window_weights(items, scenes, 0.0, scene_weights=[2.0, 2.0]) == (None, None)  # all alike
+    with pytest.raises(ValueError, match="scene weights"):
+        window_weights(items, scenes, 0.0, scene_weights=[1.0])
+
+
+def test_the_weight_of_a_training_split_is_read_after_its_last_star() -> None:
+    assert weighted_spec("mini_train") == ("mini_train", 1.0)
+    assert weighted_spec("/data/waymo:train*5") == ("/data/waymo:train", 5.0)
+    assert weighted_spec("/a*b/waymo:train*0.5") == ("/a*b/waymo:train", 0.5)
+    for bad in ["mini_train*", "mini_train*0", "mini_train*-2", "mini_train*nan", "mini_train*x"]:
+        with pytest.raises(ValueError, match="positive number"):
+            weighted_spec(bad)
 
 
 def test_a_time_budget_stops_at_a_save_and_the_run_resumes_to_the_same_end(

@@ -27,8 +27,9 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         "--train",
         action="append",
         default=None,
-        metavar="[DIR:]SPLIT",
-        help="training scenes: a split of the embedded data or DIR:SPLIT (repeatable; default: mini_train)",
+        metavar="[DIR:]SPLIT[*W]",
+        help="training scenes: a split of the embedded data or DIR:SPLIT (repeatable; default: mini_train); "
+        "*W draws its windows W times as often as those of splits without (ctgpp.data.sampling)",
     )
     p.add_argument(
         "--val", default="mini_val", metavar="[DIR:]SPLIT", help="validation scenes (default: mini_val)"
@@ -130,6 +131,20 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(run=run_train)
 
 
+def weighted_spec(spec: str) -> tuple[str, float]:
+    """``[DIR:]SPLIT[*W]`` as (``[DIR:]SPLIT``, W); W is 1 when not given."""
+    name, star, text = spec.rpartition("*")
+    if not star:
+        return spec, 1.0
+    try:
+        weight = float(text)
+    except ValueError:
+        weight = math.nan
+    if not (math.isfinite(weight) and weight > 0):
+        raise ValueError(f"--train {spec}: the weight after '*' must be a positive number")
+    return name, weight
+
+
 def load_split(spec: str) -> list[Scene]:
     """Scenes of ``[DIR:]SPLIT``."""
     root, split = split_spec(spec)
@@ -182,7 +197,10 @@ def run_train(args: argparse.Namespace) -> int:
     if args.init_from is not None:  # checked before the data loads: names and shapes must match
         load_weights(args.init_from, kind_of(model_config).build(model_config))
     specs = args.train or ["mini_train"]
-    train_scenes = [s for spec in specs for s in load_split(spec)]
+    weighted = [weighted_spec(spec) for spec in specs]  # checked before any split loads
+    splits = [load_split(spec) for spec, _ in weighted]
+    train_scenes = [s for scenes in splits for s in scenes]
+    scene_weights = [w for (_, w), scenes in zip(weighted, splits, strict=True) for _ in scenes]
     val_scenes = load_split(args.val)
     config = TrainConfig(
         steps=args.steps,
@@ -206,7 +224,9 @@ def run_train(args: argparse.Namespace) -> int:
     note += f", tracks smoothed over {args.smooth:g} s" if args.smooth > 0 else ", raw tracks"
     note += ", mirrored windows" if args.mirror else ""
     note += f", turning windows drawn {args.turn_share:.0%} of the time" if args.turn_share > 0 else ""
-    record = train(train_scenes, val_scenes, model_config, config, args.out, data_note=note)
+    record = train(
+        train_scenes, val_scenes, model_config, config, args.out, data_note=note, scene_weights=scene_weights
+    )
     if record["rank"] != 0:
         return 0
     print(

@@ -121,6 +121,7 @@ def train(
     out: Path,
     data_note: str = "",
     progress: bool = True,
+    scene_weights: list[float] | None = None,
 ) -> dict[str, Any]:
     """Train (or resume training in ``out``) and write the checkpoint, curve and record there.
 
@@ -145,7 +146,7 @@ def train(
     if config.mirror and kind.name != "ctgpp":
         raise ValueError(f"mirror augmentation reflects ctgpp's windows; {kind.name} trains on rasters")
     weights, n_turning = window_weights(
-        train_set.items, train_scenes, config.turn_share, windows.future_steps
+        train_set.items, train_scenes, config.turn_share, windows.future_steps, scene_weights
     )
     if config.workers > 0 or config.loader_workers > 0:  # loader processes share the built windows
         t0 = time.monotonic()
