@@ -12,9 +12,9 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
+from ctgpp.cli.train_cmd import weighted_spec
 from ctgpp.data.batch import collate
 from ctgpp.data.mirror import mirror_batch, mirror_scene
-from ctgpp.cli.train_cmd import weighted_spec
 from ctgpp.data.sampling import is_turning, turn_weights, window_turns, window_weights
 from ctgpp.data.windows import build_window
 from ctgpp.model.config import ModelConfig
