@@ -85,8 +85,9 @@ def window_weights(
     and how many turn. (None, None) for uniform draws: ``share`` 0 and every scene weighted alike."""
     if scene_weights is not None and len(scene_weights) != len(scenes):
         raise ValueError(f"{len(scene_weights)} scene weights for {len(scenes)} scenes")
-    alike = scene_weights is None or len(set(scene_weights)) <= 1
-    base = None if alike else np.array([scene_weights[s] for s, _ in items], dtype=np.float64)
+    base = None
+    if scene_weights is not None and len(set(scene_weights)) > 1:
+        base = np.array([scene_weights[s] for s, _ in items], dtype=np.float64)
     if share <= 0:
         if base is None:
             return None, None
