@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import textwrap
 from pathlib import Path
 from typing import Any
 
@@ -23,7 +24,7 @@ def plot_curve(history: list[dict[str, Any]], out: Path, title: str = "training"
     ax.set_yscale("log")
     ax.set_xlabel("step")
     ax.set_ylabel("loss (normalized actions + states)")
-    ax.set_title(title, fontsize=10)
+    ax.set_title(textwrap.fill(title, 100), fontsize=8)  # a long data note wraps, not clipped
     ax.grid(alpha=0.3, which="both")
     ax.legend()
     fig.tight_layout()
