@@ -8,6 +8,7 @@ nuScenes scene-0103 (embedded data) and the NGSIM Peachtree scenario USA_Peach-4
 from __future__ import annotations
 
 import dataclasses
+import os
 import pickle
 import pickletools
 from pathlib import Path
@@ -312,3 +313,28 @@ def test_simulate_refuses_an_export_it_cannot_write_before_any_work(
     with pytest.raises(SystemExit) as exit_info:  # argparse: an unknown kind
         main(["simulate", "--export", "opendrive", "--out", str(out)])
     assert exit_info.value.code == 2 and "invalid choice: 'opendrive'" in capsys.readouterr().err
+
+
+def test_the_scenarionet_bytes_do_not_depend_on_the_string_hash_seed() -> None:
+    """A plain set pickles its items in hash order, which differs between processes; the number
+    summary's set of object types is written sorted, and reads back as a plain set."""
+    import subprocess
+    import sys
+
+    code = (
+        "from ctgpp.io.scenarionet_export import _number_summary, dumps_numpy1;"
+        "items = {str(i): {'type': t, 'moving_distance': 2.0} for i, t in "
+        "enumerate(['VEHICLE', 'PEDESTRIAN', 'CYCLIST', 'TRAFFIC_CONE', 'VEHICLE'])};"
+        "print(dumps_numpy1(_number_summary(items, {})).hex())"
+    )
+    written = {
+        subprocess.run(
+            [sys.executable, "-c", code], env={**os.environ, "PYTHONHASHSEED": seed},
+            capture_output=True, text=True, check=True,
+        ).stdout
+        for seed in ("1", "2", "3", "4")
+    }
+    assert len(written) == 1
+    summary = pickle.loads(bytes.fromhex(written.pop()))
+    assert type(summary["object_types"]) is set
+    assert summary["object_types"] == {"VEHICLE", "PEDESTRIAN", "CYCLIST", "TRAFFIC_CONE"}

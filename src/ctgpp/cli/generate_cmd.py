@@ -23,6 +23,7 @@ from ctgpp.cli.common import (
     stage_config,
 )
 from ctgpp.generate.engines import ENGINES
+from ctgpp.generate.worker import BATCH_SEEDS
 from ctgpp.io.atomic import check_output_dir
 from ctgpp.io.export import EXPORT_KINDS
 
@@ -63,8 +64,11 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--ray-address", default=None, metavar="ADDR",
                    help="join the running Ray cluster at ADDR (e.g. 10.0.0.5:6379 or auto) instead of "
                    "starting one (default: start one here)")
-    p.add_argument("--chunk", type=int, default=4,
-                   help="seeds per task: a worker simulates them in a row with its model loaded once")
+    p.add_argument("--chunk", type=int, default=8,
+                   help="seeds per task: a worker simulates them with its model loaded once")
+    p.add_argument("--batch-seeds", type=int, default=BATCH_SEEDS, metavar="N",
+                   help="seeds of a task simulated together, N at a time, one denoiser call per diffusion "
+                   "step for all (the same scenarios as one at a time; 1: one at a time)")
     add_model_args(p)
     add_episode_args(p)
     add_guidance_args(p)
@@ -95,7 +99,7 @@ def run_generate(args: argparse.Namespace) -> int:
                 args.chunk, skip_short=tuple(s for s in scenes if s not in named))
     settings = Settings("ctgpp", args.checkpoint, sampling_config(args), guidance_config(args),
                         guard_config(args), stage_config(args), args.duration, args.history, llm_config(args),
-                        exports)
+                        exports, args.batch_seeds)
     engine = Engine(args.engine, args.workers, args.ray_address)
     for line in generate(plan, settings, args.out, engine):
         print(line)

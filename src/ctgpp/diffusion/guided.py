@@ -207,16 +207,35 @@ def guided_sample(
     With ``objective`` None (or W = 0) this draws exactly the same noise and returns exactly what
     :func:`ctgpp.diffusion.sample` returns for the same generator. Works with DDPM and DDIM.
     """
-    radii = {k: max(r, config.min_radius) for k, r in clip_radii(sampler).items()}
+    radii = guidance_radii(sampler, config)
     x = randn_like(torch.empty(shape, device=device), generator)
     for k in sampler.timesteps:
-        x0_pred = denoise_fn(x, k)
-        mean, std = sampler.prev_mean_std(x0_pred, x, k)
-        guided = config.guide_from_step is None or k <= config.guide_from_step
-        if objective is not None and config.inner_steps > 0 and guided:
-            mean = guide_mean(mean, objective, radii[k], config)
-        x = mean + std * randn_like(mean, generator)
+        x = guided_step(denoise_fn(x, k), x, k, sampler, objective, radii[k], config, generator)
     return x
+
+
+def guidance_radii(sampler: Sampler, config: GuidanceConfig) -> dict[int, float]:
+    """The clip radius of each of ``sampler``'s timesteps, at least ``config.min_radius``."""
+    return {k: max(r, config.min_radius) for k, r in clip_radii(sampler).items()}
+
+
+def guided_step(
+    x0_pred: Tensor,
+    x: Tensor,
+    k: int,
+    sampler: Sampler,
+    objective: Objective | None,
+    radius: float,
+    config: GuidanceConfig = GuidanceConfig(),
+    generator: torch.Generator | None = None,
+) -> Tensor:
+    """One step of :func:`guided_sample` from x_k and the denoiser's x̂_0 to x_{k−1}: the sampler's
+    (μ, σ), μ guided (clip ``radius``, at the steps ``config`` guides), plus σ·noise of ``generator``."""
+    mean, std = sampler.prev_mean_std(x0_pred, x, k)
+    guided = config.guide_from_step is None or k <= config.guide_from_step
+    if objective is not None and config.inner_steps > 0 and guided:
+        mean = guide_mean(mean, objective, radius, config)
+    return mean + std * randn_like(mean, generator)
 
 
 def action_trajectories(actions: Tensor, current: Tensor, dt_s: float) -> Tensor:

@@ -43,7 +43,8 @@ class ScenarioKey:
 
 @dataclass(frozen=True)
 class Task:
-    """The seeds of one (scene, start, sentence) that one worker simulates in a row."""
+    """The seeds of one (scene, start, sentence) that one worker simulates (``batch_seeds`` at a time
+    together: :mod:`ctgpp.generate.worker`)."""
 
     scene: str
     start_s: float

@@ -37,7 +37,7 @@ class Plan:
     data: Path | None = None
     starts: Sequence[float] = ()
     spacing_s: float | None = None
-    chunk: int = 4
+    chunk: int = 8
     skip_short: Sequence[str] = field(default_factory=tuple)  # scenes of a split: left out when too short
 
 
@@ -59,8 +59,8 @@ def generate(
     ``out/index.parquet``). ``on_result`` is called after each task's scenarios are written."""
     if engine.name not in ENGINES:
         raise ValueError(f"unknown engine {engine.name!r}: expected one of {', '.join(ENGINES)}")
-    if engine.workers < 1 or plan.chunk < 1:
-        raise ValueError("--workers and --chunk must be at least 1")
+    if engine.workers < 1 or plan.chunk < 1 or settings.batch_seeds < 1:
+        raise ValueError("--workers, --chunk and --batch-seeds must be at least 1")
     if engine.address and engine.name != "ray":
         raise ValueError("--ray-address joins a Ray cluster: it needs --engine ray")
     if engine.name == "ray":

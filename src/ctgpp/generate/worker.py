@@ -1,5 +1,7 @@
 """What a worker does with a task: simulate each seed through :func:`ctgpp.api.episode.simulate`
-and return the index rows and the scenario files as bytes (the driver alone writes them).
+and return the index rows and the scenario files as bytes (the driver alone writes them). The seeds
+are simulated ``Settings.batch_seeds`` at a time together, their samplings pooled into one denoiser
+call per diffusion step (:mod:`ctgpp.policies.pooling`), each seed's scenario as when alone.
 
 The same function runs in the driver's process (``--engine local``), in a worker process of a local
 pool and in a Ray worker; each process keeps one :class:`~ctgpp.policies.factory.PolicyFactory` per
@@ -11,7 +13,8 @@ from __future__ import annotations
 import math
 import tempfile
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -28,15 +31,21 @@ from ctgpp.language.compiler import QueryError
 from ctgpp.language.llm.client import LLMConfig
 from ctgpp.policies.diffusion import SamplingConfig
 from ctgpp.policies.factory import PolicyFactory
+from ctgpp.policies.pooling import SamplingPool
 from ctgpp.policies.stages import StageConfig
 from ctgpp.scene.types import Scene
+
+BATCH_SEEDS = 8  # seeds of a task simulated together by default (docs/benchmarks.md, Batched generate)
 
 
 @dataclass(frozen=True)
 class Settings:
     """Everything but the task that decides a scenario: the policy and its model, sampler, guidance,
     guards and stages, the episode's length, the language model (None: the offline compiler) and the
-    files written (``exports``: "scenarionet" always first)."""
+    files written (``exports``: "scenarionet" always first). ``batch_seeds``: how many seeds of a task
+    are simulated together, sharing one denoiser call per diffusion step (1: one after another); it
+    changes no scenario (each seed draws its own noise, bit for bit as alone), so it is neither
+    recorded nor compared."""
 
     policy: str
     checkpoint: Path | None
@@ -48,6 +57,7 @@ class Settings:
     history_s: float | None
     llm: LLMConfig | None = None
     exports: tuple[str, ...] = ("scenarionet",)
+    batch_seeds: int = field(default=BATCH_SEEDS, compare=False)
 
     def record(self) -> dict[str, Any]:
         """The settings as plain values (the library's settings.json; a rerun must match them)."""
@@ -90,17 +100,33 @@ def factory_for(settings: Settings) -> PolicyFactory:
 
 
 def run_task(task: Task, settings: Settings, scene: Scene) -> TaskResult:
-    """Simulate every seed of ``task`` in ``scene`` on one torch thread. A sentence the query compiler
-    (or the language model) refuses at this start is refused once for the task, before any
-    episode; an episode that fails otherwise is a row with its ``error``."""
+    """Simulate every seed of ``task`` in ``scene`` on one torch thread, ``settings.batch_seeds`` at a
+    time together (:func:`_together`). A sentence the query compiler (or the language model) refuses
+    at this start is refused once for the task, before any episode; an episode that fails otherwise
+    is a row with its ``error``."""
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # workers share the cores; one thread also makes every engine's rows alike
+    keys, size = task.keys(), max(settings.batch_seeds, 1)
     try:
-        return TaskResult(task, [_scenario(key, settings, scene) for key in task.keys()])
+        return TaskResult(task, [s for k in range(0, len(keys), size)
+                                 for s in _together(keys[k:k + size], settings, scene)])
     except QueryError as err:
         return TaskResult(task, [], refused=str(err))
     finally:
         torch.set_num_threads(threads)
+
+
+def _together(keys: list[ScenarioKey], settings: Settings, scene: Scene) -> list[Scenario]:
+    """The scenarios of ``keys`` (seeds of one scene start and sentence): one alone, several
+    simulated together (:class:`~ctgpp.policies.pooling.SamplingPool`: one denoiser call per
+    diffusion step for all), each row's ``seconds`` then their time shared out evenly."""
+    if len(keys) == 1:
+        return [_scenario(keys[0], settings, scene)]
+    factory_for(settings)  # made once, before the episodes
+    began = time.perf_counter()
+    made = SamplingPool().run([partial(_scenario, key, settings, scene) for key in keys])
+    share = (time.perf_counter() - began) / len(keys)
+    return [replace(scenario, row={**scenario.row, "seconds": share}) for scenario in made]
 
 
 def _scenario(key: ScenarioKey, settings: Settings, scene: Scene) -> Scenario:

@@ -220,6 +220,15 @@ def _object_summary(key: str, track: dict[str, Any]) -> dict[str, Any]:
     }
 
 
+class _PickledSorted(set[str]):
+    """A set that pickles as ``set(sorted list)``: the file's bytes do not depend on the string hash
+    seed of the process that wrote it (a plain set pickles its items in hash order), and it reads
+    back as a plain set, without ctgpp."""
+
+    def __reduce_ex__(self, protocol: Any) -> tuple[type, tuple[list[str]]]:
+        return set, (sorted(self),)
+
+
 def _number_summary(summary: dict[str, dict[str, Any]], features: dict[str, Any]) -> dict[str, Any]:
     """ScenarioNet's scenario counts: objects (moving ones: more than 1 m) by type, map features."""
     each: dict[str, int] = {}
@@ -229,7 +238,7 @@ def _number_summary(summary: dict[str, dict[str, Any]], features: dict[str, Any]
         if item["moving_distance"] > MOVING_DISTANCE_M:
             moving_each[item["type"]] = moving_each.get(item["type"], 0) + 1
     return {
-        "object_types": set(each),
+        "object_types": _PickledSorted(each),
         "num_objects": len(summary),
         "num_moving_objects": sum(moving_each.values()),
         "num_objects_each_type": each,

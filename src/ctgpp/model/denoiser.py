@@ -257,11 +257,17 @@ class Denoiser(nn.Module):
         k: Tensor | int,
         batch: SceneBatch,
         context: DenoiserContext | None = None,
+        step_rows: int | None = None,
     ) -> Tensor:
         """Predict clean normalized actions (S, A, F, 2) from noisy ones at step k ((S,) or one int).
 
         ``context`` (from :meth:`encode_context` on the same batch) skips re-encoding what does not
-        depend on the noisy actions; sampling loops compute it once per batch.
+        depend on the noisy actions; sampling loops compute it once per batch. ``step_rows``: the step
+        embedding is computed for that many rows at a time (None: all at once). Its MLP is the one
+        layer whose rows come out differently with the number of rows (a matrix product of a few
+        rows); every other layer computes a row alike in any batch. So the samples of several scenes,
+        run with ``step_rows`` = each scene's number of samples, are bit for bit those of each scene
+        run alone (:mod:`ctgpp.policies.stages.lockstep`).
         """
         ctx = self.encode_context(batch) if context is None else context
         mask = ctx.agent_mask[..., None, None]  # (S, A, 1, 1)
@@ -274,7 +280,9 @@ class Denoiser(nn.Module):
             fut_tokens = fut_tokens + ctx.agent_tokens
         x = torch.cat([ctx.hist_tokens, fut_tokens], dim=2)  # (S, A, H+F, d)
         k_t = torch.as_tensor(k, device=x.device).long().expand(x.shape[0])  # (S,)
-        x = x + self.time_emb()[None, None] + self.step_emb(k_t)[:, None, None]
+        steps = self.step_emb(k_t) if step_rows is None else torch.cat(
+            [self.step_emb(rows) for rows in k_t.split(step_rows)])  # (S, d)
+        x = x + self.time_emb()[None, None] + steps[:, None, None]
         last = len(self.blocks) - 1
         known = ctx.context_keys or (None,) * len(self.blocks)
         if ctx.sample_context_keys is not None and ctx.groups is None:

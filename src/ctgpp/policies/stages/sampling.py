@@ -7,6 +7,8 @@ sample, and the guidance loss sees them so, in their rows of x. A model with con
 along its predicted future (:mod:`ctgpp.guidance.prediction`: a plan reads no agent past its step).
 The denoiser runs in inference mode (its outputs cloned back to normal tensors, which the guidance
 steps may use: autograd refuses inference tensors); only the guidance steps enable gradients.
+The sampling itself is a :class:`~.lockstep.SamplingJob`: run alone, or with other episodes' jobs in
+one denoiser call per step (:mod:`ctgpp.policies.pooling`), drawing the same noise either way.
 """
 
 from __future__ import annotations
@@ -23,13 +25,15 @@ from ctgpp.data.batch import collate
 from ctgpp.data.context import standing_vehicles
 from ctgpp.data.windows import SceneWindow, build_window
 from ctgpp.diffusion import Sampler
-from ctgpp.diffusion.guided import GuidanceConfig, Objective, action_trajectories, guided_sample
+from ctgpp.diffusion.guided import GuidanceConfig, Objective, action_trajectories, guidance_radii, guided_step
+from ctgpp.diffusion.schedule import randn_like
 from ctgpp.dynamics import clip_actions
 from ctgpp.guidance.prediction import known_tracks
 from ctgpp.interfaces import Observation
 from ctgpp.model.config import ModelConfig
 from ctgpp.model.denoiser import Denoiser
 from ctgpp.policies.stages.base import PlanContext, PlanSet
+from ctgpp.policies.stages.lockstep import SamplingJob, run_job
 
 
 class GuidedSampling:
@@ -47,28 +51,27 @@ class GuidedSampling:
         self.calls = 0
 
     def run(self, plans: PlanSet, ctx: PlanContext) -> PlanSet:
-        obs, moves = ctx.obs, ctx.moving.numpy()
-        if not moves.any():  # every vehicle is held: nothing to sample
+        if not ctx.moving.numpy().any():  # every vehicle is held: nothing to sample
             return plans
+        job, finish = self.prepare(plans, ctx)
+        return finish(run_job(job))
+
+    def prepare(self, plans: PlanSet, ctx: PlanContext) -> tuple[SamplingJob, Callable[[Tensor], PlanSet]]:
+        """The re-plan's sampling as a job (run alone or with other episodes': :mod:`.lockstep`), and
+        what makes the plans of its x_0 (N, M, F, 2). Draws the job's first noise from a generator
+        seeded by ``ctx.obs.rng``; at least one vehicle moves."""
+        obs, moves = ctx.obs, ctx.moving.numpy()
         planned = replace(obs, controlled=obs.controlled[moves], held=obs.held[:0])
         model = self.denoiser_for(planned)
         cfg = model.config
         n, f = self.num_samples, cfg.future_steps
         rows = torch.from_numpy(np.flatnonzero(moves))  # the moving vehicles' rows among the V
-        batch = collate([model_window(obs, moves, cfg)])  # (1, M, ...): the N samples share one scene
-        context = model.encode_context(batch).expand(n)  # encoded once, (N, M, ...) views
+        window = model_window(obs, moves, cfg)
+        batch = collate([window])  # (1, M, ...): the N samples share one scene
         gen = torch.Generator().manual_seed(int(obs.rng.integers(2**31)))
         moving = batch.hist[0, :, -1]  # (M, 4) current states of the sampled vehicles
-        current = plans.current.clone()
-        current[rows] = moving
         normalizer = model.normalizer
         v = len(obs.controlled)
-
-        def denoise(x: Tensor, k: int) -> Tensor:
-            self.calls += 1
-            with torch.inference_mode():  # no autograd bookkeeping at all: cheaper than no_grad
-                out = model(x, torch.full((n,), k, dtype=torch.long), batch, context)
-            return out.clone()  # a normal tensor again, which the guidance steps may differentiate around
 
         def every_vehicle(traj: Tensor) -> Tensor:  # (M, N, F, 6) -> (V, N, F, 6), held rows at rest
             if len(rows) == v:
@@ -83,10 +86,23 @@ class GuidedSampling:
                 traj = every_vehicle(action_trajectories(normalizer.denormalize_actions(x), moving, cfg.dt_s))
                 return loss_fn.guided_parts(traj, data_batch)  # the rule's and the guards' apart
 
-        x0 = guided_sample(denoise, (n, len(rows), f, 2), self.sampler, objective, self.config, gen)
-        actions = plans.actions.clone()
-        actions[:, rows] = clip_actions(normalizer.denormalize_actions(x0))  # (N, V, F, 2)
-        return replace(plans, actions=actions, current=current)
+        sampler, config, radii = self.sampler, self.config, guidance_radii(self.sampler, self.config)
+
+        def advance(x0_pred: Tensor, x: Tensor, k: int) -> Tensor:
+            return guided_step(x0_pred, x, k, sampler, objective, radii[k], config, gen)
+
+        start = randn_like(torch.empty(n, len(rows), f, 2), gen)  # x_K, drawn first as by guided_sample
+        job = SamplingJob(model, window, batch, tuple(sampler.timesteps), start, advance)
+
+        def finish(x0: Tensor) -> PlanSet:
+            self.calls += len(job.timesteps)
+            current = plans.current.clone()
+            current[rows] = moving
+            actions = plans.actions.clone()
+            actions[:, rows] = clip_actions(normalizer.denormalize_actions(x0))  # (N, V, F, 2)
+            return replace(plans, actions=actions, current=current)
+
+        return job, finish
 
 
 def model_window(obs: Observation, moves: np.ndarray, cfg: ModelConfig) -> SceneWindow:
