@@ -77,7 +77,10 @@ def test_bench_times_a_guided_scenario_and_the_curves(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize(
     "argv",
-    [["--presets", "warp"], ["--agents", "8,x"], ["--rule", "fly"], ["--episodes", "-1"], ["--seeds", "-1"]],
+    [
+        ["--presets", "warp"], ["--agents", "8,x"], ["--rule", "fly"], ["--episodes", "-1"],
+        ["--seeds", "-1"], ["--spatial", "sparse"], ["--spatial", ","], ["--rounds", "0"],
+    ],
 )
 def test_bench_mistakes_exit_2(argv: list[str], tmp_path: Path) -> None:
     assert main(["bench", *argv, "--out", str(tmp_path)]) == 2
@@ -164,18 +167,35 @@ def test_unknown_presets_are_clear_errors(name: str) -> None:
         preset(name)
 
 
-@pytest.mark.parametrize("mode", ["on", "off"])
-def test_bench_neighbourhoods_flag_times_the_curve_by_groups(mode: str, tmp_path: Path) -> None:
-    """``--neighbourhoods on`` runs the per-agent curve by neighbourhood groups: 24 agents tiled from
-    a real window lie in several groups 300 m apart; ``off`` (the default) is one dense attention."""
+@pytest.mark.parametrize("mode", ["groups", "dense"])
+def test_bench_spatial_flag_times_the_curve_by_groups(mode: str, tmp_path: Path) -> None:
+    """``--spatial groups`` runs the per-agent curve by neighbourhood groups: 24 agents tiled from
+    a real window lie in several groups 300 m apart; ``dense`` is one dense attention."""
     torch.manual_seed(0)
     save_checkpoint(tmp_path / "tiny", Denoiser(TINY), TINY, {})
     out = tmp_path / "bench"
     argv = ["bench", "--episodes", "0", "--scenes", "", "--agents", "4,24", "--repeats", "1"]
-    argv += ["--checkpoint", str(tmp_path / "tiny"), "--neighbourhoods", mode, "--out", str(out)]
+    argv += ["--checkpoint", str(tmp_path / "tiny"), "--spatial", mode, "--out", str(out)]
     assert main(argv) == 0
     report = json.loads((out / "bench.json").read_text(), parse_constant=_no_constant)
-    assert report["neighbourhoods"] == mode
+    assert report["spatial"] == [mode]
     groups = [c["groups"] for c in report["agents"]]
-    assert groups[1] > 1 if mode == "on" else groups == [1, 1]
-    assert ("by neighbourhood groups" in (out / "bench.md").read_text()) == (mode == "on")
+    assert groups[1] > 1 if mode == "groups" else groups == [1, 1]
+    assert ("by neighbourhood groups" in (out / "bench.md").read_text()) == (mode == "groups")
+
+
+def test_bench_times_dense_and_gathered_alternating(tmp_path: Path) -> None:
+    """``--spatial dense,gathered --rounds 2``: each agent count timed both ways, the gathered one over
+    each agent's neighbours only (far fewer than the K keys once the window is tiled)."""
+    torch.manual_seed(0)
+    save_checkpoint(tmp_path / "tiny", Denoiser(TINY), TINY, {})
+    out = tmp_path / "bench"
+    argv = ["bench", "--episodes", "0", "--scenes", "", "--agents", "4,24", "--repeats", "1"]
+    argv += ["--checkpoint", str(tmp_path / "tiny"), "--spatial", "dense,gathered", "--rounds", "2"]
+    assert main([*argv, "--out", str(out)]) == 0
+    report = json.loads((out / "bench.json").read_text(), parse_constant=_no_constant)
+    assert report["spatial"] == ["dense", "gathered"]
+    rows = [(c["agents"], c["spatial"], c["neighbours"] > 0) for c in report["agents"]]
+    assert rows == [(4, "dense", False), (4, "gathered", True), (24, "dense", False), (24, "gathered", True)]
+    assert all(c["ms"] > 0 for c in report["agents"])
+    assert "gathered per agent; 2 rounds" in (out / "bench.md").read_text()

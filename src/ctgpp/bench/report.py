@@ -102,9 +102,14 @@ def paired_difference(result: PresetResult, reference: PresetResult, metric: str
 
 
 def agent_table(curve: Sequence[CallTiming]) -> str:
-    lines = ["| agents | samples | groups | ms / call | ms / agent |", "|---:|---:|---:|---:|---:|"]
+    lines = [
+        "| agents | samples | spatial | groups | neighbours | ms / call | ms / agent |",
+        "|---:|---:|---|---:|---:|---:|---:|",
+    ]
     lines += [
-        f"| {c.agents} | {c.samples} | {c.groups} | {c.ms:.1f} | {c.ms / c.agents:.2f} |" for c in curve
+        f"| {c.agents} | {c.samples} | {c.spatial} | {c.groups} | {c.neighbours or '–'} | {c.ms:.1f} "
+        f"| {c.ms / c.agents:.2f} |"
+        for c in curve
     ]
     return "\n".join(lines) + "\n"
 
@@ -123,14 +128,17 @@ def batching_table(rows: Sequence[tuple[CallTiming, float]]) -> str:
 
 
 def plot_agent_curve(curve: Sequence[CallTiming], path: Path) -> Path:
-    """ms per call against agents, with the line through the smallest count's ms/agent for reference."""
+    """ms per call against agents, a line per way of running the spatial attention, with the line
+    through the smallest count's (cheapest) ms/agent for reference."""
     fig = Figure(figsize=(5, 3.5))
     FigureCanvasAgg(fig)
     ax = fig.add_subplot()
-    agents = [c.agents for c in curve]
-    ax.plot(agents, [c.ms for c in curve], "o-", label="measured")
+    for mode in dict.fromkeys(c.spatial for c in curve):  # one line per way, in their order
+        points = [c for c in curve if c.spatial == mode]
+        ax.plot([c.agents for c in points], [c.ms for c in points], "o-", label=f"measured, {mode}")
     if curve:
-        slope = curve[0].ms / curve[0].agents
+        agents = sorted({c.agents for c in curve})
+        slope = min(c.ms for c in curve if c.agents == agents[0]) / agents[0]
         ax.plot(agents, [slope * a for a in agents], "--", color="grey", label="linear from the first point")
     ax.set_xlabel("agents in the scene")
     ax.set_ylabel("ms per denoiser call")

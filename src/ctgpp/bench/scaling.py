@@ -17,6 +17,7 @@ import torch
 from ctgpp.data.batch import SceneBatch, collate
 from ctgpp.data.windows import SceneWindow
 from ctgpp.model.denoiser import Denoiser
+from ctgpp.model.neighbours import SpatialMode
 
 TILE_SPACING_M = 300.0
 
@@ -24,14 +25,17 @@ TILE_SPACING_M = 300.0
 @dataclass(frozen=True)
 class CallTiming:
     """Median milliseconds of one denoiser call over ``rows`` = scenes × samples, ``agents`` each;
-    ``groups``: the neighbourhood groups its spatial attention ran over (``Denoiser.neighbourhoods``;
-    1: one dense attention)."""
+    ``spatial``: how its spatial attention was asked to run (``Denoiser.spatial``); ``groups``: the
+    neighbourhood groups it ran over (1: one attention); ``neighbours``: the most keys an agent
+    attended to when gathered (0: not gathered, every key scored)."""
 
     agents: int
     scenes: int
     samples: int
     ms: float
     groups: int = 1
+    spatial: str = "dense"
+    neighbours: int = 0
 
 
 def median_ms(fn: Callable[[], object], repeats: int) -> float:
@@ -75,23 +79,45 @@ def call_ms(model: Denoiser, batch: SceneBatch, samples: int, repeats: int) -> f
 
 
 def agent_curve(
-    model: Denoiser, window: SceneWindow, counts: Sequence[int], samples: int, repeats: int
+    model: Denoiser,
+    window: SceneWindow,
+    counts: Sequence[int],
+    samples: int,
+    repeats: int,
+    modes: Sequence[SpatialMode] = ("dense",),
+    rounds: int = 1,
 ) -> list[CallTiming]:
-    """Milliseconds of one call (N = ``samples``) for each agent count of ``counts``, the spatial
-    attention dense or by neighbourhood groups as ``model.neighbourhoods`` says."""
-    out = []
-    for a in counts:
-        batch = tiled_batch(window, a)
-        ms = call_ms(model, batch, samples, repeats)
-        out.append(CallTiming(a, 1, samples, ms, group_count(model, batch)))
+    """Milliseconds of one call (N = ``samples``) for each agent count of ``counts`` and each way
+    of ``modes`` to run the spatial attention (``Denoiser.spatial``), agent count by agent count, the
+    modes alternating: ``rounds`` times, the median of the rounds. ``model.spatial`` is restored."""
+    before = model.spatial
+    times: dict[tuple[int, str], list[float]] = {}
+    try:
+        for _ in range(rounds):
+            for a in counts:
+                batch = tiled_batch(window, a)
+                for mode in modes:
+                    model.spatial = mode
+                    times.setdefault((a, mode), []).append(call_ms(model, batch, samples, repeats))
+        out = []
+        for a in counts:
+            batch = tiled_batch(window, a)
+            for mode in modes:
+                model.spatial = mode
+                groups, near = spatial_shape(model, batch)
+                out.append(CallTiming(a, 1, samples, statistics.median(times[a, mode]), groups, mode, near))
+    finally:
+        model.spatial = before
     return out
 
 
 @torch.no_grad()
-def group_count(model: Denoiser, batch: SceneBatch) -> int:
-    """How many neighbourhood groups ``model``'s spatial attention runs over for ``batch`` (1: dense)."""
-    groups = model.encode_context(batch).groups if model.neighbourhoods else None
-    return 1 if groups is None else len(groups)
+def spatial_shape(model: Denoiser, batch: SceneBatch) -> tuple[int, int]:
+    """How ``model``'s spatial attention runs for ``batch``: the neighbourhood groups (1: one
+    attention) and the most keys an agent attends to when gathered (0: not gathered)."""
+    ctx = model.encode_context(batch)
+    near = 0 if ctx.neighbours is None else ctx.neighbours.index.shape[-1]
+    return 1 if ctx.groups is None else len(ctx.groups), near
 
 
 def scene_batching(

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from dataclasses import asdict
 from pathlib import Path
+from typing import cast
 
 import torch
 
@@ -25,6 +26,7 @@ from ctgpp.diffusion import CosineSchedule
 from ctgpp.eval.rule_setup import evaluation_rules
 from ctgpp.eval.runner import NO_RULE, Episode, plan_episodes
 from ctgpp.model.config import ModelConfig
+from ctgpp.model.neighbours import SPATIAL_MODES, SpatialMode
 from ctgpp.policies.factory import PolicyFactory
 from ctgpp.policies.presets import PRESETS, SPELLING, preset
 from ctgpp.scene.vehicles import MOVING_SPEED_MPS, controlled_vehicles
@@ -55,12 +57,17 @@ def add_parsers(sub: argparse._SubParsersAction) -> None:
         "--agents", default="8,16,32,64,128", help="agent counts of the per-call curve ('' to skip)"
     )
     p.add_argument(
-        "--neighbourhoods",
-        choices=("on", "off"),
-        default="off",
-        help="the per-agent curve with the spatial attention run apart over groups of agents out of "
-        "each other's social radius (on; outputs equal up to round-off) or dense (off, default, as "
-        "simulate runs it)",
+        "--spatial",
+        default="auto",
+        metavar="MODES",
+        help="comma-separated ways to run the spatial attention for the per-agent curve, timed "
+        "alternating: dense (every agent against all, masked to the social radius), groups (apart "
+        "per connected group of that mask), gathered (each agent against its neighbours within the "
+        "radius only), auto (gathered where each agent has at most a quarter of the keys in reach, "
+        "default); all give the same outputs up to round-off",
+    )
+    p.add_argument(
+        "--rounds", type=int, default=1, help="rounds of the per-agent curve (median of the rounds)"
     )
     p.add_argument("--scenes", default="1,2,4,8", help="scene batch sizes ('' to skip)")
     p.add_argument("--repeats", type=int, default=5, help="calls per point of the curves (median)")
@@ -86,6 +93,22 @@ def _ints(text: str, what: str, minimum: int = 1) -> list[int]:
     return values
 
 
+SPATIAL_WORDS = {
+    "dense": "dense",
+    "groups": "by neighbourhood groups",
+    "gathered": "gathered per agent",
+    "auto": "gathered where worth it",
+}
+
+
+def _spatial_modes(text: str) -> tuple[SpatialMode, ...]:
+    modes = tuple(m.strip() for m in text.split(",") if m.strip())
+    unknown = [m for m in modes if m not in SPATIAL_MODES]
+    if unknown or not modes:
+        raise ValueError(f"--spatial takes comma-separated {', '.join(SPATIAL_MODES)}, got {text!r}")
+    return cast("tuple[SpatialMode, ...]", modes)
+
+
 def _spread(episodes: list[Episode], count: int) -> list[Episode]:
     """Up to ``count`` episodes taken from the scenes in turn (round robin over scenes)."""
     by_scene: dict[str, list[Episode]] = {}
@@ -108,8 +131,9 @@ def run_bench(args: argparse.Namespace) -> int:
         preset(name).sampling.make(schedule)  # a clear error for an unknown name or grid before any work
     if args.rule not in [NO_RULE, *evaluation_rules()]:
         raise ValueError(f"unknown rule {args.rule!r}; known: {', '.join(evaluation_rules())}, none")
-    if args.episodes < 0 or args.repeats < 1 or args.threads < 1 or args.spacing <= 0:
-        raise ValueError("--episodes must be ≥ 0, --repeats and --threads ≥ 1, --spacing positive")
+    if args.episodes < 0 or min(args.repeats, args.threads, args.rounds) < 1 or args.spacing <= 0:
+        raise ValueError("--episodes must be ≥ 0, --repeats, --rounds and --threads ≥ 1, --spacing positive")
+    modes = _spatial_modes(args.spatial)
     agents, sizes = _ints(args.agents, "--agents"), _ints(args.scenes, "--scenes")
     seeds = _ints(args.seeds, "--seeds", minimum=0)
     if not seeds:
@@ -139,14 +163,13 @@ def run_bench(args: argparse.Namespace) -> int:
         busiest = _busiest_windows(catalog, args.split, model.config)
         samples = preset("fast").sampling.num_samples
         if agents:
-            model.neighbourhoods = args.neighbourhoods == "on"
-            curve = agent_curve(model, busiest[0], agents, samples, args.repeats)
-            model.neighbourhoods = False
+            curve = agent_curve(model, busiest[0], agents, samples, args.repeats, modes, args.rounds)
             report["agents"] = [asdict(c) for c in curve]
-            report["neighbourhoods"] = args.neighbourhoods
+            report["spatial"] = list(modes)
             plot_agent_curve(curve, args.out / "agents.png")
-            how = "by neighbourhood groups" if args.neighbourhoods == "on" else "dense"
-            text += [f"## One denoiser call against the number of agents (spatial attention {how})\n"]
+            how = ", ".join(SPATIAL_WORDS[m] for m in modes)
+            rounds = f"; {args.rounds} rounds, alternating, median" if args.rounds > 1 else ""
+            text += [f"## One denoiser call against the number of agents (spatial attention {how}{rounds})\n"]
             text += [agent_table(curve)]
         if sizes:
             rows = scene_batching(model, busiest, sizes, samples, args.repeats)

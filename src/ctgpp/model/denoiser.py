@@ -9,7 +9,6 @@ vehicles, replayed agents) → map attention (per token over its agent's lane an
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
 from typing import cast
 
 import torch
@@ -20,89 +19,19 @@ from ctgpp.dynamics import clip_actions, rollout
 from ctgpp.model.attention import FoldedKeys, GatedSpatialAttention, MaskedAttention, neighbourhood_groups
 from ctgpp.model.config import ModelConfig
 from ctgpp.model.context_encoder import AgentEmbedding, ContextEncoder
+from ctgpp.model.denoiser_context import DenoiserContext, repeat_samples  # noqa: F401 (re-exported)
 from ctgpp.model.embeddings import RowFFN, StepEmbedding, TimeEmbedding
 from ctgpp.model.grid_encoder import GridEncoder
-from ctgpp.model.inputs import AgentInputs, edge_features, prepare_inputs
+from ctgpp.model.inputs import AgentInputs, edge_features, neighbour_features, prepare_inputs
 from ctgpp.model.lane_encoder import LaneEncoder
+from ctgpp.model.neighbours import (
+    Neighbours,
+    SpatialMode,
+    find_neighbours,
+    gathered_attention,
+    worth_gathering,
+)
 from ctgpp.model.normalization import Normalizer
-
-
-def repeat_samples(value: Tensor, n: int) -> Tensor:
-    """(S, ...) -> (S*n, ...): each scene's row repeated for its ``n`` samples, scene-major; a view
-    when S is 1."""
-    if value.shape[0] == 1:
-        return value.expand(n, *value.shape[1:])
-    return value.repeat_interleave(n, dim=0)
-
-
-@dataclass(frozen=True, eq=False)
-class DenoiserContext:
-    """What stays fixed across the denoising steps of one batch (computed once per sample call).
-
-    agent_mask (S, A); current (S, A, 4) current states in the input frame; hist_tokens (S, A, H, d);
-    token_valid (S, A, H+F); edges (S or 1, H+F, A, A, E) embedded e_ij; spatial_mask (S or 1, H+F, A, A);
-    map_keys: per block, each agent's L lane tokens folded into that block's map attention
-    (:class:`FoldedKeys` with leading dimensions (S, A)). agent_tokens (S, A, 1, d): the agent
-    embedding added to every future token (None for models without context). context_keys: per
-    block, the context agents' keys and values (S or 1, T, C, 2, h, dh) of its spatial attention
-    (None without context). groups: the spatial attention's neighbourhood groups
-    (:func:`~ctgpp.model.attention.neighbourhood_groups`; None: one dense attention).
-    sample_context_keys: ``context_keys`` with a row per sample (S*n, T, C, 2, h, dh), made once by
-    :meth:`expand` for the dense spatial attention, which would otherwise repeat them at every call
-    (None: not made).
-    """
-
-    agent_mask: Tensor
-    current: Tensor
-    hist_tokens: Tensor
-    token_valid: Tensor
-    edges: Tensor
-    spatial_mask: Tensor
-    map_keys: tuple[FoldedKeys, ...]
-    agent_tokens: Tensor | None = None
-    context_keys: tuple[Tensor, ...] | None = None
-    groups: list[tuple[Tensor, Tensor]] | None = None
-    sample_context_keys: tuple[Tensor, ...] | None = None
-
-    def expand(self, n: int) -> DenoiserContext:
-        """The context of S scenes for ``n`` samples each: (S, ...) -> (S*n, ...), scene-major rows
-        (the n samples of scene 0, then of scene 1, ...); views when S is 1.
-
-        Encoding once and expanding saves n − 1 encodings of the same scene (history, edges, lanes).
-        ``edges``, ``spatial_mask`` and ``context_keys``, the largest, keep their S rows: the spatial
-        attention shares each scene's among its samples. What every denoising step would otherwise
-        copy from views is copied here once: the folded lane keys (the map attention's batched
-        matmuls take their (S*n*A) rows contiguous) and, for the dense spatial attention, the context
-        keys per sample (``sample_context_keys``).
-        """
-        kept = ("edges", "spatial_mask", "map_keys", "agent_tokens", "context_keys", "groups",
-                "sample_context_keys")
-        expanded = {
-            f.name: repeat_samples(getattr(self, f.name), n) for f in fields(self) if f.name not in kept
-        }
-        map_keys = tuple(keys.map(lambda v: repeat_samples(v, n).contiguous()) for keys in self.map_keys)
-        agent = None if self.agent_tokens is None else repeat_samples(self.agent_tokens, n)
-        per_sample = None
-        if self.context_keys is not None and self.groups is None:  # kept at S rows by every expansion
-            rows = self.agent_mask.shape[0] * n  # the rows after this one
-            per_sample = tuple(sample_rows(keys, rows // keys.shape[0]) for keys in self.context_keys)
-        return DenoiserContext(
-            **expanded,
-            edges=self.edges,
-            spatial_mask=self.spatial_mask,
-            map_keys=map_keys,
-            agent_tokens=agent,
-            context_keys=self.context_keys,
-            groups=self.groups,
-            sample_context_keys=per_sample,
-        )
-
-
-def sample_rows(keys: Tensor, n: int) -> Tensor:
-    """Context keys (S, T, C, 2, h, dh) -> (S*n, T, C, 2, h, dh), each scene's row repeated for its
-    ``n`` samples (scene-major), as :meth:`GatedSpatialAttention.dense` repeats them."""
-    s = keys.shape[0]
-    return keys[:, None].expand(s, n, *keys.shape[1:]).reshape(s * n, *keys.shape[1:])
 
 
 class Block(nn.Module):
@@ -126,11 +55,13 @@ class Block(nn.Module):
         map_keys: FoldedKeys,
         context_keys: Tensor | None = None,
         keep_from: int = 0,
+        context_tokens: Tensor | None = None,
     ) -> Tensor:
         """x (S, A, T, d) -> (S, A, T - keep_from, d): the tokens from ``keep_from`` on.
 
         ``map_keys`` are this block's folded lane tokens (leading dimensions (S, A)), ``context_keys``
-        its spatial attention's context keys and values (S or 1, T, C, 2, h, dh). With
+        its spatial attention's context keys and values (S or 1, T, C, 2, h, dh), ``context_tokens``
+        the context agents' normalized tokens (S or 1, T, C, d) for the gathered one. With
         ``keep_from`` > 0 the dropped tokens still serve as temporal keys and values, but nothing is
         computed for them: after the temporal attention every layer is per time step or per token, so
         the kept tokens' outputs are exactly those of the whole block.
@@ -140,9 +71,15 @@ class Block(nn.Module):
         h = self.temporal_norm(x).reshape(s * a, t, d)  # (S, A, T, d) -> (S*A, T, d)
         attended = self.temporal(h[:, keep_from:], h, ctx.token_valid.reshape(s * a, t))
         x = x[:, :, keep_from:] + attended.view(s, a, kept, d)
-        edges, spatial_mask = ctx.edges[:, keep_from:], ctx.spatial_mask[:, keep_from:]
-        known = None if context_keys is None else context_keys[:, keep_from:]
-        x = self.spatial(x.transpose(1, 2), edges, spatial_mask, known, ctx.groups)  # via (S, T, A, d)
+        if ctx.neighbours is not None:
+            tokens = None if context_tokens is None else context_tokens[:, keep_from:]
+            near = ctx.neighbours.steps_from(keep_from)
+            x = gathered_attention(self.spatial, x.transpose(1, 2), near, tokens)  # via (S, T, A, d)
+        else:
+            assert ctx.edges is not None and ctx.spatial_mask is not None
+            edges, spatial_mask = ctx.edges[:, keep_from:], ctx.spatial_mask[:, keep_from:]
+            known = None if context_keys is None else context_keys[:, keep_from:]
+            x = self.spatial(x.transpose(1, 2), edges, spatial_mask, known, ctx.groups)  # via (S, T, A, d)
         x = x.transpose(1, 2)
         h = self.map_norm(x).reshape(s * a, kept, d)
         lanes = map_keys.map(lambda value: value.reshape(s * a, *value.shape[2:]))  # rows (S*A)
@@ -178,9 +115,18 @@ class Denoiser(nn.Module):
         self.blocks = nn.ModuleList(Block(config) for _ in range(config.blocks))
         self.out_norm = nn.LayerNorm(d)
         self.out = nn.Linear(d, 2)
-        # True: the spatial attention runs apart over groups of agents out of each other's social
-        # radius (outputs equal up to round-off, exactly the dense ones when one group); off by default
-        self.neighbourhoods = False
+        # how the spatial attention runs (:data:`~ctgpp.model.neighbours.SpatialMode`): every mode
+        # gives the dense outputs up to round-off (exactly when dense, or groups of one group)
+        self.spatial: SpatialMode = "dense"
+
+    @property
+    def neighbourhoods(self) -> bool:
+        """True when the spatial attention runs apart over neighbourhood groups (``spatial`` groups)."""
+        return self.spatial == "groups"
+
+    @neighbourhoods.setter
+    def neighbourhoods(self, on: bool) -> None:
+        self.spatial = "groups" if on else "dense"
 
     @property
     def block_list(self) -> list[Block]:
@@ -192,10 +138,11 @@ class Denoiser(nn.Module):
         cfg = self.config
         inputs: AgentInputs = prepare_inputs(batch, cfg)
         hist_tokens = self.hist_in(self._state_features(inputs.hist, inputs.hist_valid))  # (S, A, H, d)
-        raw_edges, spatial_mask = edge_features(inputs, cfg)
-        edges = self.edge_mlp(raw_edges)  # (S, T, A, K, E)
-        if not cfg.use_edges:
-            edges = torch.zeros_like(edges)
+        near = self._neighbours(inputs)
+        edges, spatial_mask = None, None
+        if near is None:
+            raw_edges, spatial_mask = edge_features(inputs, cfg)
+            edges = self._embed_edges(raw_edges)  # (S, T, A, K, E)
         lane_tokens, lane_valid = self.lane_encoder(inputs.lanes, inputs.lanes_valid)  # (S, A, L·G, d)
         if cfg.map is not None:  # each lane's G segment tokens carry its slot's embedding
             lane_tokens = lane_tokens + self.slot_emb.repeat_interleave(cfg.tokens_per_lane, dim=0)
@@ -203,12 +150,13 @@ class Denoiser(nn.Module):
             lane_tokens = torch.cat([lane_tokens, grid_tokens], dim=2)
             grid_valid = inputs.agent_mask[..., None].expand(-1, -1, grid_tokens.shape[2])
             lane_valid = torch.cat([lane_valid, grid_valid], dim=2)
-        agent_tokens, context_keys = None, None
+        agent_tokens, context_keys, context_tokens = None, None, None
         if cfg.context is not None:
             extent = torch.where(inputs.agent_mask[..., None], batch.extent, 0.0)
             agent_tokens = self.agent_emb.sampled_vehicles(extent)[:, :, None]  # (S, A, 1, d)
             hist_tokens = hist_tokens + agent_tokens
-            context_keys = self._context_keys(batch, inputs)
+            context_keys, context_tokens = self._context_keys(batch, inputs)
+            context_tokens = None if near is None else context_tokens
         future_valid = inputs.agent_mask[..., None].expand(-1, -1, cfg.future_steps)
         return DenoiserContext(
             agent_mask=inputs.agent_mask,
@@ -220,8 +168,27 @@ class Denoiser(nn.Module):
             map_keys=self._fold_lanes(lane_tokens, lane_valid),
             agent_tokens=agent_tokens,
             context_keys=context_keys,
-            groups=neighbourhood_groups(spatial_mask) if self.neighbourhoods else None,
+            groups=neighbourhood_groups(spatial_mask) if self.neighbourhoods and spatial_mask is not None
+            else None,
+            neighbours=near,
+            context_tokens=context_tokens,
         )
+
+    def _neighbours(self, inputs: AgentInputs) -> Neighbours | None:
+        """Each agent's keys within the social radius with their embedded edges, when the spatial
+        attention runs gathered (``spatial`` gathered, or auto where it is worth it); else None."""
+        if self.spatial not in ("gathered", "auto"):
+            return None
+        index, valid = find_neighbours(inputs, self.config)  # (S, T, A, N)
+        if self.spatial == "auto" and not worth_gathering(index.shape[-1], inputs.track_xy.shape[1]):
+            return None
+        edges = self._embed_edges(neighbour_features(inputs, self.config, index))  # (S, T, A, N, E)
+        return Neighbours(index, ~valid, edges)
+
+    def _embed_edges(self, raw: Tensor) -> Tensor:
+        """Embedded edges (..., E) of raw edge features (..., 7); zeros for the no-edge ablation."""
+        edges = self.edge_mlp(raw)
+        return edges if self.config.use_edges else torch.zeros_like(edges)
 
     def _state_features(self, states: Tensor, valid: Tensor) -> Tensor:
         """Normalized states and validity (…, T, 5) of states (…, T, 4), zero where invalid."""
@@ -229,8 +196,11 @@ class Denoiser(nn.Module):
         feat = torch.cat([self.normalizer.normalize_states(states), flag], dim=-1)
         return torch.where(valid[..., None], feat, torch.zeros_like(feat))
 
-    def _context_keys(self, batch: SceneBatch, inputs: AgentInputs) -> tuple[Tensor, ...]:
-        """Each block's spatial-attention keys and values (S, T, C, 2, h, dh) of the context agents."""
+    def _context_keys(
+        self, batch: SceneBatch, inputs: AgentInputs
+    ) -> tuple[tuple[Tensor, ...], tuple[Tensor, ...]]:
+        """Each block's spatial-attention keys and values (S, T, C, 2, h, dh) of the context agents,
+        and their tokens through its spatial attention's norm (S, T, C, d)."""
         n_ctx = inputs.ctx_mask.shape[1]
         kind = torch.where(inputs.ctx_mask, batch.ctx_type[:, :n_ctx], 0)
         role = torch.where(inputs.ctx_mask, batch.ctx_role[:, :n_ctx], 0)
@@ -239,7 +209,8 @@ class Denoiser(nn.Module):
         feats = self._state_features(inputs.ctx_states, inputs.ctx_valid)  # (S, C, T, 5)
         tokens = self.context_encoder(feats, inputs.ctx_valid, self.time_emb(), agent)  # (S, C, T, d)
         tokens = tokens.transpose(1, 2)  # (S, T, C, d)
-        return tuple(block.spatial.context_keys(tokens) for block in self.block_list)
+        keys = tuple(block.spatial.context_keys(tokens) for block in self.block_list)
+        return keys, tuple(block.spatial.norm(tokens) for block in self.block_list)
 
     def _fold_lanes(self, lane_tokens: Tensor, lane_valid: Tensor) -> tuple[FoldedKeys, ...]:
         """Each block's map-attention keys from the lane tokens (S, A, L, d) and their mask (S, A, L):
@@ -287,9 +258,10 @@ class Denoiser(nn.Module):
         known = ctx.context_keys or (None,) * len(self.blocks)
         if ctx.sample_context_keys is not None and ctx.groups is None:
             known = ctx.sample_context_keys  # the same keys, already one row per sample
+        tokens = ctx.context_tokens or (None,) * len(self.blocks)
         for i, (block, map_keys) in enumerate(zip(self.blocks, ctx.map_keys, strict=True)):
             # only the future tokens are read out: the last block computes nothing for the history ones
             keep_from = self.config.history_steps if i == last else 0
-            x = block(x, ctx, map_keys, known[i], keep_from=keep_from)
+            x = block(x, ctx, map_keys, known[i], keep_from=keep_from, context_tokens=tokens[i])
         out = self.out(self.out_norm(x))  # (S, A, F, 2)
         return torch.where(mask, out, torch.zeros_like(out))

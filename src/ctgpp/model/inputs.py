@@ -123,19 +123,56 @@ def edge_features(inputs: AgentInputs, config: ModelConfig) -> tuple[Tensor, Ten
     R_iᵀ(v_j,t − v_i,t) / 10 m/s, ‖p_j,t − p_i,t‖ / r, with r the social radius. The mask keeps
     valid neighbours within r at step t, and always the agent itself.
     """
-    radius = config.social_radius_m
-    n_agents = inputs.agent_mask.shape[1]
+    xy, yaw, vel = _key_tracks(inputs)
+    feats, dist = _pair_features(inputs, config, xy[:, :, None], yaw[:, :, None], vel[:, :, None])
+    return feats, _within_radius(inputs, config, dist, slice(None))
+
+
+def neighbour_features(inputs: AgentInputs, config: ModelConfig, index: Tensor) -> Tensor:
+    """The features of :func:`edge_features` (S, T, A_i, N, 7) for the keys ``index`` (S, T, A_i, N)
+    of each query alone: the same elementwise arithmetic on the same numbers, so the same values."""
+    xy, yaw, vel = _key_tracks(inputs)  # (S, T, K, ...)
+    s, t = index.shape[:2]
+    rows = torch.arange(s, device=index.device)[:, None, None, None]  # (S, 1, 1, 1)
+    steps = torch.arange(t, device=index.device)[None, :, None, None]  # (1, T, 1, 1)
+    feats, _ = _pair_features(inputs, config, xy[rows, steps, index], yaw[rows, steps, index],
+                              vel[rows, steps, index])
+    return feats
+
+
+def neighbour_mask(inputs: AgentInputs, config: ModelConfig, steps: slice) -> Tensor:
+    """The mask of :func:`edge_features` (S, Ts, A_i, K_j) at the time steps ``steps`` only, without
+    the features: what :func:`~ctgpp.model.neighbours.neighbour_lists` reads, a few steps at a time."""
+    xy = inputs.track_xy.transpose(1, 2)[:, steps]  # (S, Ts, K, 2)
+    q_xy = xy[:, :, : inputs.agent_mask.shape[1]]
+    dist = torch.linalg.norm(xy[:, :, None, :, :] - q_xy[:, :, :, None, :], dim=-1)  # (S, Ts, A_i, K_j)
+    return _within_radius(inputs, config, dist, steps)
+
+
+def _key_tracks(inputs: AgentInputs) -> tuple[Tensor, Tensor, Tensor]:
+    """Positions (S, T, K, 2), headings (S, T, K) and velocities (S, T, K, 2) of the K keys."""
     xy = inputs.track_xy.transpose(1, 2)  # (S, K, T, 2) -> (S, T, K, 2)
     yaw = inputs.track_yaw.transpose(1, 2)  # (S, T, K)
     vel = inputs.track_speed.transpose(1, 2)[..., None] * torch.stack([torch.cos(yaw), torch.sin(yaw)], -1)
+    return xy, yaw, vel
+
+
+def _pair_features(
+    inputs: AgentInputs, config: ModelConfig, xy_j: Tensor, yaw_j: Tensor, vel_j: Tensor
+) -> tuple[Tensor, Tensor]:
+    """Features (S, T, A_i, J, 7) and distances (S, T, A_i, J) of keys with positions xy_j
+    (S, T, A_i or 1, J, 2), headings yaw_j (S, T, A_i or 1, J) and velocities vel_j (like xy_j)."""
+    radius = config.social_radius_m
+    n_agents = inputs.agent_mask.shape[1]
+    q_xy, q_yaw, q_vel = _key_tracks(inputs)
+    q_xy, q_yaw, q_vel = q_xy[:, :, :n_agents], q_yaw[:, :, :n_agents], q_vel[:, :, :n_agents]  # queries
     frame_yaw = inputs.pose[..., 2] if not config.scene_centric else torch.zeros_like(inputs.pose[..., 2])
     frame_yaw = frame_yaw[:, None, :, None]  # (S, 1, A_i, 1)
     origin_i = inputs.pose[:, None, :, None, :2]  # (S, 1, A_i, 1, 2)
-    rel_pos = rotate(xy[:, :, None, :, :] - origin_i, -frame_yaw)  # (S, T, A_i, K_j, 2)
-    q_xy, q_yaw, q_vel = xy[:, :, :n_agents], yaw[:, :, :n_agents], vel[:, :, :n_agents]  # the queries
-    rel_vel = rotate(vel[:, :, None, :, :] - q_vel[:, :, :, None, :], -frame_yaw)
-    d_yaw = yaw[:, :, None, :] - q_yaw[:, :, :, None]  # (S, T, A_i, K_j)
-    dist = torch.linalg.norm(xy[:, :, None, :, :] - q_xy[:, :, :, None, :], dim=-1)
+    rel_pos = rotate(xy_j - origin_i, -frame_yaw)  # (S, T, A_i, J, 2)
+    rel_vel = rotate(vel_j - q_vel[:, :, :, None, :], -frame_yaw)
+    d_yaw = yaw_j - q_yaw[:, :, :, None]  # (S, T, A_i, J)
+    dist = torch.linalg.norm(xy_j - q_xy[:, :, :, None, :], dim=-1)
     feats = torch.cat(
         [
             rel_pos / radius,
@@ -146,7 +183,12 @@ def edge_features(inputs: AgentInputs, config: ModelConfig) -> tuple[Tensor, Ten
         ],
         dim=-1,
     )
-    valid_j = inputs.track_valid.transpose(1, 2)[:, :, None, :]  # (S, T, 1, K_j)
-    eye = torch.eye(n_agents, xy.shape[2], dtype=torch.bool, device=xy.device)  # (A_i, K_j)
-    mask = (valid_j & (dist <= radius)) | eye
-    return feats, mask
+    return feats, dist
+
+
+def _within_radius(inputs: AgentInputs, config: ModelConfig, dist: Tensor, steps: slice) -> Tensor:
+    """Valid keys within the social radius, and always the agent itself: (S, Ts, A_i, K_j) bool from
+    the distances (S, Ts, A_i, K_j) at the time steps ``steps``."""
+    valid_j = inputs.track_valid.transpose(1, 2)[:, steps, None, :]  # (S, Ts, 1, K_j)
+    eye = torch.eye(dist.shape[2], dist.shape[3], dtype=torch.bool, device=dist.device)  # (A_i, K_j)
+    return (valid_j & (dist <= config.social_radius_m)) | eye
