@@ -121,5 +121,13 @@ def test_the_loss_moves_the_overtaker_and_only_keeps_the_other_going() -> None:
 @pytest.mark.model
 @pytest.mark.slow
 def test_the_shipped_model_overtakes_on_a_validation_scene() -> None:
-    result = ctgpp.simulate(SCENE, "vehicle 2 overtakes vehicle 8", seed=0, start_s=START)
+    """Seed 0 on one torch thread, as every benchmark runs (docs/benchmarks.md, Manoeuvres: 5 of 6
+    seeds): a multi-threaded reduction sums in another order, and the closed loop grows that
+    round-off into another episode, so the thread count would decide the draw, not the model."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        result = ctgpp.simulate(SCENE, "vehicle 2 overtakes vehicle 8", seed=0, start_s=START)
+    finally:
+        torch.set_num_threads(threads)
     assert result.query is not None and result.query["satisfied"] is True, result.query
