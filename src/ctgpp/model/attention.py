@@ -94,6 +94,12 @@ class MaskedAttention(nn.Module):
         return out * keys.has_key[:, None, None].to(out.dtype)
 
 
+def sample_rows(value: Tensor, n: int) -> Tensor:
+    """(S, ...) -> (S*n, ...): each scene's row repeated for its ``n`` samples, scene-major (a copy)."""
+    s = value.shape[0]
+    return value[:, None].expand(s, n, *value.shape[1:]).reshape(s * n, *value.shape[1:])
+
+
 class GatedSpatialAttention(nn.Module):
     """Per time step, each agent attends over agents with keys/values [h_j, e_ij]; a gate fuses the
     message m_i with the agent's own features: x_i ← g·m_i + (1 − g)·x_i, g = σ(W[h_i, m_i]).
@@ -167,10 +173,8 @@ class GatedSpatialAttention(nn.Module):
         k, v = self.kv(h).view(s, t, a, 2, heads, self.head_dim).unbind(dim=3)  # (S, T, A, h, dh)
         keys, values = [k], [v]
         if context is not None and context.shape[2] > 0:
-            c = context.shape[2]
-            shared = context  # already a row per sample (S, T, C, 2, h, dh), else repeated here
-            if context.shape[0] != s:
-                shared = context[:, None].expand(se, r, *context.shape[1:]).reshape(s, t, c, 2, heads, -1)
+            # already a row per sample (S, T, C, 2, h, dh), else repeated here
+            shared = context if context.shape[0] == s else sample_rows(context, r)
             keys.append(shared[:, :, :, 0])
             values.append(shared[:, :, :, 1])
         # the K = A (+ C) keys and values copied once, straight into the layouts the matmuls read

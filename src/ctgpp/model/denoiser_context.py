@@ -9,7 +9,7 @@ from dataclasses import dataclass, fields
 
 from torch import Tensor
 
-from ctgpp.model.attention import FoldedKeys
+from ctgpp.model.attention import FoldedKeys, sample_rows
 from ctgpp.model.neighbours import Neighbours
 
 
@@ -89,10 +89,3 @@ class DenoiserContext:
             neighbours=self.neighbours,
             context_tokens=self.context_tokens,
         )
-
-
-def sample_rows(keys: Tensor, n: int) -> Tensor:
-    """Context keys (S, T, C, 2, h, dh) -> (S*n, T, C, 2, h, dh), each scene's row repeated for its
-    ``n`` samples (scene-major), as :meth:`GatedSpatialAttention.dense` repeats them."""
-    s = keys.shape[0]
-    return keys[:, None].expand(s, n, *keys.shape[1:]).reshape(s * n, *keys.shape[1:])

@@ -123,19 +123,21 @@ def edge_features(inputs: AgentInputs, config: ModelConfig) -> tuple[Tensor, Ten
     R_iᵀ(v_j,t − v_i,t) / 10 m/s, ‖p_j,t − p_i,t‖ / r, with r the social radius. The mask keeps
     valid neighbours within r at step t, and always the agent itself.
     """
-    xy, yaw, vel = _key_tracks(inputs)
-    feats, dist = _pair_features(inputs, config, xy[:, :, None], yaw[:, :, None], vel[:, :, None])
+    tracks = _key_tracks(inputs)
+    xy, yaw, vel = tracks
+    feats, dist = _pair_features(inputs, config, tracks, xy[:, :, None], yaw[:, :, None], vel[:, :, None])
     return feats, _within_radius(inputs, config, dist, slice(None))
 
 
 def neighbour_features(inputs: AgentInputs, config: ModelConfig, index: Tensor) -> Tensor:
     """The features of :func:`edge_features` (S, T, A_i, N, 7) for the keys ``index`` (S, T, A_i, N)
     of each query alone: the same elementwise arithmetic on the same numbers, so the same values."""
-    xy, yaw, vel = _key_tracks(inputs)  # (S, T, K, ...)
+    tracks = _key_tracks(inputs)
+    xy, yaw, vel = tracks  # (S, T, K, ...)
     s, t = index.shape[:2]
     rows = torch.arange(s, device=index.device)[:, None, None, None]  # (S, 1, 1, 1)
     steps = torch.arange(t, device=index.device)[None, :, None, None]  # (1, T, 1, 1)
-    feats, _ = _pair_features(inputs, config, xy[rows, steps, index], yaw[rows, steps, index],
+    feats, _ = _pair_features(inputs, config, tracks, xy[rows, steps, index], yaw[rows, steps, index],
                               vel[rows, steps, index])
     return feats
 
@@ -158,14 +160,19 @@ def _key_tracks(inputs: AgentInputs) -> tuple[Tensor, Tensor, Tensor]:
 
 
 def _pair_features(
-    inputs: AgentInputs, config: ModelConfig, xy_j: Tensor, yaw_j: Tensor, vel_j: Tensor
+    inputs: AgentInputs,
+    config: ModelConfig,
+    tracks: tuple[Tensor, Tensor, Tensor],
+    xy_j: Tensor,
+    yaw_j: Tensor,
+    vel_j: Tensor,
 ) -> tuple[Tensor, Tensor]:
     """Features (S, T, A_i, J, 7) and distances (S, T, A_i, J) of keys with positions xy_j
-    (S, T, A_i or 1, J, 2), headings yaw_j (S, T, A_i or 1, J) and velocities vel_j (like xy_j)."""
+    (S, T, A_i or 1, J, 2), headings yaw_j (S, T, A_i or 1, J) and velocities vel_j (like xy_j);
+    ``tracks``: :func:`_key_tracks`, whose first A rows are the queries'."""
     radius = config.social_radius_m
     n_agents = inputs.agent_mask.shape[1]
-    q_xy, q_yaw, q_vel = _key_tracks(inputs)
-    q_xy, q_yaw, q_vel = q_xy[:, :, :n_agents], q_yaw[:, :, :n_agents], q_vel[:, :, :n_agents]  # queries
+    q_xy, q_yaw, q_vel = (part[:, :, :n_agents] for part in tracks)  # the queries
     frame_yaw = inputs.pose[..., 2] if not config.scene_centric else torch.zeros_like(inputs.pose[..., 2])
     frame_yaw = frame_yaw[:, None, :, None]  # (S, 1, A_i, 1)
     origin_i = inputs.pose[:, None, :, None, :2]  # (S, 1, A_i, 1, 2)

@@ -17,7 +17,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ctgpp.model.attention import GatedSpatialAttention, softmax_last
+from ctgpp.model.attention import GatedSpatialAttention, sample_rows, softmax_last
 from ctgpp.model.config import ModelConfig
 from ctgpp.model.inputs import AgentInputs, neighbour_mask
 
@@ -119,7 +119,9 @@ def gathered_attention(
     e_dim, r = near.edges.shape[-1], s // se
     h = layer.norm(x)
     queries, out_weight, out_bias = _folded(layer)
-    sources = h if context is None else torch.cat([h, _rows(context, se, r)], dim=2)  # (S, T, K, d)
+    if context is not None and context.shape[0] != s:  # a row per scene: repeated for its r samples
+        context = sample_rows(context, r)
+    sources = h if context is None else torch.cat([h, context], dim=2)  # (S, T, K, d)
     n_keys = sources.shape[2]
     step = max(1, CHUNK_FLOATS // max(1, s * a * n * d))
     messages = []
@@ -171,14 +173,6 @@ def _folded(layer: GatedSpatialAttention) -> tuple[tuple[Tensor, Tensor], Tensor
     out_bias = layer.out.bias + w_o.reshape(d, d) @ layer.kv.bias[d:]
     query = (torch.cat([q_key, q_edge]), torch.cat([b_key, b_edge]))
     return query, torch.cat([o_key, o_edge], dim=1), out_bias
-
-
-def _rows(context: Tensor, se: int, r: int) -> Tensor:
-    """Context tokens (Se or Se·r, T, C, d) -> (Se·r, T, C, d), each scene's row repeated for its r
-    samples."""
-    if context.shape[0] == se * r:
-        return context
-    return context[:, None].expand(se, r, *context.shape[1:]).reshape(se * r, *context.shape[1:])
 
 
 def worth_gathering(most_neighbours: int, keys: int) -> bool:
