@@ -92,16 +92,15 @@ def agent_curve(
     modes alternating: ``rounds`` times, the median of the rounds. ``model.spatial`` is restored."""
     before = model.spatial
     times: dict[tuple[int, str], list[float]] = {}
+    batches = [(a, tiled_batch(window, a)) for a in counts]  # built once, for every round and mode
     try:
         for _ in range(rounds):
-            for a in counts:
-                batch = tiled_batch(window, a)
+            for a, batch in batches:
                 for mode in modes:
                     model.spatial = mode
                     times.setdefault((a, mode), []).append(call_ms(model, batch, samples, repeats))
         out = []
-        for a in counts:
-            batch = tiled_batch(window, a)
+        for a, batch in batches:
             for mode in modes:
                 model.spatial = mode
                 groups, near = spatial_shape(model, batch)
