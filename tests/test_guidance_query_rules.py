@@ -35,7 +35,7 @@ def _off_lanes(batch: GuidanceBatch, n: int) -> GuidanceBatch:
     """n vehicles at the local origin, 10 km from every lane (no lane paths), 4 m x 2 m boxes."""
     return replace(
         batch, origin=batch.origin + 1e4, pose=torch.zeros(n, 3), speed=torch.zeros(n),
-        extent=torch.tensor([[4.0, 2.0]] * n), memo={},
+        start_speed=np.zeros(n), extent=torch.tensor([[4.0, 2.0]] * n), memo={},
     )
 
 
@@ -94,6 +94,34 @@ def test_cut_in_by_hand(batch: GuidanceBatch) -> None:
     assert cost.shape == (1,) and float(cost) == pytest.approx((1.0 + offset) / 3, abs=1e-5)
     with pytest.raises(ValueError, match="min_gap_m"):
         make_loss("cut_in", vehicle=1, ahead_of=0, gap_m=1.0)  # the default 2 m floor is above 1 m
+
+
+def test_cut_in_moves_only_the_cutter_and_keeps_the_other_going(batch: GuidanceBatch) -> None:
+    # vehicle 0 at 10 m/s (it started at 10 m/s), vehicle 1 on its heading line 5 m ahead: a 1 m
+    # bumper gap, 1 m short of min_gap_m
+    two = replace(_off_lanes(batch, 2), speed=torch.tensor([10.0, 10.0]), start_speed=np.array([10.0, 10.0]))
+    x = torch.zeros(2, 1, 1, 6)
+    x[:, 0, 0, 2] = 10.0
+    x[1, 0, 0, 0] = 5.0
+    x.requires_grad_(True)
+    loss = make_loss("cut_in", vehicle=1, ahead_of=0, gap_m=10.0, min_gap_m=2.0)
+    cost = loss(x, two)
+    assert float(cost.detach()) == pytest.approx(1.0, abs=1e-4)  # the gap's shortfall, one step of weight 1
+    cost.sum().backward()
+    assert float(x.grad[1, 0, 0, 0]) < 0  # descent moves the cutter ahead
+    assert x.grad[0].abs().sum() == 0  # the other is not slowed (nor moved) to open the gap
+    # the other keeps 0.6 of its speed at the episode's start, not of its speed now: 5 m/s planned
+    # after a start at 10 m/s falls 1 m/s short, whatever it drives at this re-plan
+    slowed = replace(two, speed=torch.tensor([5.0, 10.0]), memo={})
+    x2 = x.detach().clone()
+    x2[0, 0, 0, 2] = 5.0
+    x2[1, 0, 0, 0] = 8.0  # a 4 m gap: inside the band
+    assert float(loss(x2, slowed)) == pytest.approx(1.0, abs=1e-4)
+    # summed over the plan's steps, as the lane and gap terms are: three such steps cost 3
+    x3 = x2.expand(2, 1, 3, 6).clone()
+    x3[1, 0, :, 0] = torch.tensor([8.0, 8.5, 9.0])  # the cutter keeps its 4-5 m gap
+    x3[0, 0, :, 0] = torch.tensor([0.5, 1.0, 1.5])
+    assert float(loss(x3, replace(slowed, memo={}))) == pytest.approx(3.0, abs=1e-4)
 
 
 def test_cut_in_keeps_the_other_in_its_lane(batch: GuidanceBatch) -> None:
