@@ -14,6 +14,10 @@ equal the expected ones, as a multiset, numbers to 1e-3; or refused when a refus
 *wrong* (compiled to anything else: another rule, vehicle, number, window or stage, a dropped or changed
 qualifier, or compiled when it should be refused) or *refused* (a ValueError where a structure was
 expected).
+
+Another reader's parts (the structured local model's, where the compiler refuses: ``--llm-mode auto``)
+are scored the same way by :func:`score_reading`, with each behaviour's defaults filled in on both
+sides (a model may leave out a parameter the compiler spells out: "follows" is 10-30 m either way).
 """
 
 from __future__ import annotations
@@ -24,7 +28,9 @@ from dataclasses import dataclass
 from importlib import resources
 from typing import Any
 
+from ctgpp.behaviours import get_behaviour
 from ctgpp.language.compiler.compile import compile_query
+from ctgpp.language.compiler.compiled import QueryPart
 
 SCENE_VEHICLES = 12
 INTERNAL = frozenset({"margin_m", "margin_mps", "decay"})  # the compiler's aims, not what a sentence says
@@ -39,6 +45,11 @@ class Outcome:
     half: str
     verdict: str
     got: Any
+
+    @property
+    def compiled(self) -> bool:
+        """Whether the sentence was read (``got`` a structure), not refused (``got`` the message)."""
+        return not isinstance(self.got, str)
 
 
 def load(path: str | None = None) -> list[dict[str, Any]]:
@@ -61,8 +72,9 @@ def _canon(value: Any) -> Any:
     return value
 
 
-def _key(part: dict[str, Any]) -> str:
-    params = {k: v for k, v in part["params"].items() if k not in INTERNAL}
+def _key(part: dict[str, Any], resolve: bool = False) -> str:
+    params = get_behaviour(part["rule"]).resolve(part["params"]) if resolve else part["params"]
+    params = {k: v for k, v in params.items() if k not in INTERNAL}
     window = part.get("window")
     return json.dumps(_canon({"rule": part["rule"], "params": params, "vehicles": part.get("vehicles"),
                               "window": None if window is None else list(window)[:2],
@@ -71,11 +83,15 @@ def _key(part: dict[str, Any]) -> str:
 
 def structure(query: str, num_vehicles: int = SCENE_VEHICLES) -> list[dict[str, Any]]:
     """The compiled structure of ``query`` in the set's terms (ValueError when refused)."""
-    compiled = compile_query(query, num_vehicles)
+    return as_rows(compile_query(query, num_vehicles).parts)
+
+
+def as_rows(parts: list[QueryPart]) -> list[dict[str, Any]]:
+    """Parts (the compiler's, or the structured model's) in the set's terms."""
     return [{"rule": p.rule, "params": {k: v for k, v in p.params.items() if k not in INTERNAL},
              "vehicles": None if p.vehicles is None else list(p.vehicles),
              "window": None if p.window is None else [p.window.start_s, p.window.end_s], "stage": p.stage}
-            for p in compiled.parts]
+            for p in parts]
 
 
 def score(row: dict[str, Any]) -> Outcome:
@@ -88,6 +104,20 @@ def score(row: dict[str, Any]) -> Outcome:
     if expect == "refuse":
         return Outcome(query, half, "wrong", got)
     same = sorted(map(_key, got)) == sorted(map(_key, expect))
+    return Outcome(query, half, "understood" if same else "wrong", got)
+
+
+def score_reading(row: dict[str, Any], parts: list[QueryPart] | None, refusal: str = "") -> Outcome:
+    """The verdict on another reader's reading of a row: its ``parts``, or None with the ``refusal``
+    when it refused the sentence; a structure where a refusal is expected is *wrong*. Parameters are
+    compared with the behaviour's defaults filled in on both sides (module docstring)."""
+    query, half, expect = row["query"], row["half"], row["expect"]
+    if parts is None:
+        return Outcome(query, half, "understood" if expect == "refuse" else "refused", refusal)
+    got = as_rows(parts)
+    if expect == "refuse":
+        return Outcome(query, half, "wrong", got)
+    same = sorted(_key(p, resolve=True) for p in got) == sorted(_key(p, resolve=True) for p in expect)
     return Outcome(query, half, "understood" if same else "wrong", got)
 
 

@@ -12,7 +12,7 @@ from typing import Any
 from ctgpp.behaviours import behaviours, get_behaviour
 from ctgpp.language.llm.generate import Round
 from ctgpp.language.llm.schema import TIME_FIELDS, is_vehicle, scoped, words
-from ctgpp.language.llm.sentence import named_vehicles, quantities
+from ctgpp.language.llm.sentence import named_vehicles, said_quantities
 from ctgpp.rule_params import check_quantity
 
 __all__ = ["StructuredRefused", "call_params", "check_grounded", "number", "parse_calls", "vehicle_number"]
@@ -84,12 +84,14 @@ def check_grounded(calls: list[dict[str, Any]], sentence: str) -> None:
     :class:`StructuredRefused` naming the first that is not. A small model fills fields with numbers
     of its own ("at_s": 0, vehicles 0 to 7 for "no vehicle", "other": 8 for "8 m/s") and leaves out
     a time the sentence gives; a reading that says more or less than the sentence is refused rather
-    than used. Stages: the sentence's "then" (or "after that", "one by one") and the calls' stages
-    go together (one stage for all calls means no order)."""
+    than used. A number the sentence says with a unit goes into a field of that unit only (a time
+    into a time, "2 second gap" is no 2 m distance; a unit no field has, "30 feet", into none), a
+    bare number into any. Stages: the sentence's "then" (or "after that", "one by one") and the
+    calls' stages go together (one stage for all calls means no order)."""
     named = set(named_vehicles(sentence)) | ({0} if re.search(r"\bego\b", sentence, re.I) else set())
-    said = set(quantities(sentence))
+    said = set(said_quantities(sentence))  # (value, unit or None)
     used: set[int] = set()
-    numbers: set[float] = set()
+    numbers: set[tuple[float, str | None]] = set()
     for call in calls:
         name = call["behaviour"]
         defaults = {p.name: p.default for p in get_behaviour(name).params}
@@ -104,11 +106,19 @@ def check_grounded(calls: list[dict[str, Any]], sentence: str) -> None:
                     used.add(int(v))
                     if v in named:
                         continue
-                elif float(v) in said or (key in defaults and defaults[key] == v):
-                    numbers.add(float(v))
-                    continue
-                elif v == 0 and key.startswith("min_"):  # a lower bound of nothing ("at most 18 m")
-                    continue
+                else:
+                    unit = "s" if timed else _unit(name, key)
+                    same = {q for q in said if q[0] == float(v)}
+                    fits = {q for q in same if q[1] in (None, unit)}
+                    numbers |= fits
+                    if fits or (key in defaults and defaults[key] == v):
+                        continue
+                    if v == 0 and key.startswith("min_"):  # a lower bound of nothing ("at most 18 m")
+                        continue
+                    if same:
+                        said_in = sorted(str(q[1]) for q in same)[0]
+                        raise StructuredRefused(f"{name}: {key}={v:g} is in {unit or 'no unit'}, but the "
+                                                f"sentence's {v:g} is in {said_in}")
                 what = "vehicle" if vehicle else "time" if timed else "number"
                 raise StructuredRefused(f"{name}: {key}={v:g} is a {what} the sentence does not name")
     stages = {c.get("stage", 0) for c in calls}
@@ -120,13 +130,20 @@ def check_grounded(calls: list[dict[str, Any]], sentence: str) -> None:
     dropped = sorted(named - used)
     if dropped:
         raise StructuredRefused(f"vehicle {dropped[0]}, which the sentence names, is in no call")
-    unread = sorted(said - numbers)
+    unread = sorted(said - numbers, key=lambda q: (q[0], str(q[1])))
     if unread:
-        raise StructuredRefused(f"the sentence's {unread[0]:g} is in no call")
+        value, unit = unread[0]
+        where = f" as a quantity in {unit}" if unit is not None else ""
+        raise StructuredRefused(f"the sentence's {value:g} is in no call{where}")
 
 
 def _is_vehicle_param(name: str, key: str) -> bool:
     return any(p.name == key and is_vehicle(p) for p in get_behaviour(name).params)
+
+
+def _unit(name: str, key: str) -> str | None:
+    """The registry's unit of a behaviour's parameter ("m", "m/s", "m/s²", ...; None: none)."""
+    return next((p.unit or None for p in get_behaviour(name).params if p.name == key), None)
 
 
 def parse_calls(reply: str, num_vehicles: int) -> list[dict[str, Any]]:

@@ -7,7 +7,8 @@ Rules, in order:
 - the *named vehicles* are the numbers after "vehicle"/"vehicles"/"car"/"agent" (lists such as
   "vehicles 1, 2 and 3" included), within the scene's vehicle count;
 - the *quantities* are the other numbers of the sentence (units such as "m/s^2" do not count: their
-  exponent is no value);
+  exponent is no value), each with the unit written after it where there is one
+  (:func:`said_quantities`: "s", "m", "m/s", "m/s²", or another word such as "ft", "km", "min");
 - a parameter of the main loss class's ``__init__`` without a default whose name reads as a vehicle
   (``ind``, ``idx``, ``vehicle``, ``agent``, ``target``, ``ref``, ``ego``, ``other``, ``leader``,
   ``follower``) takes the named vehicles in order; any other takes the quantities in order. Where the
@@ -26,12 +27,18 @@ import re
 from ctgpp.language.llm.extract import main_class
 from ctgpp.language.sandbox.nodes import SandboxError
 
-__all__ = ["bind_parameters", "named_vehicles", "quantities"]
+__all__ = ["bind_parameters", "named_vehicles", "quantities", "said_quantities"]
 
 _VEHICLE_WORDS = r"(?:vehicles?|cars?|agents?)"
 _LIST = re.compile(rf"\b{_VEHICLE_WORDS}\s+(\d+(?:\s*(?:,|and|&|or)\s*(?:{_VEHICLE_WORDS}\s+)?\d+)*)", re.I)
 _NUMBER = re.compile(r"(?<![\w^.])(\d+(?:\.\d+)?)(?![\w.]*\d)")
 _UNIT_POWER = re.compile(r"\^\s*-?\d+|[²³]")
+_UNIT = re.compile(  # the unit right after a number, in the compiler's wording (normalise, si_units)
+    r"\s*-?\s*(m/s(?:\^\s*2|²)|m/s|(?:s|secs?|seconds?)\b|(?:m|meters?|metres?)\b(?!/)"
+    r"|(?:km|kilometers?|kilometres?|ft|feet|foot|miles?|mi|min(?:s|utes?)?|h(?:rs?|ours?)?|degrees?|deg)\b"
+    r"|%)", re.I)
+_UNIT_NAMES = {"m/s": "m/s", "m": "m", "meter": "m", "meters": "m", "metre": "m", "metres": "m", "s": "s",
+               "sec": "s", "secs": "s", "second": "s", "seconds": "s"}
 _VEHICLE_PARAM = re.compile(r"ind|idx|vehicle|agent|target|ref|ego|other|leader|follower", re.I)
 
 
@@ -48,8 +55,22 @@ def named_vehicles(query: str, num_vehicles: int | None = None) -> tuple[int, ..
 
 def quantities(query: str) -> tuple[float, ...]:
     """The numbers of the sentence that are not vehicle numbers nor unit exponents, in order."""
-    text = _UNIT_POWER.sub(" ", _LIST.sub(" ", query))
-    return tuple(float(m.group(1)) for m in _NUMBER.finditer(text))
+    return tuple(value for value, _ in said_quantities(query))
+
+
+def said_quantities(query: str) -> tuple[tuple[float, str | None], ...]:
+    """:func:`quantities` with the unit each is said in: "s", "m", "m/s", "m/s²", another unit word as
+    written (lower case: "ft", "km", "min"), or None (a bare number, a point's coordinate)."""
+    blank = lambda m: " " * len(m.group(0))  # noqa: E731  (positions kept, to read the units after)
+    text = _LIST.sub(blank, query)
+    found = []
+    for m in _NUMBER.finditer(_UNIT_POWER.sub(blank, text)):
+        unit = _UNIT.match(text, m.end())
+        word = None if unit is None else unit.group(1).lower()
+        if word is not None and word.startswith("m/s") and word != "m/s":
+            word = "m/s²"
+        found.append((float(m.group(1)), None if word is None else _UNIT_NAMES.get(word, word)))
+    return tuple(found)
 
 
 def _open_parameters(tree: ast.Module) -> tuple[str, list[ast.arg]]:

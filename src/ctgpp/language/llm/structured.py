@@ -15,8 +15,10 @@ compiler reads it (numbers in words as digits, typos corrected) with speeds and 
 Nothing in the reply is trusted: whatever the server enforced, :mod:`ctgpp.language.llm.calls` checks
 every call against the registry and the scene (a behaviour that exists, its parameters by name and
 type, vehicle numbers the scene has, speeds in range), against the sentence (vehicles it names,
-numbers it says, none of its vehicles left out) and :func:`build_parts` the times (a window that is
-not empty); :class:`StructuredRefused` says what was wrong, in one line.
+numbers it says in their units, none of its vehicles left out), :mod:`ctgpp.language.llm.qualifiers`
+against what no call can express (a manoeuvre the vocabulary lacks, a time gap, a U-turn's place; two
+vehicles in the other order) and :func:`build_parts` the times (a window that is not empty);
+:class:`StructuredRefused` says what was wrong, in one line.
 """
 
 from __future__ import annotations
@@ -51,6 +53,7 @@ from ctgpp.language.llm.calls import (
 from ctgpp.language.llm.client import LLMClient
 from ctgpp.language.llm.generate import Round
 from ctgpp.language.llm.prompt import Message
+from ctgpp.language.llm.qualifiers import check_expressible
 from ctgpp.language.llm.schema import TIME_FIELDS, TUNING, is_vehicle, reply_schema, scoped, words
 
 __all__ = ["StructuredReading", "StructuredRefused", "build_parts", "parse_calls", "read_structured",
@@ -217,7 +220,9 @@ def read_structured(query: str, client: LLMClient, num_vehicles: int) -> Structu
     try:
         calls = parse_calls(reply, num_vehicles)
         parts = build_parts(calls, num_vehicles)
-        check_grounded(calls, si_units(normalise(query)))
+        sentence = si_units(normalise(query))
+        check_expressible(calls, sentence)
+        check_grounded(calls, sentence)
         for part in parts:
             get_behaviour(part.rule).resolve(part.params)
     except (StructuredRefused, ValueError) as err:

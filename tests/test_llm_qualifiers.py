@@ -1,0 +1,134 @@
+"""A structured reading neither drops nor turns round what the sentence says (issue 36, items 3 and
+4): numbers in the role their unit gives them, no manoeuvre or qualifier the registry cannot express,
+two vehicles in the sentence's order. Hand-written replies (each a reading a small model gave for a
+sentence of this kind), through the real client and a canned local server: no language model."""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+import pytest
+
+from ctgpp.language.llm.calls import check_grounded
+from ctgpp.language.llm.qualifiers import check_expressible, positions
+from ctgpp.language.llm.sentence import said_quantities
+from ctgpp.language.llm.structured import StructuredRefused, read_structured
+from tests.support.llm_server import CannedServer, no_proxy, server
+
+__all__ = ["no_proxy", "server"]  # fixtures from tests/support
+
+N = 12
+
+
+def calls(*items: dict[str, Any]) -> str:
+    return json.dumps({"calls": list(items)})
+
+
+def test_quantities_carry_the_unit_they_are_said_in() -> None:
+    assert said_quantities("vehicle 2 keeps 2.5 m/s² and 10 m from vehicle 3 within 5 s") == (
+        (2.5, "m/s²"), (10.0, "m"), (5.0, "s"))
+    assert said_quantities("vehicle 1 below 13.4112 m/s, 3 seconds, 4 metres, 2.5s, 20m") == (
+        (13.4112, "m/s"), (3.0, "s"), (4.0, "m"), (2.5, "s"), (20.0, "m"))
+    assert said_quantities("car 2 gets to (612, 1644) in 2 minutes, 30 feet from car 3") == (
+        (612.0, None), (1644.0, None), (2.0, "minutes"), (30.0, "feet"))
+    assert said_quantities("acceleration below 2 m/s^2") == ((2.0, "m/s²"),)
+
+
+# (sentence as the compiler reads it, the model's reply, the reason it is refused)
+REFUSED = [
+    # a time in a distance's place, the default speed standing in for a time: a number in another role
+    ("vehicle 2 should stay at least 3 s behind vehicle 0",
+     calls({"behaviour": "keep_distance", "follower": 2, "leader": 0, "min_m": 3}),
+     "keep_distance: min_m=3 is in m, but the sentence's 3 is in s"),
+    ("vehicle 4 makes a U-turn within 2 s and vehicle 5 stops",
+     calls({"behaviour": "u_turn", "vehicle": 4, "min_speed_mps": 2}, {"behaviour": "stop", "vehicles": [5]}),
+     "the sentence's 2 is in no call as a quantity in s"),
+    ("vehicle 1 keeps 30 feet away from vehicle 3",
+     calls({"behaviour": "stay_away", "vehicle": 1, "other": 3, "min_m": 30}),
+     "min_m=30 is in m, but the sentence's 30 is in feet"),
+    # a manoeuvre the vocabulary has no behaviour for, read as some behaviour that exists
+    ("vehicles 3 and 4 pass each other",
+     calls({"behaviour": "reach_ahead", "vehicle": 3}, {"behaviour": "reach_ahead", "vehicle": 4}),
+     "'pass each other' asks for two vehicles passing each other"),
+    ("vehicle 5 honks at vehicle 1",
+     calls({"behaviour": "collision", "vehicle_a": 5, "vehicle_b": 1}), "asks for signals and lights"),
+    ("vehicle 7 does a three-point turn",
+     calls({"behaviour": "turn_at_next_intersection", "vehicle": 7, "direction": "right"}),
+     "asks for a three-point turn"),
+    ("vehicle 8 indicates right and changes lanes",
+     calls({"behaviour": "lane_change", "vehicle": 8, "side": "right"}), "asks for signals and lights"),
+    # a time gap, whatever field the time went to
+    ("vehicle 5 keeps a 4 second gap to vehicle 6",
+     calls({"behaviour": "keep_distance", "follower": 5, "leader": 6, "within_s": 4}),
+     "a time gap ('4 second gap')"),
+    # a qualifier a U-turn cannot take
+    ("vehicle 1 makes a U-turn at the next junction",
+     calls({"behaviour": "u_turn", "vehicle": 1}), "a U-turn cannot take 'at the next junction'"),
+    ("vehicle 9 turns around to the right", calls({"behaviour": "u_turn", "vehicle": 9}),
+     "a U-turn cannot take 'right'"),
+    # two vehicles in the other order
+    ("vehicle 5 stays 12 m ahead of vehicle 6",
+     calls({"behaviour": "keep_distance", "follower": 5, "leader": 6, "min_m": 12}),
+     "keep_distance puts vehicle 5 behind vehicle 6, but the sentence puts vehicle 6 behind vehicle 5"),
+    ("vehicle 2 cuts in behind vehicle 3",
+     calls({"behaviour": "cut_in", "vehicle": 2, "ahead_of": 3}),
+     "cut_in puts vehicle 3 behind vehicle 2, but the sentence puts vehicle 2 behind vehicle 3"),
+]
+
+
+@pytest.mark.parametrize(("query", "answer", "reason"), REFUSED)
+def test_a_reading_that_drops_or_turns_round_a_qualifier_is_refused(query: str, answer: str, reason: str,
+                                                                     server: CannedServer) -> None:
+    server.replies = [answer]
+    with pytest.raises(StructuredRefused) as refused:
+        read_structured(query, server.client(), N)
+    assert reason in str(refused.value) and "\n" not in str(refused.value)
+    assert refused.value.round is not None and refused.value.round.refusal is not None
+
+
+ACCEPTED = [
+    ("vehicle 2 stays behind vehicle 0 by at least 3 m",
+     calls({"behaviour": "keep_distance", "follower": 2, "leader": 0, "min_m": 3})),
+    ("vehicle 5 stays 12 m ahead of vehicle 6",  # the same sentence as above, the right way round
+     calls({"behaviour": "keep_distance", "follower": 6, "leader": 5, "min_m": 12})),
+    ("vehicle 6 cuts in front of vehicle 3, leaving at most 8 m",
+     calls({"behaviour": "cut_in", "vehicle": 6, "ahead_of": 3, "gap_m": 8})),
+    ("vehicle 1 changes to the left lane and vehicle 2 makes a U-turn",  # "left" is the lane change's
+     calls({"behaviour": "lane_change", "vehicle": 1, "side": "left"},
+           {"behaviour": "u_turn", "vehicle": 2})),
+    ("car 2 gets to (612, 1644) within 9 s",  # bare numbers go where metres go
+     calls({"behaviour": "reach_point", "vehicle": 2, "x": 612, "y": 1644, "within_s": 9})),
+    ("vehicle 3 keeps a 20 m gap to vehicle 4",  # a gap in metres is a distance
+     calls({"behaviour": "keep_distance", "follower": 3, "leader": 4, "min_m": 20})),
+]
+
+
+@pytest.mark.parametrize(("query", "answer"), ACCEPTED)
+def test_a_reading_that_keeps_every_qualifier_is_used(query: str, answer: str, server: CannedServer) -> None:
+    server.replies = [answer]
+    got = read_structured(query, server.client(), N)
+    assert got.round.refusal is None and len(got.compiled.parts) == len(json.loads(answer)["calls"])
+
+
+def test_positions_read_who_is_behind() -> None:
+    assert positions("vehicle 3 stays 10 m ahead of vehicle 4") == {(4, 3)}
+    assert positions("vehicle 2 stays not more than 15 m back from vehicle 3") == {(2, 3)}
+    assert positions("the ego stays behind vehicle 3") == {(0, 3)}
+    assert positions("car 2 stays in front of the ego") == {(0, 2)}
+    # the nearest vehicle before the word is the one placed, not the sentence's first
+    assert positions("vehicle 1 follows vehicle 0 and vehicle 2 stays behind vehicle 1") == {(2, 1)}
+    assert positions("vehicle 1 follows vehicle 0") == set()
+
+
+def test_the_checks_need_no_model() -> None:
+    """The checks on hand-written calls alone: the same verdicts without any server."""
+    sentence = "vehicle 2 should stay at least 3 s behind vehicle 0"
+    with pytest.raises(StructuredRefused, match="min_m=3 is in m, but the sentence's 3 is in s"):
+        check_grounded([{"behaviour": "keep_distance", "follower": 2, "leader": 0, "min_m": 3}], sentence)
+    check_grounded([{"behaviour": "stop", "vehicles": [2], "within_s": 3}], "vehicle 2 stops within 3 s")
+    with pytest.raises(StructuredRefused, match="within_s=3 is in s, but the sentence's 3 is in m"):
+        check_grounded([{"behaviour": "stop", "vehicles": [2], "within_s": 3}], "vehicle 2 stops within 3 m")
+    with pytest.raises(StructuredRefused, match="not a supported manoeuvre"):
+        check_expressible([{"behaviour": "stop", "vehicles": [1]}], "vehicle 1 backs up and stops")
+    check_expressible([{"behaviour": "stop", "vehicles": [1]}], "vehicle 1 stops")
