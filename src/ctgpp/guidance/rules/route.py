@@ -51,7 +51,7 @@ class CutIn(Rule):
     start, summed over the plan's steps as the lane and gap terms are (a cut-in ahead of a vehicle
     that stops is no cut-in). Aimed at relative to each re-plan's speed, the aim fell with the speed
     at every re-plan, and as a mean over the steps it weighed a fiftieth of the other terms: on Waymo
-    validation scenes the other, which kept its speed unguided, fell under half of it in 15 of 15
+    validation scenes the other, which kept its speed unguided, fell under half of it in 14 of 15
     cut-ins. One cost per sample (N)."""
 
     couples_agents: ClassVar[bool] = True
