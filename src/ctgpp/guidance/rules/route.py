@@ -50,7 +50,7 @@ class CutIn(Rule):
     keeps moving: its speed's shortfall (m/s) below ``KEEP_MOVING_AIM`` of its speed at the episode's
     start, summed over the plan's steps as the lane and gap terms are (a cut-in ahead of a vehicle
     that stops is no cut-in). Aimed at relative to each re-plan's speed, the aim fell with the speed
-    at every re-plan, and as a mean over the steps it weighed a fiftieth of the other terms: on Waymo
+    at every re-plan, and as a mean it weighed one step where the other terms weigh every step: on Waymo
     validation scenes the other, which kept its speed unguided, fell under half of it in 14 of 15
     cut-ins. One cost per sample (N)."""
 
