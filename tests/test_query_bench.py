@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from ctgpp.behaviours import get_behaviour
-from ctgpp.data.catalog import Catalog
+from ctgpp.data.catalog import Catalog, UnknownSceneError
 from ctgpp.eval.queries import (
     FIELDS,
     QueryCase,
@@ -83,17 +83,33 @@ def test_the_curated_cases_cover_every_family_on_mini_val(catalog: Catalog) -> N
     assert why is not None and "already in vehicle 2's lane" in why
 
 
-def test_a_bad_case_is_refused_before_any_simulation(catalog: Catalog, tmp_path: Path) -> None:
-    factory = CountingFactory()
-    bad = [QueryCase("collision", "vehicle 1 should collide with vehicle 99", "scene-0103", 3.0)]
-    with pytest.raises(ValueError, match="vehicle 99"):
-        run_query_cases(catalog, bad, factory, tmp_path / "q.csv", methods=("constvel", "constvel"))
-    assert factory.calls == []
+def test_a_refused_sentence_is_recorded_and_the_run_goes_on(catalog: Catalog, tmp_path: Path) -> None:
+    # a vehicle that is not there and a lane change the map does not offer: each refused before any
+    # simulation, with its reason, not satisfied; the case after them is simulated as usual
     no_lane = "vehicle 0 should change to the left lane"
-    impossible = [QueryCase("change to the left lane", no_lane, "scene-0103", 3.0)]
-    with pytest.raises(ValueError, match="cannot happen in this scene: vehicle 0 has no lane to change to"):
-        run_query_cases(catalog, impossible, factory, tmp_path / "q.csv", methods=("constvel", "constvel"))
-    assert factory.calls == []
+    cases = [QueryCase("collision", "vehicle 1 should collide with vehicle 99", "scene-0103", 3.0),
+             QueryCase("change to the left lane", no_lane, "scene-0103", 3.0),
+             QueryCase("follow its lane", "vehicle 0 should follow its lane", "scene-0103", 3.0)]
+    factory = CountingFactory()
+    rows = run_query_cases(catalog, cases, factory, tmp_path / "q.csv", seeds=(0, 1),
+                           methods=("constvel", "replay"), progress=False)
+    assert factory.calls == [("constvel", True), ("replay", False)] * 2  # the third case only
+    missing, impossible = rows[0], rows[2]
+    assert [r["query"] for r in rows[:4]] == [cases[0].query] * 2 + [no_lane] * 2
+    assert missing["satisfied_guided"] == "0" and missing["path"] == "refused"
+    assert "vehicle 99" in missing["measured_guided"] and missing["fail_guided"] == ""
+    assert "cannot happen in this scene: vehicle 0 has no lane to change to" in impossible["measured_guided"]
+    assert rows[4]["satisfied_unguided"] == "1"  # the log keeps its lane
+    table = markdown_table(rows, cases)
+    assert "| change to the left lane | " + no_lane + " | scene-0103 | 3.0 | 0/2 | - |" in table
+    assert f"Refused before simulating (scene-0103 at 3.0 s): {no_lane!r}: " in table
+    # a missing scene still fails at once
+    with pytest.raises(UnknownSceneError):
+        run_query_cases(catalog, [QueryCase("stop", "vehicle 0 stops", "scene-9999", 3.0)], factory,
+                        tmp_path / "r.csv", methods=("constvel", "constvel"))
+
+
+def test_a_case_file_without_its_fields_is_refused(tmp_path: Path) -> None:
     (tmp_path / "c.json").write_text(json.dumps([{"query": "stop", "scene": "scene-0103"}]))
     with pytest.raises(ValueError, match="lacks family, start_s"):
         load_cases(tmp_path / "c.json")

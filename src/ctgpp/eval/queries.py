@@ -144,18 +144,30 @@ def run_query_cases(
     alone). Episodes run ``duration_s`` simulated seconds after ``history_s`` of log (None: 3 s, less
     down to 1 s where a scene is short; the duration is not part of a row's key: one duration per
     ``results`` file). Every query is compiled, and every episode fitted to its scene, before any
-    simulation, so a bad case fails at once. With ``llm`` the guided loss is the language model's
-    program (the compiler's when the model's fails, as ``ctgpp simulate`` does); the verdict is always
-    the compiled query's independent check. Returns every finished row of ``results`` (:data:`FIELDS`).
+    simulation: a scene that is missing or too short fails at once; a sentence the compiler refuses
+    (its wording, a vehicle not in the episode, a manoeuvre the scene cannot offer) gets a row per
+    seed that is not satisfied, with the reason and nothing simulated. With ``llm`` the guided loss
+    is the language model's program (the compiler's when the model's fails, as ``ctgpp simulate``
+    does); the verdict is always the compiled query's independent check. Returns every finished row
+    of ``results`` (:data:`FIELDS`).
     """
     scenes = {sid: catalog.load(sid) for sid in dict.fromkeys(c.scene for c in cases)}
     configs = {sid: episode_config(scene, duration_s, history_s) for sid, scene in scenes.items()}
-    compiled = {case: _compile(scenes[case.scene], case, configs[case.scene]) for case in cases}
+    compiled: dict[QueryCase, CompiledQuery | str] = {}
+    for case in cases:
+        try:
+            compiled[case] = _compile(scenes[case.scene], case, configs[case.scene])
+        except ValueError as err:
+            compiled[case] = str(err)
     done = {record_key(r, KEY) for r in read_records(results, KEY)}
     todo = [(c, s) for c in cases for s in seeds if c.key(s) not in done]
     unguided: dict[tuple[str, float, int], Result] = {}
     with append_records(results, FIELDS) as write:
         for case, seed in tqdm(todo, desc="query cases", unit="case", disable=not progress):
+            query = compiled[case]
+            if isinstance(query, str):  # refused before simulating: counted, not satisfied
+                write(_refused_row(case, seed, query))
+                continue
             began = time.perf_counter()
             scene = scenes[case.scene]
             episode = partial(simulate, scene, seed=seed, start_s=case.start_s, duration_s=duration_s,
@@ -166,14 +178,21 @@ def run_query_cases(
                 unguided[base_key] = episode(policy=methods[1])
             row = dict(zip(KEY, case.key(seed), strict=True))
             row["vehicles"] = str(guided.num_vehicles)
-            row.update(_measure(guided, compiled[case], "guided"))
-            row.update(_measure(unguided[base_key], compiled[case], "unguided"))
+            row.update(_measure(guided, query, "guided"))
+            row.update(_measure(unguided[base_key], query, "unguided"))
             assert guided.query is not None  # a query was given
             row.update(_provenance(guided.query))
             row["wall_s"] = f"{time.perf_counter() - began:.1f}"
             _keep_rounds(results, row, guided.query)
             write(row)
     return read_records(results, KEY)
+
+
+def _refused_row(case: QueryCase, seed: int, why: str) -> dict[str, str]:
+    """The row of a case whose sentence is refused (it does not compile, or the scene cannot offer
+    what it asks): not satisfied guided, nothing simulated, the reason in ``measured_guided``."""
+    row = dict.fromkeys(FIELDS, "") | dict(zip(KEY, case.key(seed), strict=True))
+    return row | {"satisfied_guided": "0", "measured_guided": f"refused: {why}", "path": "refused"}
 
 
 def rounds_file(results: Path) -> Path:
@@ -219,6 +238,8 @@ def _mean(rows: list[dict[str, str]], column: str) -> float:
 
 
 def _rate(rows: list[dict[str, str]], column: str) -> str:
+    if not any(r[column] for r in rows):  # refused: nothing simulated to judge
+        return "-"
     hits = sum(r[column] == "1" for r in rows)
     if len(rows) == 1:
         return "**yes**" if hits else "no"
@@ -256,6 +277,10 @@ def markdown_table(records: list[dict[str, str]], cases: Sequence[QueryCase] | N
     missing = sorted(families - won)
     if missing:
         lines.append(f"Not satisfied guided: {', '.join(missing)}.")
+    refused = {k: groups[k][0]["measured_guided"] for k in order if groups[k][0].get("path") == "refused"}
+    for (_, query, scene, start), why in refused.items():
+        reason = why.removeprefix("refused: ")
+        lines.append(f"Refused before simulating ({scene} at {start} s): {query!r}: {reason}")
     lines.extend(_paths_summary(records))
     return "\n".join(lines) + "\n"
 
