@@ -94,14 +94,18 @@ def colliding_vehicles(compiled: CompiledQuery) -> list[int]:
     return out
 
 
-def _compile(scene: Scene, case: QueryCase, config: SimConfig) -> CompiledQuery:
+def _compile(scene: Scene, case: QueryCase, config: SimConfig) -> CompiledQuery | str:
     """The offline compilation of a case's query on its episode, whose parts the independent check
-    measures. Raises a ValueError naming the case when the query does not compile or the scene cannot
-    host the episode."""
+    measures, or why the compiler refuses the sentence (a str). Raises a ValueError naming the case
+    when the scene cannot host the episode (its start out of reach)."""
     try:
-        compiled = resolve_query(case.query, initial_observation(scene, case.start_s, config), None).compiled
+        observation = initial_observation(scene, case.start_s, config)
     except ValueError as err:
         raise ValueError(f"case {case.query!r} on {case.scene} at {case.start_s:g} s: {err}") from err
+    try:
+        compiled = resolve_query(case.query, observation, None).compiled
+    except ValueError as err:
+        return str(err)
     assert compiled is not None  # the offline path always compiles
     return compiled
 
@@ -153,12 +157,7 @@ def run_query_cases(
     """
     scenes = {sid: catalog.load(sid) for sid in dict.fromkeys(c.scene for c in cases)}
     configs = {sid: episode_config(scene, duration_s, history_s) for sid, scene in scenes.items()}
-    compiled: dict[QueryCase, CompiledQuery | str] = {}
-    for case in cases:
-        try:
-            compiled[case] = _compile(scenes[case.scene], case, configs[case.scene])
-        except ValueError as err:
-            compiled[case] = str(err)
+    compiled = {case: _compile(scenes[case.scene], case, configs[case.scene]) for case in cases}
     done = {record_key(r, KEY) for r in read_records(results, KEY)}
     todo = [(c, s) for c in cases for s in seeds if c.key(s) not in done]
     unguided: dict[tuple[str, float, int], Result] = {}
