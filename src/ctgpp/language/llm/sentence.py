@@ -58,13 +58,17 @@ def quantities(query: str) -> tuple[float, ...]:
     return tuple(value for value, _ in said_quantities(query))
 
 
+def _blank(match: re.Match[str]) -> str:
+    """Spaces in place of a match: the positions after it are kept, to read the units there."""
+    return " " * len(match.group(0))
+
+
 def said_quantities(query: str) -> tuple[tuple[float, str | None], ...]:
     """:func:`quantities` with the unit each is said in: "s", "m", "m/s", "m/s²", another unit word as
     written (lower case: "ft", "km", "min"), or None (a bare number, a point's coordinate)."""
-    blank = lambda m: " " * len(m.group(0))  # noqa: E731  (positions kept, to read the units after)
-    text = _LIST.sub(blank, query)
+    text = _LIST.sub(_blank, query)
     found = []
-    for m in _NUMBER.finditer(_UNIT_POWER.sub(blank, text)):
+    for m in _NUMBER.finditer(_UNIT_POWER.sub(_blank, text)):
         unit = _UNIT.match(text, m.end())
         word = None if unit is None else unit.group(1).lower()
         if word is not None and word.startswith("m/s") and word != "m/s":
