@@ -288,3 +288,21 @@ def _moved_onto(x: torch.Tensor, batch: GuidanceBatch, mover: int, target: int) 
     out[mover, ..., :2], out[mover, ..., 3:4] = pos_i, yaw_i
     return out
 
+
+
+def test_the_vehicles_involved_are_those_in_a_term_that_costs(
+    batch: GuidanceBatch, logged: torch.Tensor
+) -> None:
+    """Vehicle 3 drives onto vehicle 4's place: both are involved (their overlap costs), with every
+    vehicle whose own off-road, lane or follow term costs anything; vehicle 5 on its logged future (no
+    cost and no gradient, test above) is not. A loss with a rule cannot tell."""
+    guards = RealismGuards(GuardConfig())
+    scene = _moved_onto(logged, batch, 3, 4)[:, :1]
+    involved = guards.involved(scene, batch)
+    assert involved is not None and involved.shape == (scene.shape[0],) and involved.dtype == torch.bool
+    assert bool(involved[3]) and bool(involved[4]) and not bool(involved[5])
+    costs = RealismGuards(GuardConfig(guards=("offroad", "lane", "follow")))(scene, batch)[:, 0]  # (B,)
+    assert bool(involved[costs > 0].all())
+    apart = RealismGuards(GuardConfig(guards=("collision",))).involved(logged[:, :1], batch)
+    assert apart is not None and not bool(apart[4]) and not bool(apart[5])  # on the log: clear
+    assert GuardedLoss(make_loss("speed_limit", limit_mps=3.0), guards).involved(scene, batch) is None

@@ -19,6 +19,7 @@ import torch
 from torch import Tensor
 
 SceneLoss = Callable[[Tensor], Tensor]  # x (V, C, F, 6) -> loss (C,) or (V, C)
+Involved = Callable[[Tensor], Tensor | None]  # one scene (V, 1, F, 6) -> (V,) bool, or None: every vehicle
 _REL_TOL = 1e-6  # a switch must lower the loss by more than this fraction of it (round-off is no gain)
 
 
@@ -38,7 +39,9 @@ def filtration(loss: Tensor, couples_agents: bool, num_vehicles: int) -> Tensor:
     return torch.argmin(loss, dim=1)  # (B, N) -> (B,)
 
 
-def compose(trajectories: Tensor, scene_loss: SceneLoss, start: Tensor) -> Tensor:
+def compose(
+    trajectories: Tensor, scene_loss: SceneLoss, start: Tensor, involved: Involved | None = None
+) -> Tensor:
     """Each vehicle's sample for a loss that couples vehicles: (V,) long indices into the N samples.
 
     trajectories (V, N, F, 6) the N joint samples (the guidance contract's x); ``scene_loss`` maps C
@@ -51,26 +54,38 @@ def compose(trajectories: Tensor, scene_loss: SceneLoss, start: Tensor) -> Tenso
     than round-off. Vehicles whose N samples are identical (held still) are never switched. Each
     switch strictly lowers the loss, so the result is never worse than ``start``; at most as many
     switches are taken as there are single switches, which bounds the cost. NaN losses never win.
+
+    ``involved`` maps the composed scene (V, 1, F, 6) to (V,) bool, the vehicles a switch of which can
+    lower its loss (:meth:`~ctgpp.guidance.base.GuidanceLoss.involved`: for a sum of non-negative
+    terms of one vehicle or a pair, those in a term that costs anything): only their switches are
+    evaluated. The others' could only add to the loss, so the choice is the same, at a fraction of
+    the cost in a large scene (most vehicles clear of everything).
     """
     v, n = trajectories.shape[:2]
     choice = start.clone()
-    movers = torch.nonzero((trajectories != trajectories[:, :1]).flatten(1).any(dim=1)).flatten()
-    if n < 2 or len(movers) == 0:
+    movers = (trajectories != trajectories[:, :1]).flatten(1).any(dim=1)  # (V,)
+    if n < 2 or not bool(movers.any()):
         return choice
     rows = torch.arange(v)
-    vehicle = movers.repeat_interleave(n - 1)  # (C,) the vehicle each single switch moves
-    switch = torch.arange(len(vehicle))
     others = torch.arange(1, n)  # a vehicle's other samples, as offsets from its current one
-    best = _totals(scene_loss(trajectories[rows, choice][:, None]))[0]
-    for _ in range(len(vehicle)):
-        sample = ((choice[movers, None] + others) % n).flatten()  # (C,) the sample each switch takes
+    current = trajectories[rows, choice][:, None]  # (V, 1, F, 6)
+    best = _totals(scene_loss(current))[0]
+    for _ in range(int(movers.sum()) * (n - 1)):
+        found = None if involved is None else involved(current)
+        tried = movers if found is None else movers & found.to(movers.device)
+        if not bool(tried.any()):
+            break
+        candidates = torch.nonzero(tried).flatten()
+        vehicle = candidates.repeat_interleave(n - 1)  # (C,) the vehicle each single switch moves
+        sample = ((choice[candidates, None] + others) % n).flatten()  # (C,) the sample each switch takes
         assign = choice.expand(len(vehicle), v).clone()  # (C, V) each switch's composed choice
-        assign[switch, vehicle] = sample
+        assign[torch.arange(len(vehicle)), vehicle] = sample
         totals = _totals(scene_loss(trajectories[rows[:, None], assign.T]))  # (V, C, F, 6) -> (C,)
         j = int(torch.argmin(totals))
         if not _lower(totals[j], best):
             break
         choice[vehicle[j]], best = sample[j], totals[j]
+        current = trajectories[rows, choice][:, None]
     return choice
 
 

@@ -57,6 +57,14 @@ class GuidanceLoss(nn.Module):
         sequence does not wait for it."""
         return None
 
+    def involved(self, x: Tensor, data_batch: Any) -> Tensor | None:
+        """(B,) bool for one scene x (B, 1, T, 6): the vehicles that a term of :meth:`ranking` costing
+        anything there reads, for a loss that is a sum of non-negative terms each reading one vehicle or
+        a pair. Another vehicle's trajectory can then only add to the cost: composing a plan
+        (:func:`~ctgpp.diffusion.filtration.compose`) need not try it elsewhere. None: the loss cannot
+        tell (the default), and every vehicle is tried."""
+        return None
+
     def guided_parts(self, x: Tensor, data_batch: Any) -> Tensor | tuple[Tensor, Tensor]:
         """What a guidance step minimizes (:func:`ctgpp.diffusion.guided.guide_mean`): the cost, or the
         pair (the rule's cost, the realism guards' cost) for a loss that carries the guards apart."""

@@ -69,7 +69,7 @@ from ctgpp.guidance.constraints import PlanConstraints, collide_pairs
 from ctgpp.guidance.context import GuidanceBatch
 from ctgpp.guidance.rules.clearance import ClearAhead, NoCollision
 from ctgpp.guidance.rules.common import sample_sdf
-from ctgpp.guidance.rules.following import GAP_S, MIN_GAP_M, KeepUp
+from ctgpp.guidance.rules.following import GAP_S, MIN_GAP_M, KeepUp, Leaders
 from ctgpp.guidance.rules.lanes import KeepLane
 from ctgpp.guidance.rules.motion import NoOffroad
 from ctgpp.guidance.scope import LossScope
@@ -166,6 +166,13 @@ class RealismGuards(GuidanceLoss):
         """(no rule: zero, the guards' cost): the guards alone take their own step."""
         return x.new_zeros(()), self(x, data_batch)
 
+    def involved(self, x: Tensor, data_batch: Any) -> Tensor | None:
+        """The vehicles with an off-road, lane or follow cost in scene x (B, 1, T, 6) (a follower's
+        leader too), or in a pair whose overlap or headway costs anything: every guard is a sum of
+        such non-negative terms (:meth:`GuidanceLoss.involved`)."""
+        with torch.no_grad():
+            return _involved(self, x, data_batch)
+
     def pair_guards(self, num_vehicles: int) -> tuple[NoCollision, ClearAhead]:
         """The collision guard of a scene of ``num_vehicles`` vehicles — no overlap, and the road ahead
         kept clear — with the pairs the loss may ask to collide left out."""
@@ -200,6 +207,37 @@ class RealismGuards(GuidanceLoss):
         if cfg.headway_s > 0:
             collision = collision + ahead(x, data_batch, mask)
         return per_vehicle.sum(0) + cfg.collision_weight * collision  # (B, N) -> (N)
+
+
+def _involved(guards: RealismGuards, x: Tensor, data_batch: Any) -> Tensor:
+    """:meth:`RealismGuards.involved`, computed as its forward computes each term, without gradient."""
+    n_b, cfg = x.shape[0], guards.config
+    mask = x.detach().flatten(1).abs().amax(1) > 0  # (B,) as forward's: held in every sample
+    out = torch.zeros(n_b, dtype=torch.bool, device=x.device)
+    if "offroad" in cfg.guards:
+        out |= guards.offroad(x, data_batch, mask & on_road(data_batch).to(x.device))[:, 0] > 0
+    if "lane" in cfg.guards:
+        keeps = torch.tensor([guards.addressed.keeps_lane(v) for v in range(n_b)], device=x.device)
+        out |= guards.lane(x, data_batch, mask & keeps)[:, 0] > 0
+    if "follow" in cfg.guards:
+        free = torch.tensor([guards.addressed.leaves_pace(v) for v in range(n_b)], device=x.device)
+        lagging = guards.follow(x, data_batch, mask & free)[:, 0] > 0  # (B,) and their leaders
+        leader = Leaders.of(data_batch).index.to(x.device)[lagging]
+        out |= lagging
+        out[leader[(leader >= 0) & (leader < n_b)]] = True
+    if "collision" in cfg.guards:
+        overlap, ahead = guards.pair_guards(n_b)
+        parts = [overlap.terms(x, data_batch, None)]
+        if cfg.headway_s > 0:
+            parts.append(ahead.terms(x, data_batch, mask))
+        for terms in parts:
+            if terms is None:
+                continue
+            cost, _, a, b = terms
+            hit = cost > 0
+            out[a[hit]] = True
+            out[b[hit & (b >= 0)]] = True
+    return out
 
 
 def on_road(data_batch: GuidanceBatch) -> Tensor:

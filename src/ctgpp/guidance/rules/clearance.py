@@ -53,14 +53,25 @@ class NoCollision(PairGuard):
         return NoCollision(self.buffer_m, self.decay)
 
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
-        n, n_t = x.shape[1], x.shape[2]
+        terms = self.terms(x, data_batch, agt_mask)
+        if terms is None:  # nothing near: the cost is 0 whatever x
+            return x.new_zeros(x.shape[1])
+        cost, sample, _, _ = terms
+        return x.new_zeros(x.shape[1]).index_add(0, sample, cost)  # (N,): each pair once
+
+    def terms(
+        self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor] | None:
+        """The cost's terms: (cost (K,), sample (K,), vehicle (K,), other vehicle (K,), -1 for a
+        replayed agent) of every contact that may overlap; None when there is none."""
+        n_t = x.shape[2]
         lay = self._layout(data_batch, n_t, x)
         with torch.no_grad():
             pos, _ = world_states(x, data_batch)  # (B, N, T, 2) centres
             (a_v, b_v, n_v, t_v), (a_o, o_o, n_o, t_o) = self._contacts(pos, lay)
         kv, ko = len(a_v), len(a_o)
-        if kv + ko == 0:  # nothing near: the cost is 0 whatever x
-            return x.new_zeros(n)
+        if kv + ko == 0:
+            return None
         # the vehicles' rows of every contact in one gather: the a sides (a_v, a_o) first, then b_v
         a_all = torch.cat([a_v, a_o, b_v])
         n_all, t_all = torch.cat([n_v, n_o, n_v]), torch.cat([t_v, t_o, t_v])
@@ -76,7 +87,8 @@ class NoCollision(PairGuard):
         if agt_mask is not None:
             m = agt_mask.to(x)
             weight = weight * torch.cat([torch.maximum(m[a_v], m[b_v]), m[a_o]])
-        return x.new_zeros(n).index_add(0, torch.cat([n_v, n_o]), pen * weight)  # (N,): each pair once
+        others = torch.cat([b_v, -torch.ones_like(a_o)])
+        return pen * weight, torch.cat([n_v, n_o]), torch.cat([a_v, a_o]), others
 
     def _contacts(self, pos: Tensor, lay: PairLayout) -> tuple[tuple[Tensor, ...], tuple[Tensor, ...]]:
         """The contacts that may overlap: vehicle pairs a < b (a, b, n, t) and vehicle–replayed pairs
@@ -135,7 +147,15 @@ class ClearAhead(PairGuard):
         return ClearAhead(self.headway_s, self.buffer_m, self.decay, self.min_speed_mps)
 
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
-        n, n_t = x.shape[1], x.shape[2]
+        cost, sample, _, _ = self.terms(x, data_batch, agt_mask)
+        return x.new_zeros(x.shape[1]).index_add(0, sample, cost)  # (N,)
+
+    def terms(
+        self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """The cost's terms: (cost (K,), sample (K,), the vehicle behind (K,), the vehicle ahead (K,),
+        -1 for a replayed agent) of every probe that comes near another's outline."""
+        n_t = x.shape[2]
         offsets, radius = disc_layout(data_batch.extent.to(x))  # (B, D), (B,)
         pos, yaw = world_states(x, data_batch)  # (B, N, T, 2), (B, N, T)
         speed = x[..., 2].clamp_min(0.0)  # (B, N, T)
@@ -150,15 +170,14 @@ class ClearAhead(PairGuard):
         lay = self._layout(data_batch, n_t, x)  # the others' outlines, kept for the batch
         costs = [self._vehicles(probe, radius, pos.detach(), yaw.detach(), lay, moving)]
         costs.append(self._replayed(probe, radius, lay.replayed, moving))
-        pen, n_idx, t_idx = (torch.cat(parts) for parts in zip(*costs, strict=True))
-        weight = lay.time_weights[t_idx]
-        return x.new_zeros(n).index_add(0, n_idx, pen * weight)  # (N,)
+        pen, n_idx, t_idx, a_idx, b_idx = (torch.cat(parts) for parts in zip(*costs, strict=True))
+        return pen * lay.time_weights[t_idx], n_idx, a_idx, b_idx
 
     def _vehicles(
         self, probe: Tensor, radius: Tensor, pos: Tensor, yaw: Tensor, lay: PairLayout, moving: Tensor
-    ) -> tuple[Tensor, Tensor, Tensor]:
-        """(overlap (K,), sample (K,), step (K,)) of each probe (radius (B,)) that comes near another
-        vehicle's outline (``lay``)."""
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        """(overlap (K,), sample (K,), step (K,), vehicle (K,), other vehicle (K,)) of each probe
+        (radius (B,)) that comes near another vehicle's outline (``lay``)."""
         n_b = probe.shape[0]
         offsets, radii, reach = lay.offsets, lay.radius, lay.reach  # (B, P, 2), (B, P), (B,)
         with torch.no_grad():
@@ -172,12 +191,12 @@ class ClearAhead(PairGuard):
             a_i, b_i, n_i, t_i = torch.nonzero(near, as_tuple=True)
         points = outline_points(pos[b_i, n_i, t_i], yaw[b_i, n_i, t_i], offsets[b_i])  # (K, P, 2) no grad
         probes = probe[a_i, n_i, t_i][:, None]  # (K, 1, 2)
-        return closest_overlap(probes, radius[a_i], points, radii[b_i], self.buffer_m), n_i, t_i
+        return closest_overlap(probes, radius[a_i], points, radii[b_i], self.buffer_m), n_i, t_i, a_i, b_i
 
     def _replayed(
         self, probe: Tensor, radius: Tensor, rep: ReplayedOutlines, moving: Tensor
-    ) -> tuple[Tensor, Tensor, Tensor]:
-        """The same against the replayed agents' predicted outlines."""
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        """The same against the replayed agents' predicted outlines (the other: -1)."""
         with torch.no_grad():
             d2 = squared_distance(probe.detach()[:, None], rep.xy[None, :, None])  # (A, O, N, T)
             limit = (radius[:, None] + rep.reach[None] + self.buffer_m)[..., None, None]
@@ -185,4 +204,4 @@ class ClearAhead(PairGuard):
             a_i, o_i, n_i, t_i = torch.nonzero(near, as_tuple=True)
         probes = probe[a_i, n_i, t_i][:, None]  # (K, 1, 2)
         pen = closest_overlap(probes, radius[a_i], rep.discs[o_i, t_i], rep.radius[o_i], self.buffer_m)
-        return pen, n_i, t_i
+        return pen, n_i, t_i, a_i, -torch.ones_like(a_i)

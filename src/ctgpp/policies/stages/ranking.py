@@ -46,7 +46,9 @@ class Composition:
         if not (bool(loss.couples_agents) or plans.loss.ndim == 1):
             return plans
         traj = plans.trajectories(ctx.dt_s)
-        return replace(plans, chosen=compose(traj, lambda scenes: loss.ranking(scenes, batch), plans.chosen))
+        chosen = compose(traj, lambda scenes: loss.ranking(scenes, batch), plans.chosen,
+                         lambda scene: loss.involved(scene, batch))
+        return replace(plans, chosen=chosen)
 
 
 __all__ = ["Composition", "Ranking"]
