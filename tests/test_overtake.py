@@ -82,7 +82,8 @@ def test_the_map_and_the_start_must_allow_it(log: Rollout) -> None:
     behaviour = get_behaviour("overtake")
     lanes = log.scene.lanes
     sim, c = log.sim, log.current
-    starts = {n: (sim.xy[_agent(log, n), c], float(sim.yaw[_agent(log, n), c])) for n in (A, B)}
+    rows = {n: _agent(log, n) for n in (A, B)}
+    starts = {n: (sim.xy[a, c], float(sim.yaw[a, c]), float(sim.speed[a, c])) for n, a in rows.items()}
     assert behaviour.precondition is not None
     assert behaviour.precondition(lanes, starts, {"vehicle": A, "other": B}) is None
     assert "not behind" in str(behaviour.precondition(lanes, starts, {"vehicle": B, "other": A}))

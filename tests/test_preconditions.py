@@ -18,13 +18,14 @@ __all__ = ["no_simulation"]  # the fixture, used by name
 
 
 @pytest.fixture(scope="module")
-def starts() -> dict[int, tuple[np.ndarray, float]]:
+def starts() -> dict[int, tuple[np.ndarray, float, float]]:
     obs = initial_observation(Catalog.open().load("scene-0103"), 3.0)
-    return {n: (obs.tracks.xy[a, obs.step].astype(np.float64), float(obs.tracks.yaw[a, obs.step]))
+    tr, k = obs.tracks, obs.step
+    return {n: (tr.xy[a, k].astype(np.float64), float(tr.yaw[a, k]), float(tr.speed[a, k]))
             for n, a in enumerate(obs.controlled.tolist())}
 
 
-def test_a_turn_needs_a_way_that_turns_so(starts: dict[int, tuple[np.ndarray, float]]) -> None:
+def test_a_turn_needs_a_way_that_turns_so(starts: dict[int, tuple[np.ndarray, float, float]]) -> None:
     turn = get_behaviour("turn_at_next_intersection")
     lanes = Catalog.open().load("scene-0103").lanes
     assert turn.impossible(lanes, starts, {"vehicle": 3, "direction": "left"}) is None  # the README's turn

@@ -109,13 +109,13 @@ def test_turning_on_the_spot_does_not_count() -> None:
 
 def test_the_map_must_have_an_opposite_lane_within_reach() -> None:
     behaviour = get_behaviour("u_turn")
-    start = {0: (np.array([0.0, 0.0]), 0.0)}
+    start = {0: (np.array([0.0, 0.0]), 0.0, 9.0)}
     assert behaviour.impossible(_road(), start, U_TURN) is None
     why = behaviour.impossible(_road(opposite=False), start, U_TURN)
     assert why is not None and "no opposite-direction lane within reach of vehicle 0" in why
-    far = {0: (np.array([95.0, 0.0]), 0.0)}  # the opposite lane ends 5 m ahead: still beside it
+    far = {0: (np.array([95.0, 0.0]), 0.0, 9.0)}  # the opposite lane ends 5 m ahead: still beside it
     assert behaviour.impossible(_road(), far, U_TURN) is None
-    off = {0: (np.array([0.0, -30.0]), 0.0)}
+    off = {0: (np.array([0.0, -30.0]), 0.0, 9.0)}
     assert "starts on no lane" in str(behaviour.impossible(_road(), off, U_TURN))
 
 

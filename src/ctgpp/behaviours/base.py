@@ -71,8 +71,8 @@ HAPPENS = "happens"  # "within N s": between t = 0 and N s (events, manoeuvres)
 
 Measure = Callable[[Rollout, Mapping[str, Any], Vehicles], float]
 Check = Callable[[Rollout, Mapping[str, Any], Vehicles], Verdict]
-Starts = Mapping[int, tuple[np.ndarray, float]]
-"""Displayed vehicle number -> its position (2,) m and heading rad at the episode's start."""
+Starts = Mapping[int, tuple[np.ndarray, float, float]]
+"""Displayed vehicle number -> its position (2,) m, heading rad and speed m/s at the episode's start."""
 Precondition = Callable[[LaneGraph, Starts, Mapping[str, Any]], str | None]
 """What the scene must allow before the behaviour can happen at all: None, or why it cannot."""
 

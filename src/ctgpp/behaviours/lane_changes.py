@@ -55,7 +55,7 @@ def lane_change_precondition(lanes: LaneGraph, starts: Starts, p: Params) -> str
     number = int(p["vehicle"])
     if number not in starts:
         return None
-    xy0, yaw0 = starts[number]
+    xy0, yaw0, _ = starts[number]
     target, why = _lane_change_target(lanes, xy0, yaw0, p["side"])
     return None if target is not None else f"vehicle {number} has no lane to change to: {why}"
 
@@ -137,12 +137,16 @@ def _lane_offset(lanes: LaneGraph, lane: LaneProjection | None, xy: np.ndarray, 
 
 
 def cut_in_precondition(lanes: LaneGraph, starts: Starts, p: Params) -> str | None:
-    """A cut-in needs the vehicle outside the other's lane at the start (as the check asks: 1.75 m or
-    more from the centerline of the lane the other is on)."""
+    """A cut-in needs the other moving at the start and the vehicle outside its lane (as the check
+    asks: at ``MOVING_SPEED_MPS`` or more, and 1.75 m or more from the centerline of the lane the
+    other is on)."""
     a, b = int(p["vehicle"]), int(p["ahead_of"])
     if a not in starts or b not in starts:
         return None
-    (xy_a, _), (xy_b, yaw_b) = starts[a], starts[b]
+    (xy_a, _, _), (xy_b, yaw_b, speed_b) = starts[a], starts[b]
+    if speed_b < MOVING_SPEED_MPS:
+        return (f"vehicle {b} is at rest at the start ({speed_b:.1f} m/s): a cut-in is ahead of a vehicle "
+                f"that keeps moving")
     lat0 = _lane_offset(lanes, nearest_lane(lanes, xy_b, yaw_b), xy_a, xy_b, yaw_b)
     if lat0 < IN_LANE_M:
         return (f"vehicle {a} is already in vehicle {b}'s lane at the start ({lat0:.1f} m from its "
@@ -204,7 +208,7 @@ def overtake_precondition(lanes: LaneGraph, starts: Starts, p: Params) -> str | 
     a, b = int(p["vehicle"]), int(p["other"])
     if a not in starts or b not in starts:
         return None
-    (xy_a, _), (xy_b, yaw_b) = starts[a], starts[b]
+    (xy_a, _, _), (xy_b, yaw_b, _) = starts[a], starts[b]
     if _along(xy_a, xy_b, yaw_b) >= 0.0:
         return f"vehicle {a} is not behind vehicle {b} at the start: nothing to overtake"
     lane = nearest_lane(lanes, xy_b, yaw_b)

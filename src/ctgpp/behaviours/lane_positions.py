@@ -30,17 +30,17 @@ SUCCESSOR_DEPTH = 8
 
 def from_start_lane(
     lanes: LaneGraph,
-    starts: Mapping[int, tuple[np.ndarray, float]],
+    starts: Mapping[int, tuple[np.ndarray, float, float]],
     number: int,
     nowhere: str,
     need: Callable[[LaneProjection], str | None],
 ) -> str | None:
     """The refusal of a manoeuvre made from the lane vehicle ``number`` starts on (``starts``: its
-    position and heading): ``need(lane)``; "vehicle N starts on no lane: ``nowhere``" where it starts
+    position, heading and speed): ``need(lane)``; "vehicle N starts on no lane: ``nowhere``" where it starts
     on none; None where ``starts`` lacks it (a missing vehicle is refused elsewhere)."""
     if number not in starts:
         return None
-    xy0, yaw0 = starts[number]
+    xy0, yaw0, _ = starts[number]
     start = nearest_lane(lanes, xy0, yaw0)
     if start is None:
         return f"vehicle {number} starts on no lane: {nowhere}"

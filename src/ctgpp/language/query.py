@@ -87,7 +87,8 @@ def check_possible(compiled: CompiledQuery, obs: Observation) -> None:
     start whatever the traffic does (its behaviour's precondition, e.g. a lane change towards a side
     with no lane): said before anything is simulated."""
     tracks, step = obs.tracks, obs.step
-    starts = {number: (tracks.xy[agent, step].astype(np.float64), float(tracks.yaw[agent, step]))
+    starts = {number: (tracks.xy[agent, step].astype(np.float64), float(tracks.yaw[agent, step]),
+                       float(tracks.speed[agent, step]))
               for number, agent in enumerate(np.asarray(obs.controlled).tolist())}
     for part in compiled.parts:
         why = get_behaviour(part.rule).impossible(obs.scene.lanes, starts, part.params)
