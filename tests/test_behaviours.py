@@ -18,6 +18,7 @@ from ctgpp.guidance import registered_losses
 from ctgpp.interfaces import Rollout
 from ctgpp.language.compiler import compile_query
 from ctgpp.language.llm.prompt import build_messages
+from ctgpp.language.query import start_states
 from ctgpp.language.satisfaction import check_satisfied, in_order
 from ctgpp.policies.simple import ReplayPolicy
 from ctgpp.scene.lane_paths import same_direction_neighbour, turn_path
@@ -374,8 +375,7 @@ def test_a_lane_change_needs_a_lane_on_that_side_at_the_start() -> None:
 
     scene = Catalog.open().load("scene-0103")
     obs = initial_observation(scene, 5.0)
-    starts = {n: (obs.tracks.xy[a, obs.step].astype(np.float64), float(obs.tracks.yaw[a, obs.step]),
-                  float(obs.tracks.speed[a, obs.step])) for n, a in enumerate(obs.controlled.tolist())}
+    starts = start_states(obs)
     lane_change = get_behaviour("lane_change")
     assert lane_change.precondition is not None
     assert lane_change.impossible(scene.lanes, starts, {"vehicle": 12, "side": "right"}) is None

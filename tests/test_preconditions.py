@@ -6,11 +6,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from ctgpp.behaviours import get_behaviour
+from ctgpp.behaviours.base import Starts
 from ctgpp.data.catalog import Catalog
+from ctgpp.language.query import start_states
 from ctgpp.sim.closed_loop import initial_observation
 from tests.support.refusals import no_simulation, refused
 
@@ -18,14 +19,11 @@ __all__ = ["no_simulation"]  # the fixture, used by name
 
 
 @pytest.fixture(scope="module")
-def starts() -> dict[int, tuple[np.ndarray, float, float]]:
-    obs = initial_observation(Catalog.open().load("scene-0103"), 3.0)
-    tr, k = obs.tracks, obs.step
-    return {n: (tr.xy[a, k].astype(np.float64), float(tr.yaw[a, k]), float(tr.speed[a, k]))
-            for n, a in enumerate(obs.controlled.tolist())}
+def starts() -> Starts:
+    return start_states(initial_observation(Catalog.open().load("scene-0103"), 3.0))
 
 
-def test_a_turn_needs_a_way_that_turns_so(starts: dict[int, tuple[np.ndarray, float, float]]) -> None:
+def test_a_turn_needs_a_way_that_turns_so(starts: Starts) -> None:
     turn = get_behaviour("turn_at_next_intersection")
     lanes = Catalog.open().load("scene-0103").lanes
     assert turn.impossible(lanes, starts, {"vehicle": 3, "direction": "left"}) is None  # the README's turn

@@ -22,6 +22,7 @@ from ctgpp.eval.queries import (
 from ctgpp.guidance.base import GuidanceLoss
 from ctgpp.guidance.scope import LossScope
 from ctgpp.interfaces import Policy
+from ctgpp.language.query import start_states
 from ctgpp.policies.factory import PolicyFactory
 from ctgpp.sim.closed_loop import initial_observation
 
@@ -67,9 +68,7 @@ def test_the_curated_cases_cover_every_family_on_mini_val(catalog: Catalog) -> N
         scene = catalog.load(scene_id)
         for start in np.arange(3.0, scene.duration_s - 10.0 + 1e-6, 1.0):
             obs = initial_observation(scene, float(start))
-            tr, k = obs.tracks, obs.step
-            starts = {n: (tr.xy[a, k].astype(np.float64), float(tr.yaw[a, k]), float(tr.speed[a, k]))
-                      for n, a in enumerate(obs.controlled.tolist())}
+            starts = start_states(obs)
             lane_change = get_behaviour("lane_change")
             moving = [n for n, a in enumerate(obs.controlled.tolist()) if obs.tracks.speed[a, obs.step] > 2.0]
             lanes_on_the_left += sum(
@@ -78,8 +77,7 @@ def test_the_curated_cases_cover_every_family_on_mini_val(catalog: Catalog) -> N
     assert lanes_on_the_left == 0
     scene = catalog.load("scene-0103")
     obs = initial_observation(scene, 3.0)
-    starts = {n: (obs.tracks.xy[a, obs.step].astype(np.float64), float(obs.tracks.yaw[a, obs.step]),
-                  float(obs.tracks.speed[a, obs.step])) for n, a in enumerate(obs.controlled.tolist())}
+    starts = start_states(obs)
     why = get_behaviour("cut_in").impossible(scene.lanes, starts, {"vehicle": 0, "ahead_of": 2})
     assert why is not None and "already in vehicle 2's lane" in why
     # ahead of a vehicle at rest at the start there is no cut-in to make (the check asks it moving)

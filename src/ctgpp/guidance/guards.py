@@ -173,6 +173,15 @@ class RealismGuards(GuidanceLoss):
         with torch.no_grad():
             return _involved(self, x, data_batch)
 
+    def held_to(self, mask: Tensor, data_batch: Any) -> dict[str, Tensor]:
+        """The vehicles (B,) bool each per-vehicle guard holds, of those in ``mask``: off the road only
+        those on it at the re-plan, to their lane those the loss leaves in it, to the pace of the
+        vehicle ahead those whose pace it does not set."""
+        n_b, device = mask.shape[0], mask.device
+        keeps = torch.tensor([self.addressed.keeps_lane(v) for v in range(n_b)], device=device)
+        free = torch.tensor([self.addressed.leaves_pace(v) for v in range(n_b)], device=device)
+        return {"offroad": mask & on_road(data_batch).to(device), "lane": mask & keeps, "follow": mask & free}
+
     def pair_guards(self, num_vehicles: int) -> tuple[NoCollision, ClearAhead]:
         """The collision guard of a scene of ``num_vehicles`` vehicles — no overlap, and the road ahead
         kept clear — with the pairs the loss may ask to collide left out."""
@@ -191,15 +200,13 @@ class RealismGuards(GuidanceLoss):
         moves = x.detach().flatten(1).abs().amax(1) > 0  # (B,): False for a vehicle held in every sample
         mask = moves if agt_mask is None else moves & agt_mask.to(device=x.device, dtype=torch.bool)
         per_vehicle = x.new_zeros(x.shape[:2])  # (B, N)
+        held = self.held_to(mask, data_batch)
         if "offroad" in cfg.guards:
-            on = mask & on_road(data_batch).to(x.device)
-            per_vehicle = per_vehicle + cfg.offroad_weight * self.offroad(x, data_batch, on)
+            per_vehicle = per_vehicle + cfg.offroad_weight * self.offroad(x, data_batch, held["offroad"])
         if "lane" in cfg.guards:
-            keeps = torch.tensor([self.addressed.keeps_lane(v) for v in range(n_b)], device=x.device)
-            per_vehicle = per_vehicle + cfg.lane_weight * self.lane(x, data_batch, mask & keeps)
+            per_vehicle = per_vehicle + cfg.lane_weight * self.lane(x, data_batch, held["lane"])
         if "follow" in cfg.guards:
-            free = torch.tensor([self.addressed.leaves_pace(v) for v in range(n_b)], device=x.device)
-            per_vehicle = per_vehicle + cfg.follow_weight * self.follow(x, data_batch, mask & free)
+            per_vehicle = per_vehicle + cfg.follow_weight * self.follow(x, data_batch, held["follow"])
         if "collision" not in cfg.guards:
             return per_vehicle
         overlap, ahead = self.pair_guards(n_b)
@@ -215,15 +222,14 @@ def _involved(guards: RealismGuards, x: Tensor, data_batch: Any) -> Tensor:
     scene cannot tell, and more vehicles tried only costs time."""
     n_b, cfg = x.shape[0], guards.config
     mask = torch.ones(n_b, dtype=torch.bool, device=x.device)  # (B,)
+    held = guards.held_to(mask, data_batch)
     out = torch.zeros(n_b, dtype=torch.bool, device=x.device)
     if "offroad" in cfg.guards:
-        out |= guards.offroad(x, data_batch, mask & on_road(data_batch).to(x.device))[:, 0] > 0
+        out |= guards.offroad(x, data_batch, held["offroad"])[:, 0] > 0
     if "lane" in cfg.guards:
-        keeps = torch.tensor([guards.addressed.keeps_lane(v) for v in range(n_b)], device=x.device)
-        out |= guards.lane(x, data_batch, mask & keeps)[:, 0] > 0
+        out |= guards.lane(x, data_batch, held["lane"])[:, 0] > 0
     if "follow" in cfg.guards:
-        free = torch.tensor([guards.addressed.leaves_pace(v) for v in range(n_b)], device=x.device)
-        lagging = guards.follow(x, data_batch, mask & free)[:, 0] > 0  # (B,) and their leaders
+        lagging = guards.follow(x, data_batch, held["follow"])[:, 0] > 0  # (B,) and their leaders
         leader = Leaders.of(data_batch).index.to(x.device)[lagging]
         out |= lagging
         out[leader[(leader >= 0) & (leader < n_b)]] = True

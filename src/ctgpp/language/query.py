@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from ctgpp.behaviours import get_behaviour
+from ctgpp.behaviours.base import Starts
 from ctgpp.data.windows import WindowConfig, build_window
 from ctgpp.guidance.base import GuidanceLoss
 from ctgpp.guidance.context import build_guidance_batch
@@ -82,14 +83,20 @@ def probe_x(obs: Observation) -> torch.Tensor:
     return torch.from_numpy(logged)[:, None]
 
 
+def start_states(obs: Observation) -> Starts:
+    """Each controlled vehicle's position, heading and speed at the episode's start, by displayed
+    number: what the behaviours' preconditions read."""
+    tracks, step = obs.tracks, obs.step
+    return {number: (tracks.xy[agent, step].astype(np.float64), float(tracks.yaw[agent, step]),
+                     float(tracks.speed[agent, step]))
+            for number, agent in enumerate(np.asarray(obs.controlled).tolist())}
+
+
 def check_possible(compiled: CompiledQuery, obs: Observation) -> None:
     """Raise :class:`QueryError` (one line) when a part of the query cannot happen from the episode's
     start whatever the traffic does (its behaviour's precondition, e.g. a lane change towards a side
     with no lane): said before anything is simulated."""
-    tracks, step = obs.tracks, obs.step
-    starts = {number: (tracks.xy[agent, step].astype(np.float64), float(tracks.yaw[agent, step]),
-                       float(tracks.speed[agent, step]))
-              for number, agent in enumerate(np.asarray(obs.controlled).tolist())}
+    starts = start_states(obs)
     for part in compiled.parts:
         why = get_behaviour(part.rule).impossible(obs.scene.lanes, starts, part.params)
         if why is not None:

@@ -78,9 +78,8 @@ class CutIn(Rule):
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         a = check_vehicle(self.vehicle, data_batch, x.shape[0])
         b = check_vehicle(self.ahead_of, data_batch, x.shape[0])
-        ahead_of = x.clone()
-        ahead_of[b] = x[b].detach()  # the other is not slowed to open the gap: the cut-in is the vehicle's
-        lon, lat = relative_position(ahead_of, data_batch, a, b)  # (N, T) in b's predicted frame
+        # the other is not slowed to open the gap: the cut-in is the vehicle's
+        lon, lat = relative_position(_other_fixed(x, b), data_batch, a, b)  # (N, T) in b's predicted frame
         line = get_current_lane(data_batch, b)
         if line is None:  # off the lane graph: the vehicle onto the other's heading line
             offsets = soft_abs(lat)
@@ -92,8 +91,7 @@ class CutIn(Rule):
         gap = lon - half[a] - half[b]  # (N, T) bumper gap ahead of vehicle b
         gap_cost = torch.relu(self.min_gap_m - gap) + torch.relu(gap - self.gap_m)
         w = ramp_weights(x.shape[2], data_batch.dt_s, CUT_IN_RAMP_S, x)
-        aim = KEEP_MOVING_AIM * float(data_batch.start_speed[b])  # m/s
-        keep_moving = torch.relu(aim - x[b, ..., 2]).sum(-1)  # (N,) per step, as the lane and gap terms
+        keep_moving = _pace_shortfall(x, data_batch, b).sum(-1)  # (N,) per step, as the lane and gap terms
         return ((offsets + gap_cost) * w).sum(-1) + keep_moving
 
 
@@ -146,17 +144,28 @@ class Overtake(Rule):
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         a = check_vehicle(self.vehicle, data_batch, x.shape[0])
         b = check_vehicle(self.other, data_batch, x.shape[0])
-        passed = x.clone()
-        passed[b] = x[b].detach()  # the other is not slowed or pushed aside to be passed
-        lon, lat = relative_position(passed, data_batch, a, b)  # (N, T) in b's predicted frame
+        # the other is not slowed or pushed aside to be passed
+        lon, lat = relative_position(_other_fixed(x, b), data_batch, a, b)  # (N, T) in b's predicted frame
         clear = (data_batch.extent[a, 0] + data_batch.extent[b, 0]).to(x) / 2  # bumpers level, m
         ahead = torch.relu(clear + PASS_MARGIN_M - lon[:, -1])  # (N,)
         near = ((lon > -clear - PASS_APPROACH_M) & (lon < clear)).detach().to(x)  # (N, T)
         beside = (torch.relu(PASS_LATERAL_M - self.side(data_batch) * lat) * near).sum(-1)
         beside = beside / near.sum(-1).clamp_min(1.0) + torch.relu(lat.abs() - PASS_MAX_LATERAL_M).mean(-1)
-        aim = KEEP_MOVING_AIM * float(data_batch.start_speed[b])  # m/s
-        keep_moving = torch.relu(aim - x[b, ..., 2]).mean(-1)  # (N,)
-        return ahead + beside + keep_moving
+        return ahead + beside + _pace_shortfall(x, data_batch, b).mean(-1)
+
+
+def _other_fixed(x: Tensor, b: int) -> Tensor:
+    """x (B, N, T, 6) with vehicle ``b``'s row detached: what is measured against it moves the others."""
+    fixed = x.clone()
+    fixed[b] = x[b].detach()
+    return fixed
+
+
+def _pace_shortfall(x: Tensor, data_batch: Any, b: int) -> Tensor:
+    """(N, T) m/s: how far vehicle ``b``'s speeds fall below ``KEEP_MOVING_AIM`` of its speed at the
+    episode's start (the one cut in front of or overtaken keeps moving)."""
+    aim = KEEP_MOVING_AIM * float(data_batch.start_speed[b])  # m/s
+    return torch.relu(aim - x[b, ..., 2])
 
 
 @register_loss("reach_point")
