@@ -279,3 +279,36 @@ def test_a_guided_sample_lowers_the_query_loss(scene_0103: Scene, name: str, par
                     scene_0103)
     assert float(unguided.sum()) > 0
     assert float(guided.sum()) < 0.9 * float(unguided.sum())
+
+
+def test_a_target_speed_is_reached_once_the_past_holds_it_for_a_second(batch: GuidanceBatch) -> None:
+    # vehicle 2's simulated speeds over 15 steps (1.5 s) from the episode's start to a re-plan: within
+    # 1 m/s of 5 m/s for 10 steps in a row (1 s at 0.1 s) counts, even when it has left it since (once
+    # reached, reached); passing 5 m/s on the way down, or 9 steps in the band, does not; a table of
+    # speeds cannot tell; the loss for vehicle 2 alone asks vehicle 2 only, for vehicles 2 and 3 both
+    from ctgpp.guidance.rules.relative import ForVehicles
+
+    agent, third, start, n = int(batch.agent_index[2]), int(batch.agent_index[3]), int(batch.start_step), 15
+    steps = slice(start + 1, start + 1 + n)
+
+    def with_past(speeds: list[float]) -> GuidanceBatch:
+        k = batch.known  # known up to the start: n more steps simulated
+        more = [(0, 0), (0, start + 1 + n - k.speed.shape[1])]
+        known = replace(k, xy=np.pad(k.xy, [*more, (0, 0)], mode="edge"),
+                        yaw=np.pad(k.yaw, more, mode="edge"), speed=np.pad(k.speed, more, mode="edge"),
+                        valid=np.pad(k.valid, more, mode="edge"))
+        known.speed[agent, steps] = speeds
+        known.speed[third, steps] = 9.0
+        known.valid[[agent, third], steps] = True
+        return replace(batch, known=known, step=start + n, memo={})
+
+    slow = ForVehicles(make_loss("target_speed", speed_mps=5.0), vehicles=[2])
+    held = [9.0, 8.0, 7.0] + [5.5, 4.6, 5.9] * 3 + [5.0, 3.0, 1.0]
+    assert slow.reached(with_past(held)) is True
+    assert slow.reached(with_past([9.0, 8.0, 7.0, 6.5, 3.5, 3.0] + [2.0] * 9)) is False  # passed, not held
+    assert slow.reached(with_past([9.0] * 6 + [5.2] * 9)) is False  # 0.9 s in the band
+    assert slow.reached(with_past([9.0] * 5 + [5.2] * 10)) is True
+    both = ForVehicles(make_loss("target_speed", speed_mps=5.0), vehicles=[2, 3])  # vehicle 3 at 9 m/s
+    assert both.reached(with_past(held)) is False
+    table = ForVehicles(make_loss("target_speed", speed_mps=torch.full((batch.num_vehicles, 50), 5.0)), [2])
+    assert table.reached(with_past([9.0] * n)) is None

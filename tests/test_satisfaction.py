@@ -161,3 +161,36 @@ def test_lane_change_onto_the_same_direction_neighbour() -> None:
 def test_missing_vehicle_is_reported_not_raised(replay: Rollout) -> None:
     reports = check_satisfied(replay, compile_query("vehicle 40 should stop", 60))
     assert not reports[0].satisfied and "not controlled" in reports[0].measured
+
+
+def _speeds_along(rollout: Rollout, number: int, speed: np.ndarray) -> Rollout:
+    """Vehicle ``number`` driven straight on along its start heading at ``speed`` (T,) m/s."""
+    a, c = _agent(rollout, number), rollout.current
+    yaw0 = float(rollout.sim.yaw[a, c])
+    dist = np.cumsum(speed) * rollout.dt_s  # (T,) m
+    xy = rollout.sim.xy[a, c] + dist[:, None] * np.array([np.cos(yaw0), np.sin(yaw0)])
+    return _edited(rollout, number, xy, np.full(len(speed), yaw0), speed)
+
+
+def test_a_speed_then_a_stop_is_judged_as_a_held_speed_then_the_stop(replay: Rollout) -> None:
+    """"Slows down to 5 m/s and then stops": 5 m/s held (within 1 m/s) for a second at some time, the stop
+    reached after that and kept to the end; the earlier stage is not asked to last to the end, and a speed
+    never held for a second fails."""
+    query = "vehicle 0 slows down to 5 m/s and then stops"
+    n_t = replay.sim.speed[:, replay.future].shape[1]  # 10 Hz
+    # within 1 m/s of 5 m/s from index 15 (9 - 4k/19 <= 6), t = 1.6 s; under 0.5 m/s from index 48
+    # (5 - 5k/14 < 0.5 from k = 13), t = 4.9 s
+    ramp = np.concatenate([np.linspace(9.0, 5.0, 20), np.full(15, 5.0), np.linspace(5.0, 0.0, 15)])
+    held = _speeds_along(replay, 0, np.concatenate([ramp, np.zeros(n_t - len(ramp))]))
+    speed_part, stop_part = check_satisfied(held, compile_query(query, 20))
+    assert speed_part.satisfied and "from t = 1.6 s for 1 s" in speed_part.measured, speed_part.measured
+    assert stop_part.satisfied and "from t = 4.9 s" in stop_part.measured, stop_part.measured
+    assert "after the earlier stage (t = 1.6 s)" in stop_part.measured, stop_part.measured
+    # straight down through 5 m/s (0.5 s within 1 m/s of it) and stopped: the speed was never held
+    through = np.concatenate([np.linspace(9.0, 0.0, 40), np.zeros(n_t - 40)])
+    assert _verdicts(_speeds_along(replay, 0, through), query) == [False, True]
+    # at 5 m/s to the end: the speed holds, the stop never comes
+    assert _verdicts(_speeds_along(replay, 0, np.concatenate([ramp[:35], np.full(n_t - 35, 5.0)])),
+                     query) == [True, False]
+    # alone, "slows down to 5 m/s" still means reach and stay to the end
+    assert _verdicts(held, "vehicle 0 slows down to 5 m/s") == [False]

@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from ctgpp.guidance import CompositeLoss, GuidanceBatch, InOrder, build_guidance_batch, make_loss
+from ctgpp.guidance.composite import join_costs
 from ctgpp.guidance.rules.lane_change import REACHED_M
 from ctgpp.guidance.sequence import KeepPace
 from ctgpp.interfaces import Observation
@@ -91,6 +92,8 @@ def test_a_reached_lane_releases_what_waits_for_it_and_stays_reached(start_obs: 
     assert rightmost.reached(there) is True
     loss = compile_query(FAILURE_CASE, there.num_vehicles).loss
     assert loss.on(there) == [True, True, True, False]  # vehicle 21 changes now, vehicle 20 may turn
+    # vehicle 20's turn has taken over from its lane change: that part no longer guides
+    assert loss.guiding(there) == [False, True, True, False]
     assert 20 in loss.constraints(there).routes and 21 not in loss.constraints(there).routes
     # 1 s on, vehicle 20 back where the log has it: reached once, so still reached
     back = build_guidance_batch(later(later(start_obs, 10, {20: pose}), 10))
@@ -136,3 +139,25 @@ def test_in_order_checks_its_waits() -> None:
         InOrder([stop, stop], [(1,), ()])
     with pytest.raises(ValueError, match="one waits entry per part"):
         InOrder([stop], [(), ()])
+
+
+def test_a_held_speed_hands_over_to_the_stop_after_it(start_obs: Observation) -> None:
+    """"Vehicle 20 slows down to its speed and then stops": at the start only the speed guides; once the
+    simulated past holds it for a second, the stop alone guides (not a pull to both speeds)."""
+    compiled = compile_query("vehicle 20 slows down to 3 m/s and then stops", 30)
+    loss = compiled.loss
+    assert isinstance(loss, InOrder)
+    first = build_guidance_batch(start_obs)
+    assert loss.guiding(first) == [True, False]
+    agent = start_obs.controlled[20]
+    held = later(start_obs, 12)
+    speed = held.tracks.speed.copy()
+    speed[agent, START + 1 : START + 13] = 3.0
+    at_speed = build_guidance_batch(replace(held, tracks=replace(held.tracks, speed=speed)))
+    assert loss.on(at_speed) == [True, True] and loss.guiding(at_speed) == [False, True]
+    x, _ = logged_x(start_obs)
+    assert torch.equal(loss(x, at_speed), join_costs([loss.parts[1](x, at_speed)]))
+    # 0.9 s in the band is not enough
+    speed[agent, START + 1 : START + 13] = [9.0, 9.0, 9.0] + [3.0] * 9
+    short = build_guidance_batch(replace(held, tracks=replace(held.tracks, speed=speed)))
+    assert loss.guiding(short) == [True, False]

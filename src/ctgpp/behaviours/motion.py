@@ -16,7 +16,16 @@ from typing import Any
 import numpy as np
 
 from ctgpp.behaviours.base import Vehicles, Verdict, vehicle_list
-from ctgpp.behaviours.tracks import Track, earliest_speed_step, held_from, hold_steps, track, tracks
+from ctgpp.behaviours.tracks import (
+    HOLD_S,
+    Track,
+    earliest_speed_step,
+    first_held,
+    held_from,
+    hold_steps,
+    track,
+    tracks,
+)
 from ctgpp.interfaces import Rollout
 from ctgpp.metrics import rules as paper
 from ctgpp.metrics.offroad import offroad_steps
@@ -83,17 +92,32 @@ def _targets(rollout: Rollout, t: Track, p: Params) -> np.ndarray:
     return out
 
 
-def _reach_and_stay(t: Track, ok: np.ndarray, what: str) -> tuple[bool, str]:
+def _reach_and_stay(t: Track, ok: np.ndarray, what: str) -> tuple[bool, str, float | None]:
     """Whether ``ok`` (T,) holds from some valid step to the last valid one, for at least the last
-    second of them (in a deadline's window, ``t.hold``: from its first valid step)."""
+    second of them (in a deadline's window, ``t.hold``: from its first valid step; as a sequence's
+    earlier stage, ``t.once``: for a second in a row at some step), in words, and the episode time it
+    was reached (0 when it held from the first step; None when not satisfied)."""
     steps = np.flatnonzero(t.valid)
-    since = held_from(ok[steps])
+    if t.once:
+        since = first_held(ok[steps], hold_steps(t.dt_s))
+        if since is None:
+            return False, f"vehicle {t.number} never {what} for {HOLD_S:g} s", None
+    else:
+        since = held_from(ok[steps])
     if t.hold and steps.size and since != 0:  # a deadline: held from the window's first step
         late = "never to the end" if since is None else f"only from t = {t.time(int(steps[since])):.1f} s"
-        return False, f"vehicle {t.number} not {what} from t = {t.time(int(steps[0])):.1f} s ({late})"
+        return False, f"vehicle {t.number} not {what} from t = {t.time(int(steps[0])):.1f} s ({late})", None
     if since is None or (len(steps) - since < hold_steps(t.dt_s) and not t.hold):
-        return False, f"vehicle {t.number} not {what} over its last {hold_steps(t.dt_s) * t.dt_s:g} s"
-    return True, f"vehicle {t.number} {what} from t = {t.time(int(steps[since])):.1f} s"
+        return False, f"vehicle {t.number} not {what} over its last {hold_steps(t.dt_s) * t.dt_s:g} s", None
+    at = t.time(int(steps[since]))
+    done = 0.0 if since == 0 and t.shift_steps == 0 else at
+    held = f" for {HOLD_S:g} s" if t.once else ""
+    return True, f"vehicle {t.number} {what} from t = {at:.1f} s{held}", done
+
+
+def _reached(done: list[float | None]) -> float | None:
+    """The time every vehicle had reached its state (s), None when one has not."""
+    return None if not done or any(d is None for d in done) else max(d for d in done if d is not None)
 
 
 def target_speed_violation(rollout: Rollout, p: Params, vehicles: Vehicles) -> float:
@@ -103,14 +127,15 @@ def target_speed_violation(rollout: Rollout, p: Params, vehicles: Vehicles) -> f
 
 def target_speed_check(rollout: Rollout, p: Params, vehicles: Vehicles) -> Verdict:
     """Every vehicle reaches its target speed (within 1 m/s) and stays there to the end (at least 1 s)."""
-    words, ok_all = [], True
+    words, ok_all, done = [], True, []
     for t in tracks(rollout, vehicles):
         target = _targets(rollout, t, p)
         ok = (np.abs(t.speed - target) <= TARGET_TOL_MPS) | np.isnan(target)
-        ok_t, said = _reach_and_stay(t, ok, f"within {TARGET_TOL_MPS:g} m/s of its target")
+        ok_t, said, at = _reach_and_stay(t, ok, f"within {TARGET_TOL_MPS:g} m/s of its target")
         ok_all &= ok_t
+        done.append(at)
         words.append(said + f" (end {t.speed[t.valid][-1]:.1f} m/s)" if t.valid.any() else said)
-    return Verdict(ok_all, "; ".join(words), REACH_WINDOW)
+    return Verdict(ok_all, "; ".join(words), REACH_WINDOW, _reached(done))
 
 
 REACH_WINDOW = "reach and stay: from some step to the end of the episode, at least its last 1 s"
@@ -131,15 +156,16 @@ def reach_speed_check(rollout: Rollout, p: Params, vehicles: Vehicles) -> Verdic
     """Every vehicle gets to at most (``bound`` "below") / at least ("above") the speed and stays
     there to the end (at least 1 s); says when, and when it could have at the action bounds."""
     bound, below = float(p["speed_mps"]), p["bound"] == "below"
-    words, ok_all = [], True
+    words, ok_all, done = [], True, []
     for t in tracks(rollout, vehicles):
         ok = t.speed <= bound if below else t.speed >= bound
         side = "at or under" if below else "at or over"
-        ok_t, said = _reach_and_stay(t, ok, f"{side} {bound:g} m/s")
+        ok_t, said, at = _reach_and_stay(t, ok, f"{side} {bound:g} m/s")
         could = t.time(earliest_speed_step(t.speed0, bound, below, t.dt_s))
         ok_all &= ok_t
+        done.append(at)
         words.append(f"{said} (possible from {could:.1f} s)")
-    return Verdict(ok_all, "; ".join(words), REACH_WINDOW)
+    return Verdict(ok_all, "; ".join(words), REACH_WINDOW, _reached(done))
 
 
 def stop_violation(rollout: Rollout, p: Params, vehicles: Vehicles) -> float:
@@ -150,12 +176,14 @@ def stop_violation(rollout: Rollout, p: Params, vehicles: Vehicles) -> float:
 
 def stop_check(rollout: Rollout, p: Params, vehicles: Vehicles) -> Verdict:
     """Every vehicle comes to a stop (under 0.5 m/s) and stays stopped to the end (at least 1 s)."""
-    words, ok_all = [], True
+    words, ok_all, done = [], True, []
     for t in tracks(rollout, vehicles):
-        ok_t, said = _reach_and_stay(t, t.speed < MOVING_SPEED_MPS, f"stopped (< {MOVING_SPEED_MPS:g} m/s)")
+        stopped = t.speed < MOVING_SPEED_MPS
+        ok_t, said, at = _reach_and_stay(t, stopped, f"stopped (< {MOVING_SPEED_MPS:g} m/s)")
         ok_all &= ok_t
+        done.append(at)
         words.append(said)
-    return Verdict(ok_all, "; ".join(words), REACH_WINDOW)
+    return Verdict(ok_all, "; ".join(words), REACH_WINDOW, _reached(done))
 
 
 # --- acceleration, road ------------------------------------------------------------------------------

@@ -26,8 +26,9 @@ class Track:
     """One controlled vehicle: its ``number``, agent index, start state (xy0 (2,) m, yaw0 rad, speed0
     m/s at t = 0) and future (t > 0): xy (T, 2) m, yaw (T,) rad, speed (T,) m/s, valid (T,), extent (2,)
     length, width m; ``dt_s`` the step. In a time window (:mod:`~ctgpp.behaviours.timing`) the start is the
-    window's, ``shift_steps`` steps after the episode's, and ``hold`` asks the behaviour to hold from
-    the window's first step."""
+    window's, ``shift_steps`` steps after the episode's, ``hold`` asks the behaviour to hold from
+    the window's first step and ``once`` only to reach and hold a state for :data:`HOLD_S` (a
+    sequence's earlier stage)."""
 
     number: int
     agent: int
@@ -42,6 +43,7 @@ class Track:
     dt_s: float
     shift_steps: int = 0
     hold: bool = False
+    once: bool = False
 
     def time(self, k: int) -> float:
         """Episode time (s) of future index k (index 0 is t = 0.1 s; in a time window,
@@ -52,7 +54,8 @@ class Track:
         """The track with its invalid future steps dropped."""
         keep = self.valid
         return Track(self.number, self.agent, self.xy0, self.yaw0, self.speed0, self.xy[keep], self.yaw[keep],
-                     self.speed[keep], self.valid[keep], self.extent, self.dt_s, self.shift_steps, self.hold)
+                     self.speed[keep], self.valid[keep], self.extent, self.dt_s, self.shift_steps, self.hold,
+                     self.once)
 
 
 def track(rollout: Rollout, number: int) -> Track:
@@ -63,7 +66,8 @@ def track(rollout: Rollout, number: int) -> Track:
     a, sim, f, c = int(hit[0]), rollout.sim, rollout.future, rollout.current
     return Track(int(number), a, sim.xy[a, c], float(sim.yaw[a, c]), float(sim.speed[a, c]), sim.xy[a, f],
                  sim.yaw[a, f], sim.speed[a, f], sim.valid[a, f], sim.extent[a], rollout.dt_s,
-                 int(getattr(rollout, "shift_steps", 0)), bool(getattr(rollout, "hold", False)))
+                 int(getattr(rollout, "shift_steps", 0)), bool(getattr(rollout, "hold", False)),
+                 bool(getattr(rollout, "once", False)))
 
 
 def tracks(rollout: Rollout, vehicles: Vehicles | Sequence[int]) -> list[Track]:
@@ -99,6 +103,17 @@ def held_from(ok: np.ndarray) -> int | None:
         return None
     bad = np.flatnonzero(~ok)
     return 0 if bad.size == 0 else int(bad[-1]) + 1
+
+
+def first_held(ok: np.ndarray, steps: int) -> int | None:
+    """The first index from which ``ok`` (T,) bool holds for ``steps`` (>= 1) entries in a row, None
+    when it never does."""
+    run = 0
+    for k, good in enumerate(ok.tolist()):
+        run = run + 1 if good else 0
+        if run >= steps:
+            return k - steps + 1
+    return None
 
 
 def hold_steps(dt_s: float) -> int:

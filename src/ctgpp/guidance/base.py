@@ -18,7 +18,7 @@ before (the episode's start is on the batch).
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any, ClassVar
 
 from torch import Tensor, nn
@@ -64,6 +64,11 @@ class GuidanceLoss(nn.Module):
         (:func:`~ctgpp.diffusion.filtration.compose`) need not try it elsewhere. None: the loss cannot
         tell (the default), and every vehicle is tried."""
         return None
+
+    def reached_for(self, data_batch: Any, vehicles: Sequence[int]) -> bool | None:
+        """:meth:`reached` for some ``vehicles`` (displayed numbers) only, as a loss restricted to them
+        (:class:`~ctgpp.guidance.rules.relative.ForVehicles`) asks; by default :meth:`reached`."""
+        return self.reached(data_batch)
 
     def guided_parts(self, x: Tensor, data_batch: Any) -> Tensor | tuple[Tensor, Tensor]:
         """What a guidance step minimizes (:func:`ctgpp.diffusion.guided.guide_mean`): the cost, or the

@@ -5,15 +5,17 @@ right", "vehicle 3 changes lanes, then stops" (issue 36, item 6).
 ones a sentence's stages wait for: :func:`ctgpp.language.compiler.compiled.prerequisites`). At a
 re-plan a part guides only once each part it waits for guides and is reached
 (:meth:`~ctgpp.guidance.base.GuidanceLoss.reached`, judged on the simulated past up to the re-plan:
-a part once reached stays reached, and the loss keeps no memory of its own). A part that cannot tell
-whether it is reached (None) holds nothing back: what waits for it starts with it, as everything did
-before sequences guided. A vehicle with a part that waits keeps its pace (:class:`KeepPace`: a part
-that waits no longer keeps it going as a turn's speed terms did, and the model slowed vehicle 21 of
-the paper's failure case to 1.6 m/s in the middle of its lane change), and one whose every part
-waits also keeps its lane (``keep_lane``): waiting for vehicle 20's lane change, vehicle 21 would
-otherwise drive as the model samples it, out of the lane guard's hold, since the sentence moves it
-across lanes. Before sequences guided, both vehicles of the failure case changed lanes within 0.1 s
-of each other (docs/decisions/sequences.md).
+a part once reached stays reached, and the loss keeps no memory of its own); once a later part for
+the same vehicle is on, the earlier one stops guiding (the independent check judges it only until
+then: "slows down to 5 m/s and then stops" is not pulled to 5 m/s and to a stop at once). A part
+that cannot tell whether it is reached (None) holds nothing back: what waits for it starts with it,
+as everything did before sequences guided, and it keeps guiding. A vehicle with a part that waits
+keeps its pace (:class:`KeepPace`: a part that waits no longer keeps it going as a turn's speed
+terms did, and the model slowed vehicle 21 of the paper's failure case to 1.6 m/s in the middle of
+its lane change), and one whose every part waits also keeps its lane (``keep_lane``): waiting for
+vehicle 20's lane change, vehicle 21 would otherwise drive as the model samples it, out of the lane
+guard's hold, since the sentence moves it across lanes. Before sequences guided, both vehicles of
+the failure case changed lanes within 0.1 s of each other (docs/decisions/sequences.md).
 """
 
 from __future__ import annotations
@@ -59,10 +61,11 @@ class InOrder(GuidanceLoss):
     ``parts``) that part k waits for. A part is *on* when each part it waits for is on and reached (or
     cannot tell).
 
-    The cost is the sum of the parts that are on, of ``KeepPace`` for each vehicle a waiting part
-    moves and of ``keep_lane`` for each vehicle that only waiting parts move; ``constraints`` are
-    those of the parts that are on (a turn's route is driven only once the turn is on); ``scope`` is
-    every part's, so the guards leave the whole manoeuvre to the loss.
+    The cost is the sum of the parts that guide (:meth:`guiding`: on, and not yet handed over to a
+    later part for their vehicle), of ``KeepPace`` for each vehicle a waiting part moves and of
+    ``keep_lane`` for each vehicle that only waiting parts move; ``constraints`` are those of the
+    parts that guide (a turn's route is driven only once the turn is on); ``scope`` is every part's,
+    so the guards leave the whole manoeuvre to the loss.
     """
 
     def __init__(self, parts: Sequence[GuidanceLoss], waits: Sequence[Sequence[int]]) -> None:
@@ -99,11 +102,23 @@ class InOrder(GuidanceLoss):
             memo[key] = on
         return list(memo[key])
 
-    def active_parts(self, data_batch: Any) -> list[GuidanceLoss]:
-        """The parts that are on, then ``keep_pace`` of each vehicle a waiting part moves and
-        ``keep_lane`` of each vehicle only waiting parts move."""
+    def guiding(self, data_batch: Any) -> list[bool]:
+        """Which parts guide: those that are on, less those handed over: reached, and waited for by a
+        part that is on and moves one of their vehicles (the sentence has moved on for that vehicle:
+        "slows down to 5 m/s and then stops" no longer holds it at 5 m/s once the stop is on, as the
+        independent check judges a stage only until the next one for its vehicle). A part that cannot
+        tell whether it is reached keeps guiding beside what waits for it."""
         on = self.on(data_batch)
-        parts = [loss for loss, k in zip(self.parts, on, strict=True) if k]
+        moved_on = {j for k, w in enumerate(self.waits) if on[k] for j in w
+                    if _vehicles(self.parts[j]) & _vehicles(self.parts[k])
+                    and self.parts[j].reached(data_batch) is True}
+        return [k and j not in moved_on for j, k in enumerate(on)]
+
+    def active_parts(self, data_batch: Any) -> list[GuidanceLoss]:
+        """The parts that guide, then ``keep_pace`` of each vehicle a waiting part moves and
+        ``keep_lane`` of each vehicle only waiting parts move."""
+        on, guiding = self.on(data_batch), self.guiding(data_batch)
+        parts = [loss for loss, k in zip(self.parts, guiding, strict=True) if k]
         moving = {v for loss in parts for v in _vehicles(loss)}
         waiting = {v for loss, k in zip(self.parts, on, strict=True) if not k for v in _vehicles(loss)}
         waiting = {v for v in waiting if v < data_batch.num_vehicles}
@@ -111,8 +126,8 @@ class InOrder(GuidanceLoss):
                 + [self.wait_in_lane[v] for v in sorted(waiting - moving)])
 
     def constraints(self, data_batch: Any) -> PlanConstraints:
-        on = self.on(data_batch)
-        parts = [loss.constraints(data_batch) for loss, k in zip(self.parts, on, strict=True) if k]
+        guiding = self.guiding(data_batch)
+        parts = [loss.constraints(data_batch) for loss, k in zip(self.parts, guiding, strict=True) if k]
         return PlanConstraints().merged(parts, collide_pairs(self.scope(), int(data_batch.num_vehicles)))
 
     def reached(self, data_batch: Any) -> bool | None:

@@ -13,7 +13,10 @@ satisfied (one that held from t = 0 asked for no move and is in order). Where ei
 say when it was achieved, the order is not judged, and the report says so. A part whose vehicle a
 later stage takes elsewhere ("move to the rightmost lane and then turn right": after the turn it
 drives in another street's lane) is judged up to the time that later manoeuvre began (its verdict's
-``began_s``: entering the intersection), not at the end of the episode.
+``began_s``: entering the intersection), not at the end of the episode; and a state it reaches need
+only be held once, for the hold time, not to the end (``TimeWindow.once``: "slows down to 5 m/s and
+then stops" holds 5 m/s for a second, then the stop takes over, as guidance hands it over:
+:meth:`~ctgpp.guidance.sequence.InOrder.guiding`).
 """
 
 from __future__ import annotations
@@ -95,12 +98,15 @@ def _until_later_stage(
     docstring); as checked when there is none, or when the part names a time window of its own."""
     part = parts[index]
     report, done, _ = checked[index]
-    began = [b for q, (_, _, b) in zip(parts, checked, strict=True)
-             if q.stage > part.stage and b is not None and part_subjects(q) & part_subjects(part)]
-    if not began or part.window is not None:
+    later = [(q, b) for q, (_, _, b) in zip(parts, checked, strict=True)
+             if q.stage > part.stage and part_subjects(q) & part_subjects(part)]
+    if not later or part.window is not None:
         return report, done
-    until = min(began)
-    report, done, _ = _checked(rollout, part, TimeWindow(0.0, until))
+    began = [b for _, b in later if b is not None]
+    until = min(began) if began else None
+    report, done, _ = _checked(rollout, part, TimeWindow(0.0, until, once=True))
+    if until is None:
+        return replace(report, measured=f"{report.measured} (a later stage takes over)"), done
     return replace(report, measured=f"{report.measured} (judged up to t = {until:.1f} s, when a later "
                                     f"stage began)"), done
 

@@ -14,6 +14,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ctgpp.behaviours.tracks import HOLD_S, first_held
 from ctgpp.guidance.base import register_loss
 from ctgpp.guidance.constraints import PlanConstraints
 from ctgpp.guidance.context import GuidanceBatch
@@ -30,6 +31,11 @@ from ctgpp.guidance.rules.common import (
     world_states,
 )
 from ctgpp.guidance.scope import LossScope
+
+# a target speed counts as reached when held within REACHED_MPS of it for HOLD_S (s): the independent
+# check's band (TARGET_TOL_MPS of ctgpp.behaviours.motion) and hold, so that a sequence's next part starts
+# when the check counts this one done
+REACHED_MPS = 1.0
 
 
 @register_loss("speed_limit")
@@ -101,6 +107,24 @@ class TargetSpeed(Rule):
 
     def scope(self) -> LossScope:
         return LossScope.everyone()
+
+    def reached_for(self, data_batch: Any, vehicles: Sequence[int]) -> bool | None:
+        """Each of ``vehicles`` has held its speed, within ``REACHED_MPS``, for ``HOLD_S`` at some
+        time from the episode's start to the re-plan (the simulated past; once reached, it stays
+        reached): "slows down to 5 m/s, then stops" drives at 5 m/s for a second before it stops, as
+        the independent check asks of a sequence's earlier stage. None for a speed per step (a table)."""
+        if isinstance(self.speed_mps, Tensor):
+            return None
+        steps = slice(int(data_batch.start_step) + 1, int(data_batch.step) + 1)
+        hold = max(int(round(HOLD_S / data_batch.dt_s)), 1)
+        known = data_batch.known
+        for v in vehicles:
+            agent = int(data_batch.agent_index[check_vehicle(v, data_batch, int(data_batch.num_vehicles))])
+            off = np.abs(known.speed[agent, steps] - self.speed_mps)  # (K,) m/s
+            near = known.valid[agent, steps] & (off <= REACHED_MPS)
+            if first_held(near, hold) is None:
+                return False
+        return True
 
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         target = self.targets(x, data_batch)[:, None]  # (B, 1, T)

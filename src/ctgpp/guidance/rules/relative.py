@@ -46,7 +46,7 @@ class _ForSomeVehicles(GuidanceLoss):
         return self.loss.scope().restricted(self.vehicles)
 
     def reached(self, data_batch: Any) -> bool | None:
-        return self.loss.reached(data_batch)
+        return self.loss.reached_for(data_batch, self.vehicles)
 
     def rows(self, x: Tensor, data_batch: Any) -> Tensor:
         """(B,) bool, True on the rows of x of ``vehicles``."""
