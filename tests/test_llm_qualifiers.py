@@ -74,6 +74,25 @@ REFUSED = [
     ("vehicle 2 cuts in behind vehicle 3",
      calls({"behaviour": "cut_in", "vehicle": 2, "ahead_of": 3}),
      "cut_in puts vehicle 3 behind vehicle 2, but the sentence puts vehicle 2 behind vehicle 3"),
+    # a bound turned round, or read as a speed to drive at
+    ("vehicle 3 should be at most 15 m away from vehicle 0",
+     calls({"behaviour": "stay_away", "vehicle": 3, "other": 0, "min_m": 15}),
+     "'at most 15 m' is an upper bound, but stay_away reads 15 as a lower bound (min_m)"),
+    ("vehicle 1 drives at a speed of 12 m/s or more",
+     calls({"behaviour": "target_speed", "vehicles": [1], "speed_mps": 12}),
+     "'12 m/s or more' is a lower bound, but target_speed reads 12 as a speed to drive at"),
+    # a "not" read as what it denies
+    ("vehicle 6 must never turn around", calls({"behaviour": "u_turn", "vehicle": 6}),
+     "'vehicle 6 must never turn around' says what must not happen, but the reading asks for it (u_turn)"),
+    ("vehicle 1 should not stop", calls({"behaviour": "no_collision", "vehicles": [1]}),
+     "says what must not happen, but the reading (no_collision) forbids something the clause does not name"),
+    ("vehicle 4 must not be more than 30 m from vehicle 2",
+     calls({"behaviour": "keep_distance", "follower": 4, "leader": 2, "min_m": 30, "max_m": 30}),
+     "'more than 30 m' after a 'not' is an upper bound, but keep_distance reads 30 as a lower bound (min_m)"),
+    ("vehicle 1 should not stop and vehicle 2 turns left at the next intersection",
+     calls({"behaviour": "stop", "vehicles": [1]},
+           {"behaviour": "turn_at_next_intersection", "vehicle": 2, "direction": "left"}),
+     "says what must not happen, but the reading asks for it (stop)"),
 ]
 
 
@@ -101,6 +120,12 @@ ACCEPTED = [
      calls({"behaviour": "reach_point", "vehicle": 2, "x": 612, "y": 1644, "within_s": 9})),
     ("vehicle 3 keeps a 20 m gap to vehicle 4",  # a gap in metres is a distance
      calls({"behaviour": "keep_distance", "follower": 3, "leader": 4, "min_m": 20})),
+    ("vehicle 3 should be at most 15 m away from vehicle 0",  # the bound the right way round
+     calls({"behaviour": "keep_distance", "follower": 3, "leader": 0, "max_m": 15})),
+    ("vehicle 2 never goes above 15 m/s",  # "never ... above" is an upper bound, a denial a limit can mean
+     calls({"behaviour": "speed_limit", "vehicles": [2], "limit_mps": 15})),
+    ("vehicle 3 does not change lanes and vehicle 4 stops",
+     calls({"behaviour": "keep_lane", "vehicle": 3}, {"behaviour": "stop", "vehicles": [4]})),
 ]
 
 

@@ -125,12 +125,17 @@ def test_valid_reply_builds_the_compilers_parts(query: str, answer: str, server:
 
 def test_a_different_reading_is_not_the_compilers(server: CannedServer) -> None:
     query = "vehicle 3 should not exceed 36 km/h"
-    server.replies = [calls({"behaviour": "target_speed", "speed_mps": 10, "vehicles": [3]})]
+    # slowing to 10 m/s and staying under, not a limit from the start: another reading that passes the
+    # checks (a target speed, a reading that asks for what the "not" denies, no longer does)
+    server.replies = [calls({"behaviour": "reach_speed", "speed_mps": 10, "bound": "below", "vehicles": [3]})]
     got = read_structured(query, server.client(), SCENE_VEHICLES)
     want = compile_query(query, SCENE_VEHICLES)
     assert sorted(map(structure_key, got.compiled.parts)) != sorted(map(structure_key, want.parts))
     server.replies = [calls({"behaviour": "speed_limit", "limit_mps": 36, "vehicles": [3]})]  # km/h unread
     with pytest.raises(StructuredRefused, match="limit_mps=36 is a number the sentence does not name"):
+        read_structured(query, server.client(), SCENE_VEHICLES)
+    server.replies = [calls({"behaviour": "target_speed", "speed_mps": 10, "vehicles": [3]})]
+    with pytest.raises(StructuredRefused, match="says what must not happen"):
         read_structured(query, server.client(), SCENE_VEHICLES)
 
 

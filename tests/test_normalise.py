@@ -81,6 +81,10 @@ def test_correct_word(word: str, fixed: str) -> None:
     ("I want the ego to turn left at the next intersection",
      "the ego should turn left at the next intersection"),
     ("vehicle 4 should cut infront of vehicle 8", "vehicle 4 should cut in front of vehicle 8"),
+    # a contraction's "not" kept (the typo step once read "shouldn" as "should": "should't stop")
+    ("vehicle 1 shouldn't stop", "vehicle 1 should not stop"),
+    ("Car 2 won't change lanes", "Car 2 will not change lanes"),
+    ("vehicle 3 can't stop and vehicle 4 cannot turn", "vehicle 3 can not stop and vehicle 4 can not turn"),
     # words that are not numbers stay words
     ("vehicles 1, 2 and 3 change to the left lane one by one",
      "vehicles 1 & 2 & 3 change to the left lane one by one"),

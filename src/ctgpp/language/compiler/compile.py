@@ -53,6 +53,7 @@ from ctgpp.language.compiler.normalise import normalise, original_span
 from ctgpp.language.compiler.patterns import Clause
 from ctgpp.language.compiler.refusals import (
     UnsupportedQuery,
+    check_bounds,
     check_manoeuvres,
     check_negation,
     check_none_dropped,
@@ -160,6 +161,7 @@ def compile_query(query: str, num_vehicles: int) -> CompiledQuery:
         for spec in specs:
             check_vehicles(spec, num_vehicles, text)
             check_quantities(spec, text)
+            check_bounds(spec, text)
             step = stage
             if clause.one_by_one and (v := _vehicle_of(spec)) is not None and v in order:
                 step = stage + order.index(v)

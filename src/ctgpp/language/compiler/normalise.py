@@ -4,7 +4,9 @@ query families read, before any family is tried (issue 36, item 5).
 In order (:func:`normalise`; each step a small function, case kept, text that is already canonical
 left unchanged):
 
-1. Typography: dashes and quotes to ASCII, "°"-free, runs of spaces to one.
+1. Typography: dashes and quotes to ASCII, "°"-free, runs of spaces to one; contractions spelt out
+   (:func:`expand_contractions`: "shouldn't" -> "should not", "won't" -> "will not", before the typo
+   step could read "shouldn" as "should" and drop the "not").
 2. Typos (:func:`correct_typos`): a word of at least 5 letters that is not in :data:`VOCABULARY` and
    is one edit away (insert, delete, substitute, or swap two neighbours) from exactly one word of it is
    replaced by that word ("chnage" -> "change", "vehicel" -> "vehicle").
@@ -118,6 +120,19 @@ def correct_word(word: str) -> str:
         return word
     near = [w for w in VOCABULARY if len(w) >= 4 and _one_edit(word, w)]
     return near[0] if len(near) == 1 else word
+
+
+_CONTRACTIONS = ((r"\b(w)on't\b", r"\1ill not"), (r"\b(c)an't\b", r"\1an not"),
+                 (r"\b(s)han't\b", r"\1hall not"),
+                 (r"\b(\w+)n't\b", r"\1 not"), (r"\b(c)annot\b", r"\1an not"))
+
+
+def expand_contractions(text: str) -> str:
+    """Negative contractions spelt out: "shouldn't" -> "should not", "won't" -> "will not", "can't" and
+    "cannot" -> "can not" (case of the first letter kept)."""
+    for pattern, repl in _CONTRACTIONS:
+        text = re.sub(pattern, repl, text, flags=re.IGNORECASE)
+    return text
 
 
 def correct_typos(text: str) -> str:
@@ -278,6 +293,7 @@ def normalise(query: str) -> str:
     text = query
     for fancy, plain in (("–", "-"), ("—", "-"), ("’", "'"), ("‘", "'"), ("\u00a0", " ")):
         text = text.replace(fancy, plain)
+    text = expand_contractions(text)
     text = correct_typos(text)
     text = numbers_to_digits(text)
     text = canonical_units(text)

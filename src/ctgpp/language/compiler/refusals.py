@@ -3,8 +3,8 @@
 have (passing each other, three-point turns: :func:`check_manoeuvres`, with no suggestion), a vehicle
 outside the scene (:class:`VehicleOutOfRange`), a quantity out of physical range, a vehicle a clause
 names that no compiled part would involve, and a number or time of a clause that no compiled part reads
-(:func:`check_numbers_used`, :func:`check_times`: :class:`QueryError`). Nothing is guessed, clipped
-or dropped.
+(:func:`check_numbers_used`, :func:`check_times`: :class:`QueryError`), and a bound read the other way
+round or as an exact value (:func:`check_bounds`). Nothing is guessed, clipped or dropped.
 """
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ import re
 
 from ctgpp.behaviours import behaviours
 from ctgpp.guidance.composite import check_quantity
+from ctgpp.language.bounds import bound_mismatch
 from ctgpp.language.compiler.patterns import Clause
 from ctgpp.language.compiler.phrases import KEEP_LANE, STAY_AWAY
 from ctgpp.language.compiler.subjects import PartSpec, QueryError
@@ -64,6 +65,14 @@ def check_vehicles(spec: PartSpec, num_vehicles: int, text: str) -> None:
         if not 0 <= int(v) < num_vehicles:
             valid = f"vehicles 0-{num_vehicles - 1}" if num_vehicles > 0 else "no vehicles"
             raise VehicleOutOfRange(f"vehicle {v} does not exist in {text.strip()!r}: this scene has {valid}")
+
+
+def check_bounds(spec: PartSpec, text: str) -> None:
+    """A number the clause states as a bound that the part reads as another kind of bound, or as an
+    exact value, is refused (:mod:`ctgpp.language.bounds`): "at most 15 m away" is no minimum distance."""
+    reason = bound_mismatch(spec.rule, spec.params, text) if spec.rule else None
+    if reason is not None:
+        raise QueryError(f"{text.strip()!r}: {reason}; refused rather than read the other way")
 
 
 def check_quantities(spec: PartSpec, text: str) -> None:

@@ -15,7 +15,8 @@ from ctgpp.language.llm.schema import TIME_FIELDS, is_vehicle, scoped, words
 from ctgpp.language.llm.sentence import named_vehicles, said_quantities
 from ctgpp.rule_params import check_quantity
 
-__all__ = ["StructuredRefused", "call_params", "check_grounded", "number", "parse_calls", "vehicle_number"]
+__all__ = ["StructuredRefused", "call_params", "check_grounded", "is_vehicle_param", "number", "parse_calls",
+           "vehicle_number"]
 
 
 class StructuredRefused(ValueError):
@@ -100,7 +101,7 @@ def check_grounded(calls: list[dict[str, Any]], sentence: str) -> None:
             for v in values:
                 if key == "stage" or isinstance(v, bool) or not isinstance(v, int | float):
                     continue
-                vehicle = key == "vehicles" or _is_vehicle_param(name, key)
+                vehicle = key == "vehicles" or is_vehicle_param(name, key)
                 timed = key in TIME_FIELDS or key == "at_s"
                 if vehicle:
                     used.add(int(v))
@@ -137,7 +138,7 @@ def check_grounded(calls: list[dict[str, Any]], sentence: str) -> None:
         raise StructuredRefused(f"the sentence's {value:g} is in no call{where}")
 
 
-def _is_vehicle_param(name: str, key: str) -> bool:
+def is_vehicle_param(name: str, key: str) -> bool:
     return any(p.name == key and is_vehicle(p) for p in get_behaviour(name).params)
 
 

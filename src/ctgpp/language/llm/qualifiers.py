@@ -15,7 +15,13 @@ offline compiler knows it cannot honour:
 - a qualifier a behaviour cannot take: a U-turn's place or side
   (:data:`~ctgpp.language.compiler.handlers.U_TURN_PLACE`, :data:`~.handlers.U_TURN_SIDE`);
 - a relation whose vehicles are in the other order than the sentence puts them ("vehicle 3 ...
-  ahead of vehicle 4" read with vehicle 3 behind: following it, cutting in behind it, ...).
+  ahead of vehicle 4" read with vehicle 3 behind: following it, cutting in behind it, ...);
+- a bound read the other way round or as an exact value (:func:`~ctgpp.language.bounds.bound_mismatch`,
+  the compiler's check too: "no farther than 18 m" is no minimum distance);
+- a "not" read as the thing it denies, or as a prohibition of something else: a clause that says
+  "not" or "never" about a vehicle none of whose calls is a limit or prohibition of what the clause
+  talks about (:data:`DENIABLE`: "should not make a U-turn" read as a U-turn, "should not stop" as
+  no collision).
 """
 
 from __future__ import annotations
@@ -23,12 +29,15 @@ from __future__ import annotations
 import re
 from typing import Any
 
+from ctgpp.behaviours import get_behaviour
+from ctgpp.language.bounds import bound_mismatch
 from ctgpp.language.compiler.handlers import U_TURN_PLACE, U_TURN_SIDE
 from ctgpp.language.compiler.phrases import U_TURN
 from ctgpp.language.compiler.refusals import MANOEUVRES, SUPPORTED
-from ctgpp.language.llm.calls import StructuredRefused
+from ctgpp.language.llm.calls import StructuredRefused, is_vehicle_param
+from ctgpp.language.llm.sentence import named_vehicles
 
-__all__ = ["ORDER", "check_expressible", "positions"]
+__all__ = ["DENIABLE", "ORDER", "check_expressible", "positions"]
 
 TIME_GAP = re.compile(
     r"\d+(?:\.\d+)?\s*-?\s*(?:s|secs?|seconds?)\s+(?:time\s+)?(?:gap|headway)\b"
@@ -36,6 +45,23 @@ TIME_GAP = re.compile(
 ORDER = {"keep_distance": ("follower", "leader"), "collide_from_behind": ("vehicle", "target"),
          "cut_in": ("ahead_of", "vehicle"), "overtake": ("other", "vehicle")}
 """For each relation with an order: the parameter of the vehicle behind, and of the one ahead."""
+_SPEED = r"m/s\b(?!²)|speed|fast|slow|exceed|quick"
+_GAP = r"\d\s*m\b|distance|close|near|far|away|gap|behind|ahead|apart"
+DENIABLE = {
+    "no_collision": r"collid|collision|crash|\bhit|accident|contact|touch|bump|rear-?end",
+    "no_offroad": r"road|drivable|pavement|kerb|curb|verge|sidewalk",
+    "keep_lane": r"\blanes?\b", "follow_lane": r"\blanes?\b",
+    "speed_limit": _SPEED, "reach_speed": _SPEED,
+    "keep_distance": _GAP, "stay_away": _GAP,
+    "acceleration_limit": r"accelerat|brak|decelerat|m/s²",
+    "stay_side_of": r"\bleft\b|\bright\b|\bside\b",
+}
+"""The behaviours a sentence with "not" can mean (limits, bands and prohibitions: "never goes above",
+"must not change lanes", "should not get closer than"), each with what a clause must talk about to be
+read as it: a small model reads "should not stop" as no collision and "must never turn around" as
+staying on the road. Every other behaviour asks for something to happen (a turn, a stop, a
+collision, a lane change), the opposite of denying it."""
+_NOT = re.compile(r"\b(?:not|never)\b", re.I)
 _CLAUSE_END = re.compile(r"[,;.]|\b(?:and|then|but|while|whilst)\b", re.I)
 _MENTION = r"(?:\b(?:vehicle|car|agent)\s+(\d+)\b|\b(the\s+)?ego\b)"
 _BETWEEN = r"(?:(?!\b(?:vehicles?|cars?|agents?|ego)\b)[^,;.])*?"  # no other vehicle in between
@@ -77,6 +103,14 @@ def check_expressible(calls: list[dict[str, Any]], sentence: str) -> None:
             if (m := re.search(qualifier, clause, re.I)) is not None:
                 raise StructuredRefused(f"a U-turn cannot take {m.group(0)!r}: it turns round where the map "
                                         "has a lane running the other way, towards it")
+    for call in calls:
+        name = str(call.get("behaviour", ""))
+        params = {p.name: p.default for p in get_behaviour(name).params}  # what an unset field means
+        params.update({k: v for k, v in call.items() if k not in ("behaviour", "stage")})
+        reason = bound_mismatch(name, params, sentence)
+        if reason is not None:
+            raise StructuredRefused(reason)
+    _check_denials(calls, sentence)
     placed = positions(sentence)
     for call in calls:
         roles = ORDER.get(call.get("behaviour", ""))
@@ -86,3 +120,34 @@ def check_expressible(calls: list[dict[str, Any]], sentence: str) -> None:
         if (ahead, behind) in placed:
             raise StructuredRefused(f"{call['behaviour']} puts vehicle {behind} behind vehicle {ahead}, but "
                                     f"the sentence puts vehicle {ahead} behind vehicle {behind}")
+
+
+def _check_denials(calls: list[dict[str, Any]], sentence: str) -> None:
+    """:class:`StructuredRefused` when a clause says "not" or "never" about a vehicle (named in it, else
+    every vehicle of the calls) and no call about that vehicle is a limit or prohibition of what the
+    clause talks about (:data:`DENIABLE`)."""
+    for clause in _clauses_of(sentence, _NOT.pattern):
+        named = set(named_vehicles(clause))
+        about = [c for c in calls if not named or named & _call_vehicles(c)]
+        topics = [DENIABLE.get(str(c.get("behaviour"))) for c in about]
+        if not about or any(t is not None and re.search(t, clause, re.I) for t in topics):
+            continue
+        what = ", ".join(sorted({str(c.get("behaviour")) for c in about}))
+        if all(t is None for t in topics):
+            raise StructuredRefused(f"{clause.strip()!r} says what must not happen, but the reading asks "
+                                    f"for it ({what})")
+        raise StructuredRefused(f"{clause.strip()!r} says what must not happen, but the reading ({what}) "
+                                f"forbids something the clause does not name")
+
+
+def _call_vehicles(call: dict[str, Any]) -> set[int]:
+    """The vehicle numbers a call names (any integer field but its stage, and its list of vehicles)."""
+    out: set[int] = set()
+    for key, value in call.items():
+        if key == "stage" or isinstance(value, bool):
+            continue
+        if key == "vehicles" and isinstance(value, list):
+            out |= {v for v in value if isinstance(v, int)}
+        elif isinstance(value, int) and is_vehicle_param(call.get("behaviour", ""), key):
+            out.add(value)
+    return out
