@@ -142,20 +142,23 @@ def test_in_order_checks_its_waits() -> None:
 
 
 def test_a_held_speed_hands_over_to_the_stop_after_it(start_obs: Observation) -> None:
-    """"Vehicle 20 slows down to its speed and then stops": at the start only the speed guides; once the
-    simulated past holds it for a second, the stop alone guides (not a pull to both speeds)."""
+    """"Vehicle 20 slows down to 3 m/s and then stops": at the start only the speed guides (with no pull
+    to keep its pace); once the simulated past holds it for a second, the stop alone guides (not a pull
+    to both speeds)."""
     compiled = compile_query("vehicle 20 slows down to 3 m/s and then stops", 30)
     loss = compiled.loss
     assert isinstance(loss, InOrder)
     first = build_guidance_batch(start_obs)
     assert loss.guiding(first) == [True, False]
+    x, _ = logged_x(start_obs)
+    # the speed sets vehicle 20's pace while its stop waits: no pull to keep the speed it has
+    assert torch.equal(loss(x, first), join_costs([loss.parts[0](x, first)]))
     agent = start_obs.controlled[20]
     held = later(start_obs, 12)
     speed = held.tracks.speed.copy()
     speed[agent, START + 1 : START + 13] = 3.0
     at_speed = build_guidance_batch(replace(held, tracks=replace(held.tracks, speed=speed)))
     assert loss.on(at_speed) == [True, True] and loss.guiding(at_speed) == [False, True]
-    x, _ = logged_x(start_obs)
     assert torch.equal(loss(x, at_speed), join_costs([loss.parts[1](x, at_speed)]))
     # 0.9 s in the band is not enough
     speed[agent, START + 1 : START + 13] = [9.0, 9.0, 9.0] + [3.0] * 9

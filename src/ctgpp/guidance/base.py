@@ -31,10 +31,14 @@ class GuidanceLoss(nn.Module):
     """Base class of every guidance loss: rules of the library, compiled queries, generated code.
 
     ``couples_agents`` is True when the cost depends on several vehicles jointly (collision,
-    keep distance): filtration then keeps one sample index for the whole scene.
+    keep distance): filtration then keeps one sample index for the whole scene. ``sets_pace`` is True
+    for a loss that sets the speed of the vehicles it moves (a target speed, a stop, a limit, a
+    following distance): a sequence does not also hold such a vehicle to its pace while a later part
+    waits (:class:`~ctgpp.guidance.sequence.KeepPace`).
     """
 
     couples_agents: ClassVar[bool] = False
+    sets_pace: ClassVar[bool] = False
 
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         raise NotImplementedError

@@ -62,10 +62,11 @@ class InOrder(GuidanceLoss):
     cannot tell).
 
     The cost is the sum of the parts that guide (:meth:`guiding`: on, and not yet handed over to a
-    later part for their vehicle), of ``KeepPace`` for each vehicle a waiting part moves and of
-    ``keep_lane`` for each vehicle that only waiting parts move; ``constraints`` are those of the
-    parts that guide (a turn's route is driven only once the turn is on); ``scope`` is every part's,
-    so the guards leave the whole manoeuvre to the loss.
+    later part for their vehicle), of ``KeepPace`` for each vehicle a waiting part moves and no
+    guiding part sets the pace of (``sets_pace``), and of ``keep_lane`` for each vehicle that only
+    waiting parts move; ``constraints`` are those of the parts that guide (a turn's route is driven
+    only once the turn is on); ``scope`` is every part's, so the guards leave the whole manoeuvre to
+    the loss.
     """
 
     def __init__(self, parts: Sequence[GuidanceLoss], waits: Sequence[Sequence[int]]) -> None:
@@ -115,14 +116,16 @@ class InOrder(GuidanceLoss):
         return [k and j not in moved_on for j, k in enumerate(on)]
 
     def active_parts(self, data_batch: Any) -> list[GuidanceLoss]:
-        """The parts that guide, then ``keep_pace`` of each vehicle a waiting part moves and
-        ``keep_lane`` of each vehicle only waiting parts move."""
+        """The parts that guide, then ``keep_pace`` of each vehicle a waiting part moves and no guiding
+        part sets the pace of (``sets_pace``: "slows down to 5 m/s and then stops" is not held to its
+        speed while it slows), and ``keep_lane`` of each vehicle only waiting parts move."""
         on, guiding = self.on(data_batch), self.guiding(data_batch)
         parts = [loss for loss, k in zip(self.parts, guiding, strict=True) if k]
         moving = {v for loss in parts for v in _vehicles(loss)}
+        paced = {v for loss in parts if loss.sets_pace for v in _vehicles(loss)}
         waiting = {v for loss, k in zip(self.parts, on, strict=True) if not k for v in _vehicles(loss)}
         waiting = {v for v in waiting if v < data_batch.num_vehicles}
-        return (parts + [self.keep_pace[v] for v in sorted(waiting)]
+        return (parts + [self.keep_pace[v] for v in sorted(waiting - paced)]
                 + [self.wait_in_lane[v] for v in sorted(waiting - moving)])
 
     def constraints(self, data_batch: Any) -> PlanConstraints:

@@ -5,7 +5,7 @@ ahead of it", "50 m down its lane".
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 from torch import Tensor
@@ -23,6 +23,8 @@ class FasterThan(_Pair):
     """A vehicle drives faster than another: the mean over the horizon of the shortfall (m/s) of its
     speed below the other's plus ``margin_mps``. Both vehicles are steered (the one speeds up, the
     other slows down), as "A fast while B slow" asks. One cost per sample (N)."""
+
+    sets_pace: ClassVar[bool] = True
 
     param_doc = {
         "vehicle": ("", "displayed number of the faster vehicle"),

@@ -33,6 +33,7 @@ class KeepDistance(Rule):
     vehicle re-plans, the next plan starts from where this one's first steps led)."""
 
     couples_agents: ClassVar[bool] = True
+    sets_pace: ClassVar[bool] = True
     param_doc = {
         "follower": ("", "displayed number of the following vehicle"),
         "leader": ("", "displayed number of the leading vehicle"),

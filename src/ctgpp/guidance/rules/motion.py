@@ -43,6 +43,8 @@ class SpeedLimit(Rule):
     """Every vehicle stays at or below a speed limit: the mean excess speed over the horizon
     (m/s), mean over t of max(v - limit, 0)."""
 
+    sets_pace: ClassVar[bool] = True
+
     param_doc = {
         "limit_mps": ("m/s", "the speed limit"),
         "margin_mps": ("m/s", "the guidance aims this far under the limit (plans are not executed exactly)"),
@@ -75,6 +77,8 @@ class TargetSpeed(Rule):
     entries are ignored. With ``decay`` below 1 step t weighs decay**t (normalized): the near term,
     which the closed loop executes, counts most, and a vehicle gets to its speed sooner.
     """
+
+    sets_pace: ClassVar[bool] = True
 
     param_doc = {
         "speed_mps": ("m/s", "target speed, one for all or a (B, S) tensor per vehicle and step"),
@@ -152,6 +156,8 @@ class ReachSpeed(Rule):
     ("above": speeds up to over it) ``speed_mps`` and stays there: the mean over the horizon of the
     speed's excess beyond ``speed_mps`` ∓ ``margin_mps`` (m/s). Speeds up are read without the
     rollout's clip at zero (the integrated accelerations), so a stopped vehicle is set going."""
+
+    sets_pace: ClassVar[bool] = True
 
     param_doc = {
         "speed_mps": ("m/s", "the speed to get under or over"),
@@ -290,6 +296,8 @@ class StopRegion(_Targets):
     """A vehicle ends the horizon stopped inside a circular region around (x, y) (scene world
     metres): its distance (m) outside the region at the last step, plus its mean speed (m/s) while
     inside (a soft indicator of being inside, 0.5 m wide)."""
+
+    sets_pace: ClassVar[bool] = True
 
     param_doc = {
         "vehicle": ("", "displayed vehicle number(s)"),

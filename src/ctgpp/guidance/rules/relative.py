@@ -41,6 +41,10 @@ class _ForSomeVehicles(GuidanceLoss):
     def couples_agents(self) -> bool:  # type: ignore[override]
         return bool(self.loss.couples_agents)
 
+    @property
+    def sets_pace(self) -> bool:  # type: ignore[override]
+        return bool(self.loss.sets_pace)
+
     def scope(self) -> LossScope:
         """The wrapped loss's scope among ``vehicles``."""
         return self.loss.scope().restricted(self.vehicles)
