@@ -36,7 +36,7 @@ __all__ = ["StatedBound", "bound_mismatch", "param_side", "stated_bounds"]
 _NUM = r"(\d+(?:\.\d+)?)"
 _UNIT = r"(?:\s*(m/s²|m/s|m|s)\b)?"
 _THAN = r"(?:less|fewer|slower|closer|nearer|lower|more|faster|farther|further|higher|greater)\s+than"
-_UPPER_WORDS = ("at most", "up to", "within", "under", "below", "max", "maximum", "less than", "fewer than",
+_UPPER_WORDS = ("at most", "up to", "within", "under", "below", "max", "a max", "less than", "fewer than",
                 "slower than", "closer than", "nearer than", "lower than")
 _BEFORE = re.compile(
     r"\b(at\s+most|at\s+least|(?<!speed\s)(?<!speeds\s)(?<!speeding\s)up\s+to|within|under|below|over|above"
@@ -72,7 +72,7 @@ def stated_bounds(sentence: str) -> list[StatedBound]:
     found = []
     for m in _BEFORE.finditer(sentence):
         word = " ".join(m.group(1).lower().split())
-        upper = word.startswith(_UPPER_WORDS) or word.startswith(("a max", "max"))
+        upper = word.startswith(_UPPER_WORDS)
         found.append((m.start(), m.group(0), float(m.group(2)), m.group(3), upper))
     for m in _AFTER.finditer(sentence):
         word = m.group(3).lower().split()[-1]

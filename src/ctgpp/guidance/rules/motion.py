@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ctgpp.behaviours.tracks import HOLD_S, first_held
+from ctgpp.behaviours.tracks import first_held, hold_steps
 from ctgpp.guidance.base import register_loss
 from ctgpp.guidance.constraints import PlanConstraints
 from ctgpp.guidance.context import GuidanceBatch
@@ -32,9 +32,9 @@ from ctgpp.guidance.rules.common import (
 )
 from ctgpp.guidance.scope import LossScope
 
-# a target speed counts as reached when held within REACHED_MPS of it for HOLD_S (s): the independent
-# check's band (TARGET_TOL_MPS of ctgpp.behaviours.motion) and hold, so that a sequence's next part starts
-# when the check counts this one done
+# a target speed counts as reached when held within REACHED_MPS of it for HOLD_S (ctgpp.behaviours.tracks):
+# the independent check's band (TARGET_TOL_MPS of ctgpp.behaviours.motion) and hold, so that a sequence's
+# next part starts when the check counts this one done
 REACHED_MPS = 1.0
 
 
@@ -113,14 +113,14 @@ class TargetSpeed(Rule):
         return LossScope.everyone()
 
     def reached_for(self, data_batch: Any, vehicles: Sequence[int]) -> bool | None:
-        """Each of ``vehicles`` has held its speed, within ``REACHED_MPS``, for ``HOLD_S`` at some
+        """Each of ``vehicles`` has held its speed, within ``REACHED_MPS``, for 1 s (``HOLD_S``) at some
         time from the episode's start to the re-plan (the simulated past; once reached, it stays
         reached): "slows down to 5 m/s, then stops" drives at 5 m/s for a second before it stops, as
         the independent check asks of a sequence's earlier stage. None for a speed per step (a table)."""
         if isinstance(self.speed_mps, Tensor):
             return None
         steps = slice(int(data_batch.start_step) + 1, int(data_batch.step) + 1)
-        hold = max(int(round(HOLD_S / data_batch.dt_s)), 1)
+        hold = hold_steps(data_batch.dt_s)
         known = data_batch.known
         for v in vehicles:
             agent = int(data_batch.agent_index[check_vehicle(v, data_batch, int(data_batch.num_vehicles))])
