@@ -20,8 +20,9 @@ import numpy as np
 
 from ctgpp.behaviours.base import Starts, Vehicles, Verdict
 from ctgpp.behaviours.lane_positions import chain_distance, end_lane, lanes_along, reachable, with_start
-from ctgpp.behaviours.tracks import Track, both_valid, held_from, track, wrapped_deg
+from ctgpp.behaviours.tracks import Track, both_valid, track, wrapped_deg
 from ctgpp.interfaces import Rollout
+from ctgpp.scene.holds import held_from
 from ctgpp.scene.lane_paths import lanes_beside, same_direction_neighbour
 from ctgpp.scene.lanes import IN_LANE_M, LANE_HEADING_DEG, LaneProjection, nearest_lane, project_to_lane
 from ctgpp.scene.types import LaneGraph

@@ -16,19 +16,11 @@ from typing import Any
 import numpy as np
 
 from ctgpp.behaviours.base import Vehicles, Verdict, vehicle_list
-from ctgpp.behaviours.tracks import (
-    HOLD_S,
-    Track,
-    earliest_speed_step,
-    first_held,
-    held_from,
-    hold_steps,
-    track,
-    tracks,
-)
+from ctgpp.behaviours.tracks import Track, earliest_speed_step, track, tracks
 from ctgpp.interfaces import Rollout
 from ctgpp.metrics import rules as paper
 from ctgpp.metrics.offroad import offroad_steps
+from ctgpp.scene.holds import HOLD_S, first_held, held_from, hold_steps
 from ctgpp.scene.lanes import point_ahead
 from ctgpp.scene.vehicles import MOVING_SPEED_MPS  # stopped: slower than this, not moving
 

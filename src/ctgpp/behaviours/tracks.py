@@ -18,8 +18,6 @@ from ctgpp.behaviours.base import MissingVehicle, Vehicles
 from ctgpp.interfaces import Rollout
 from ctgpp.metrics.collision import controlled_vehicle_indices
 
-HOLD_S = 1.0  # "reach and stay": the condition must hold at least this long before the end
-
 
 @dataclass(frozen=True)
 class Track:
@@ -27,8 +25,8 @@ class Track:
     m/s at t = 0) and future (t > 0): xy (T, 2) m, yaw (T,) rad, speed (T,) m/s, valid (T,), extent (2,)
     length, width m; ``dt_s`` the step. In a time window (:mod:`~ctgpp.behaviours.timing`) the start is the
     window's, ``shift_steps`` steps after the episode's, ``hold`` asks the behaviour to hold from
-    the window's first step and ``once`` only to reach and hold a state for :data:`HOLD_S` (a
-    sequence's earlier stage)."""
+    the window's first step and ``once`` only to reach and hold a state for
+    :data:`~ctgpp.scene.holds.HOLD_S` (a sequence's earlier stage)."""
 
     number: int
     agent: int
@@ -95,30 +93,6 @@ def earliest_speed_step(speed0: float, bound_mps: float, below: bool, dt_s: floa
         return 0
     rate = -ACC_MIN_MPS2 if below else ACC_MAX_MPS2
     return max(math.ceil(gap / rate / dt_s - 1e-9) - 1, 0)
-
-
-def held_from(ok: np.ndarray) -> int | None:
-    """The first index from which ``ok`` (T,) bool holds to the end, None when it fails at the end."""
-    if ok.size == 0 or not ok[-1]:
-        return None
-    bad = np.flatnonzero(~ok)
-    return 0 if bad.size == 0 else int(bad[-1]) + 1
-
-
-def first_held(ok: np.ndarray, steps: int) -> int | None:
-    """The first index from which ``ok`` (T,) bool holds for ``steps`` (>= 1) entries in a row, None
-    when it never does."""
-    run = 0
-    for k, good in enumerate(ok.tolist()):
-        run = run + 1 if good else 0
-        if run >= steps:
-            return k - steps + 1
-    return None
-
-
-def hold_steps(dt_s: float) -> int:
-    """Steps a "reach and stay" condition must hold at the end (:data:`HOLD_S`)."""
-    return int(round(HOLD_S / dt_s))
 
 
 def wrapped_deg(a: float) -> float:

@@ -30,8 +30,9 @@ import numpy as np
 
 from ctgpp.behaviours.base import Starts, Vehicles, Verdict
 from ctgpp.behaviours.lane_positions import from_start_lane, with_start
-from ctgpp.behaviours.tracks import Track, held_from, track, wrapped_deg
+from ctgpp.behaviours.tracks import Track, track, wrapped_deg
 from ctgpp.interfaces import Rollout
+from ctgpp.scene.holds import held_from
 from ctgpp.scene.lanes import IN_LANE_M, LANE_HEADING_DEG, LaneProjection, nearest_lane
 from ctgpp.scene.types import LaneGraph
 from ctgpp.scene.u_turns import OPPOSITE_DEG, REACH_AHEAD_M, REACH_LATERAL_M, u_turn_path

@@ -14,7 +14,6 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ctgpp.behaviours.tracks import first_held, hold_steps
 from ctgpp.guidance.base import register_loss
 from ctgpp.guidance.constraints import PlanConstraints
 from ctgpp.guidance.context import GuidanceBatch
@@ -31,8 +30,9 @@ from ctgpp.guidance.rules.common import (
     world_states,
 )
 from ctgpp.guidance.scope import LossScope
+from ctgpp.scene.holds import first_held, hold_steps
 
-# a target speed counts as reached when held within REACHED_MPS of it for HOLD_S (ctgpp.behaviours.tracks):
+# a target speed counts as reached when held within REACHED_MPS of it for HOLD_S (ctgpp.scene.holds):
 # the independent check's band (TARGET_TOL_MPS of ctgpp.behaviours.motion) and hold, so that a sequence's
 # next part starts when the check counts this one done
 REACHED_MPS = 1.0
