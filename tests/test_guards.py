@@ -24,6 +24,7 @@ from ctgpp.guidance.guards import (
     with_guards,
 )
 from ctgpp.guidance.helpers import transform_coord_agents_to_world, transform_coord_world_to_agent_i
+from ctgpp.guidance.rules.relative import ForVehicles
 from ctgpp.guidance.scope import LossScope
 from ctgpp.language.compiler import compile_query
 from ctgpp.model.checkpoint import load_checkpoint
@@ -295,7 +296,9 @@ def test_the_vehicles_involved_are_those_in_a_term_that_costs(
 ) -> None:
     """Vehicle 3 drives onto vehicle 4's place: both are involved (their overlap costs), with every
     vehicle whose own off-road, lane or follow term costs anything; vehicle 5 on its logged future (no
-    cost and no gradient, test above) is not. A loss with a rule cannot tell."""
+    cost and no gradient, test above) is not. With a rule, the vehicles the rule reads join them: all
+    for a global limit, the named one for a limit on one vehicle; a rule that cannot tell (a cut-in)
+    leaves every vehicle to try."""
     guards = RealismGuards(GuardConfig())
     scene = _moved_onto(logged, batch, 3, 4)[:, :1]
     involved = guards.involved(scene, batch)
@@ -305,4 +308,30 @@ def test_the_vehicles_involved_are_those_in_a_term_that_costs(
     assert bool(involved[costs > 0].all())
     apart = RealismGuards(GuardConfig(guards=("collision",))).involved(logged[:, :1], batch)
     assert apart is not None and not bool(apart[4]) and not bool(apart[5])  # on the log: clear
-    assert GuardedLoss(make_loss("speed_limit", limit_mps=3.0), guards).involved(scene, batch) is None
+    everyone = GuardedLoss(make_loss("speed_limit", limit_mps=3.0), guards).involved(scene, batch)
+    assert everyone is not None and bool(everyone.all())
+    limit_5 = ForVehicles(make_loss("speed_limit", limit_mps=3.0), [5])
+    one = GuardedLoss(limit_5, guards).involved(scene, batch)
+    assert one is not None and one.tolist() == (involved | (torch.arange(len(involved)) == 5)).tolist()
+    cut_in = GuardedLoss(make_loss("cut_in", vehicle=3, ahead_of=4), guards)
+    assert cut_in.involved(scene, batch) is None
+
+
+def test_which_vehicles_a_rule_reads() -> None:
+    """A separable rule restricted to some vehicles reads theirs; a pair rule its pair; a sum, every
+    part's; a sequence, every part's and those it keeps to their pace; a rule that cannot tell, None."""
+    from ctgpp.guidance import CompositeLoss, InOrder
+
+    limit = make_loss("speed_limit", limit_mps=3.0)
+    assert limit.reads(4) == frozenset({0, 1, 2, 3})
+    assert ForVehicles(limit, [2]).reads(4) == frozenset({2})
+    assert make_loss("keep_distance", follower=1, leader=3).reads(4) == frozenset({1, 3})
+    assert make_loss("stay_away", vehicle=0, other=2).reads(4) == frozenset({0, 2})
+    assert make_loss("keep_lane", vehicle=1).reads(4) == frozenset({1})
+    assert ForVehicles(make_loss("no_collision"), [2]).reads(4) is None  # one vehicle against all
+    both = CompositeLoss([(ForVehicles(limit, [2]), 1.0), (make_loss("keep_lane", vehicle=0), 1.0)])
+    assert both.reads(4) == frozenset({0, 2})
+    assert CompositeLoss([(limit, 1.0), (make_loss("cut_in", vehicle=1, ahead_of=2), 1.0)]).reads(4) is None
+    speed, stop = make_loss("target_speed", speed_mps=5.0), make_loss("stop")
+    then = InOrder([ForVehicles(speed, [1]), ForVehicles(stop, [1])], [(), (0,)])
+    assert then.reads(4) == frozenset({1})

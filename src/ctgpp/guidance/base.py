@@ -34,11 +34,14 @@ class GuidanceLoss(nn.Module):
     keep distance): filtration then keeps one sample index for the whole scene. ``sets_pace`` is True
     for a loss that sets the speed of the vehicles it moves (a target speed, a stop, a limit, a
     following distance): a sequence does not also hold such a vehicle to its pace while a later part
-    waits (:class:`~ctgpp.guidance.sequence.KeepPace`).
+    waits (:class:`~ctgpp.guidance.sequence.KeepPace`). ``separable`` is True for a loss whose cost
+    of each vehicle reads that vehicle's trajectory alone (a speed, a lane, the road): restricted to
+    some vehicles, it reads only theirs (:meth:`reads`).
     """
 
     couples_agents: ClassVar[bool] = False
     sets_pace: ClassVar[bool] = False
+    separable: ClassVar[bool] = False
 
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         raise NotImplementedError
@@ -68,6 +71,13 @@ class GuidanceLoss(nn.Module):
         (:func:`~ctgpp.diffusion.filtration.compose`) need not try it elsewhere. None: the loss cannot
         tell (the default), and every vehicle is tried."""
         return None
+
+    def reads(self, num_vehicles: int) -> frozenset[int] | None:
+        """The vehicles (displayed numbers, of ``num_vehicles``) whose trajectories the cost reads: a
+        switch of any other vehicle's trajectory leaves it unchanged (composing a plan need not try
+        it for this loss: :meth:`involved` of a guarded loss). Every vehicle for a separable loss;
+        None: the loss cannot tell (the default)."""
+        return frozenset(range(num_vehicles)) if self.separable else None
 
     def reached_for(self, data_batch: Any, vehicles: Sequence[int]) -> bool | None:
         """:meth:`reached` for some ``vehicles`` (displayed numbers) only, as a loss restricted to them

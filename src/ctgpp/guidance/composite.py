@@ -57,9 +57,25 @@ class CompositeLoss(GuidanceLoss):
         """False when a part is not reached, True when every part is, else None (one cannot tell)."""
         return all_reached([loss.reached(data_batch) for loss in self.losses])
 
+    def reads(self, num_vehicles: int) -> frozenset[int] | None:
+        """Every part's vehicles together; None when a part cannot tell."""
+        return joined_reads(self.losses, num_vehicles)
+
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         pairs = zip(self.losses, self.weights, strict=True)
         return join_costs([w * loss(x, data_batch, agt_mask) for loss, w in pairs])
+
+
+def joined_reads(losses: Sequence[GuidanceLoss], num_vehicles: int) -> frozenset[int] | None:
+    """The vehicles several losses read together (:meth:`GuidanceLoss.reads`); None when one cannot
+    tell."""
+    out: frozenset[int] = frozenset()
+    for loss in losses:
+        got = loss.reads(num_vehicles)
+        if got is None:
+            return None
+        out |= got
+    return out
 
 
 def joined_scope(losses: Sequence[GuidanceLoss]) -> LossScope:

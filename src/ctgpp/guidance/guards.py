@@ -292,6 +292,18 @@ class GuardedLoss(CompositeLoss):
         """The rule's cost and the guards' apart: the guidance step lets the guards win."""
         return self.parts(x, data_batch)
 
+    def involved(self, x: Tensor, data_batch: Any) -> Tensor | None:
+        """(B,) bool for one scene x (B, 1, T, 6): the guards' involved vehicles and every vehicle the
+        rule reads (:meth:`GuidanceLoss.reads`): another vehicle's trajectory leaves the rule's cost
+        as it is and can only add to the guards'. None when the rule cannot tell."""
+        reads = self.rule.reads(x.shape[0])
+        guards = self.guards.involved(x, data_batch)
+        if reads is None or guards is None:
+            return None
+        out = guards.clone()
+        out[[v for v in sorted(reads) if 0 <= v < x.shape[0]]] = True
+        return out
+
     def ranking(self, x: Tensor, data_batch: Any) -> Tensor:
         """What filtration minimizes: the guards first (``GUARDS_FIRST`` times their cost), then the rule."""
         rule, guards = self.parts(x, data_batch)

@@ -26,7 +26,7 @@ from typing import Any
 from torch import Tensor
 
 from ctgpp.guidance.base import GuidanceLoss
-from ctgpp.guidance.composite import all_reached, join_costs, joined_scope
+from ctgpp.guidance.composite import all_reached, join_costs, joined_reads, joined_scope
 from ctgpp.guidance.constraints import PlanConstraints, collide_pairs
 from ctgpp.guidance.rules.common import apply_mask, check_vehicle
 from ctgpp.guidance.rules.lane_change import one_row
@@ -48,6 +48,9 @@ class KeepPace(GuidanceLoss):
 
     def scope(self) -> LossScope:
         return LossScope.of([self.vehicle])
+
+    def reads(self, num_vehicles: int) -> frozenset[int] | None:
+        return frozenset({self.vehicle})
 
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         row = check_vehicle(self.vehicle, data_batch, x.shape[0])
@@ -135,6 +138,11 @@ class InOrder(GuidanceLoss):
 
     def reached(self, data_batch: Any) -> bool | None:
         return all_reached([loss.reached(data_batch) for loss in self.parts])
+
+    def reads(self, num_vehicles: int) -> frozenset[int] | None:
+        """Every part's vehicles and those kept to their pace or lane; None when a part cannot tell."""
+        kept = [*self.keep_pace.values(), *self.wait_in_lane.values()]
+        return joined_reads([*self.parts, *kept], num_vehicles)
 
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         return join_costs([loss(x, data_batch, agt_mask) for loss in self.active_parts(data_batch)])

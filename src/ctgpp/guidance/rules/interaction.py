@@ -64,6 +64,9 @@ class KeepDistance(Rule):
     def scope(self) -> LossScope:
         return LossScope.of((self.follower, self.leader))
 
+    def reads(self, num_vehicles: int) -> frozenset[int] | None:
+        return frozenset({self.follower, self.leader})
+
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         a = check_vehicle(self.follower, data_batch, x.shape[0])
         b = check_vehicle(self.leader, data_batch, x.shape[0])
@@ -97,6 +100,9 @@ class Collision(Rule):
         """The pair, asked to collide: each may leave its lane to meet the other."""
         both = (self.vehicle_a, self.vehicle_b)
         return LossScope.of(both, leave_lane=both, collide=[both])
+
+    def reads(self, num_vehicles: int) -> frozenset[int] | None:
+        return frozenset({self.vehicle_a, self.vehicle_b})
 
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         a = check_vehicle(self.vehicle_a, data_batch, x.shape[0])

@@ -8,7 +8,7 @@ and reaching a point along the lanes (:mod:`ctgpp.guidance.rules.route`) — wit
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 from torch import Tensor
@@ -39,6 +39,8 @@ class FollowLane(Rule):
     """A vehicle (or every vehicle: ``vehicle=None``) follows its current lane: the mean distance
     (m) over the horizon from the centerline of the lane it is on at each re-plan."""
 
+    separable: ClassVar[bool] = True
+
     param_doc = {"vehicle": ("", "displayed number of the vehicle; None for every vehicle")}
 
     def __init__(self, vehicle: int | None = None) -> None:
@@ -47,6 +49,9 @@ class FollowLane(Rule):
 
     def scope(self) -> LossScope:
         return LossScope.everyone() if self.vehicle is None else LossScope.of([self.vehicle])
+
+    def reads(self, num_vehicles: int) -> frozenset[int] | None:
+        return frozenset(range(num_vehicles)) if self.vehicle is None else frozenset({self.vehicle})
 
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         proj = get_current_lane_projection(x[..., :2], x[..., 3:4], data_batch)  # (B, N, T, 3)
@@ -69,6 +74,8 @@ class KeepLane(Rule):
     (:func:`~ctgpp.guidance.rules.common.steered_path`, :func:`~ctgpp.guidance.rules.common.across_heading`):
     a vehicle that drifts is turned back, not slowed down, on a bend too."""
 
+    separable: ClassVar[bool] = True
+
     param_doc = {
         "vehicle": ("", "displayed number of the vehicle; None for every vehicle"),
         "tolerance_m": ("m", "distance from the lane centerline that costs nothing"),
@@ -81,6 +88,9 @@ class KeepLane(Rule):
 
     def scope(self) -> LossScope:
         return LossScope.everyone() if self.vehicle is None else LossScope.of([self.vehicle])
+
+    def reads(self, num_vehicles: int) -> frozenset[int] | None:
+        return frozenset(range(num_vehicles)) if self.vehicle is None else frozenset({self.vehicle})
 
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         n_b = x.shape[0]

@@ -44,6 +44,7 @@ class SpeedLimit(Rule):
     (m/s), mean over t of max(v - limit, 0)."""
 
     sets_pace: ClassVar[bool] = True
+    separable: ClassVar[bool] = True
 
     param_doc = {
         "limit_mps": ("m/s", "the speed limit"),
@@ -79,6 +80,7 @@ class TargetSpeed(Rule):
     """
 
     sets_pace: ClassVar[bool] = True
+    separable: ClassVar[bool] = True
 
     param_doc = {
         "speed_mps": ("m/s", "target speed, one for all or a (B, S) tensor per vehicle and step"),
@@ -158,6 +160,7 @@ class ReachSpeed(Rule):
     rollout's clip at zero (the integrated accelerations), so a stopped vehicle is set going."""
 
     sets_pace: ClassVar[bool] = True
+    separable: ClassVar[bool] = True
 
     param_doc = {
         "speed_mps": ("m/s", "the speed to get under or over"),
@@ -189,6 +192,8 @@ class AccelerationLimit(Rule):
     """Every vehicle keeps its acceleration magnitude, sqrt(longitudinal² + lateral²) with lateral =
     speed × yaw rate, at or below a limit: mean excess over the horizon (m/s²)."""
 
+    separable: ClassVar[bool] = True
+
     param_doc = {"max_mps2": ("m/s²", "the largest allowed acceleration magnitude")}
 
     def __init__(self, max_mps2: float = 3.0) -> None:
@@ -209,6 +214,8 @@ class NoOffroad(Rule):
     """Every vehicle stays on the drivable area: the signed distance to the drivable boundary (m,
     bilinear in the SDF raster) at its disc centres along its length, hinged at ``-margin_m`` (the
     discs should stay ``margin_m`` inside), averaged over discs and the horizon."""
+
+    separable: ClassVar[bool] = True
 
     param_doc = {"margin_m": ("m", "how far inside the drivable area the disc centres should stay")}
 

@@ -52,6 +52,10 @@ class _ForSomeVehicles(GuidanceLoss):
     def reached(self, data_batch: Any) -> bool | None:
         return self.loss.reached_for(data_batch, self.vehicles)
 
+    def reads(self, num_vehicles: int) -> frozenset[int] | None:
+        """The wrapped loss's: only ``vehicles`` when it is separable."""
+        return frozenset(self.vehicles) if self.loss.separable else self.loss.reads(num_vehicles)
+
     def rows(self, x: Tensor, data_batch: Any) -> Tensor:
         """(B,) bool, True on the rows of x of ``vehicles``."""
         mask = torch.zeros(x.shape[0], dtype=torch.bool, device=x.device)
@@ -152,6 +156,9 @@ class _Pair(Rule):
         if int(vehicle) == int(other):
             raise ValueError(f"{type(self).__name__} needs two different vehicles, got {vehicle} twice")
         self.vehicle, self.other = int(vehicle), int(other)
+
+    def reads(self, num_vehicles: int) -> frozenset[int] | None:
+        return frozenset({self.vehicle, self.other})
 
     def rows(self, x: Tensor, data_batch: Any) -> tuple[int, int]:
         n_b = x.shape[0]
