@@ -297,8 +297,8 @@ def test_the_vehicles_involved_are_those_in_a_term_that_costs(
     """Vehicle 3 drives onto vehicle 4's place: both are involved (their overlap costs), with every
     vehicle whose own off-road, lane or follow term costs anything; vehicle 5 on its logged future (no
     cost and no gradient, test above) is not. With a rule, the vehicles the rule reads join them: all
-    for a global limit, the named one for a limit on one vehicle; a rule that cannot tell (a cut-in)
-    leaves every vehicle to try."""
+    for a global limit, the named one for a limit on one vehicle; a rule that cannot tell (no collision
+    for one vehicle, which reads every pair with it) leaves every vehicle to try."""
     guards = RealismGuards(GuardConfig())
     scene = _moved_onto(logged, batch, 3, 4)[:, :1]
     involved = guards.involved(scene, batch)
@@ -313,8 +313,8 @@ def test_the_vehicles_involved_are_those_in_a_term_that_costs(
     limit_5 = ForVehicles(make_loss("speed_limit", limit_mps=3.0), [5])
     one = GuardedLoss(limit_5, guards).involved(scene, batch)
     assert one is not None and one.tolist() == (involved | (torch.arange(len(involved)) == 5)).tolist()
-    cut_in = GuardedLoss(make_loss("cut_in", vehicle=3, ahead_of=4), guards)
-    assert cut_in.involved(scene, batch) is None
+    near = GuardedLoss(ForVehicles(make_loss("no_collision"), [3]), guards)
+    assert near.involved(scene, batch) is None
 
 
 def test_which_vehicles_a_rule_reads() -> None:
@@ -331,7 +331,9 @@ def test_which_vehicles_a_rule_reads() -> None:
     assert ForVehicles(make_loss("no_collision"), [2]).reads(4) is None  # one vehicle against all
     both = CompositeLoss([(ForVehicles(limit, [2]), 1.0), (make_loss("keep_lane", vehicle=0), 1.0)])
     assert both.reads(4) == frozenset({0, 2})
-    assert CompositeLoss([(limit, 1.0), (make_loss("cut_in", vehicle=1, ahead_of=2), 1.0)]).reads(4) is None
+    assert make_loss("cut_in", vehicle=1, ahead_of=2).reads(4) == frozenset({1, 2})
+    assert make_loss("turn_at_next_intersection", vehicle=3, direction="left").reads(4) == frozenset({3})
+    assert CompositeLoss([(limit, 1.0), (ForVehicles(make_loss("no_collision"), [2]), 1.0)]).reads(4) is None
     speed, stop = make_loss("target_speed", speed_mps=5.0), make_loss("stop")
     then = InOrder([ForVehicles(speed, [1]), ForVehicles(stop, [1])], [(), (0,)])
     assert then.reads(4) == frozenset({1})

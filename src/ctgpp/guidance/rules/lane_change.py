@@ -70,6 +70,10 @@ class CommittedLaneRule(Rule):
         super().__init__()
         self.vehicle = int(vehicle)
 
+    def reads(self, num_vehicles: int) -> frozenset[int] | None:
+        """Its vehicle's row alone (:meth:`forward`)."""
+        return frozenset({self.vehicle})
+
     def scope(self) -> LossScope:
         """The vehicle, moved to another lane (or through a turn)."""
         return LossScope.of([self.vehicle], leave_lane=[self.vehicle])

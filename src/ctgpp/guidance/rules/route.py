@@ -75,6 +75,9 @@ class CutIn(Rule):
         """The vehicle that cuts in changes lanes; the one it cuts in front of keeps its lane."""
         return LossScope.of((self.vehicle, self.ahead_of), leave_lane=[self.vehicle])
 
+    def reads(self, num_vehicles: int) -> frozenset[int] | None:
+        return frozenset({self.vehicle, self.ahead_of})
+
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         a = check_vehicle(self.vehicle, data_batch, x.shape[0])
         b = check_vehicle(self.ahead_of, data_batch, x.shape[0])
@@ -125,6 +128,9 @@ class Overtake(Rule):
     def scope(self) -> LossScope:
         """The overtaking vehicle leaves its lane; the one overtaken keeps its own."""
         return LossScope.of((self.vehicle, self.other), leave_lane=[self.vehicle])
+
+    def reads(self, num_vehicles: int) -> frozenset[int] | None:
+        return frozenset({self.vehicle, self.other})
 
     def side(self, data_batch: GuidanceBatch) -> float:
         """+1 to pass on the other's left, -1 on its right: the side asked for, else the side with a
