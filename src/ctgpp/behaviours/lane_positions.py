@@ -11,10 +11,11 @@ never switches sideways while a lane goes on) or with the hysteresis of
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 
 import numpy as np
 
+from ctgpp.behaviours.base import Starts
 from ctgpp.behaviours.tracks import Track
 from ctgpp.scene.lanes import (
     LaneProjection,
@@ -30,7 +31,7 @@ SUCCESSOR_DEPTH = 8
 
 def from_start_lane(
     lanes: LaneGraph,
-    starts: Mapping[int, tuple[np.ndarray, float, float]],
+    starts: Starts,
     number: int,
     nowhere: str,
     need: Callable[[LaneProjection], str | None],

@@ -297,7 +297,7 @@ class GuardedLoss(CompositeLoss):
         rule reads (:meth:`GuidanceLoss.reads`): another vehicle's trajectory leaves the rule's cost
         as it is and can only add to the guards'. None when the rule cannot tell."""
         reads = self.rule.reads(x.shape[0])
-        guards = self.guards.involved(x, data_batch)
+        guards = None if reads is None else self.guards.involved(x, data_batch)
         if reads is None or guards is None:
             return None
         out = guards.clone()

@@ -112,11 +112,15 @@ class InOrder(GuidanceLoss):
         "slows down to 5 m/s and then stops" no longer holds it at 5 m/s once the stop is on, as the
         independent check judges a stage only until the next one for its vehicle). A part that cannot
         tell whether it is reached keeps guiding beside what waits for it."""
-        on = self.on(data_batch)
-        moved_on = {j for k, w in enumerate(self.waits) if on[k] for j in w
-                    if _vehicles(self.parts[j]) & _vehicles(self.parts[k])
-                    and self.parts[j].reached(data_batch) is True}
-        return [k and j not in moved_on for j, k in enumerate(on)]
+        key = ("in_order_guiding", id(self))
+        memo = data_batch.memo
+        if key not in memo:  # kept per batch, as :meth:`on`: forward and constraints both ask
+            on = self.on(data_batch)
+            moved_on = {j for k, w in enumerate(self.waits) if on[k] for j in w
+                        if _vehicles(self.parts[j]) & _vehicles(self.parts[k])
+                        and self.parts[j].reached(data_batch) is True}
+            memo[key] = [k and j not in moved_on for j, k in enumerate(on)]
+        return list(memo[key])
 
     def active_parts(self, data_batch: Any) -> list[GuidanceLoss]:
         """The parts that guide, then ``keep_pace`` of each vehicle a waiting part moves and no guiding

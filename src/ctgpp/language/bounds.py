@@ -31,7 +31,7 @@ from typing import Any
 
 from ctgpp.behaviours import get_behaviour
 
-__all__ = ["StatedBound", "bound_mismatch", "param_side", "stated_bounds"]
+__all__ = ["CLAUSE_BREAK", "StatedBound", "bound_mismatch", "param_side", "stated_bounds"]
 
 _NUM = r"(\d+(?:\.\d+)?)"
 _UNIT = r"(?:\s*(m/s²|m/s|m|s)\b)?"
@@ -46,7 +46,8 @@ _AFTER = re.compile(
     rf"{_NUM}{_UNIT}\s+(or\s+(?:less|fewer|under|below|slower|closer|lower|more|over|above|faster|farther"
     r"|further|higher|greater)|at\s+(?:the\s+)?(?:most|least)|max(?:imum)?|min(?:imum)?)\b", re.I)
 _UPPER_AFTER = ("less", "fewer", "under", "below", "slower", "closer", "lower", "most", "max")
-_CLAUSE_START = re.compile(r"[,;.]|\b(?:and|then|but|while|whilst)\b", re.I)
+CLAUSE_BREAK = re.compile(r"[,;.]|\b(?:and|then|but|while|whilst)\b", re.I)
+"""Where a clause of a sentence ends: a "not" turns round what follows it in its own clause only."""
 _NEGATION = re.compile(r"\b(?:not|never|no)\b", re.I)
 
 
@@ -79,7 +80,7 @@ def stated_bounds(sentence: str) -> list[StatedBound]:
         found.append((m.start(), m.group(0), float(m.group(1)), m.group(2), word.startswith(_UPPER_AFTER)))
     out = []
     for start, phrase, value, unit, upper in sorted(found, key=lambda f: f[0]):
-        negated = bool(_NEGATION.search(_CLAUSE_START.split(sentence[:start])[-1]))
+        negated = bool(_NEGATION.search(CLAUSE_BREAK.split(sentence[:start])[-1]))
         side = "upper" if upper != negated else "lower"
         out.append(StatedBound(value, unit, side, phrase.strip(), negated))
     return out

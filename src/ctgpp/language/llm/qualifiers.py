@@ -30,7 +30,7 @@ import re
 from typing import Any
 
 from ctgpp.behaviours import get_behaviour
-from ctgpp.language.bounds import bound_mismatch
+from ctgpp.language.bounds import CLAUSE_BREAK, bound_mismatch
 from ctgpp.language.compiler.handlers import U_TURN_PLACE, U_TURN_SIDE
 from ctgpp.language.compiler.phrases import U_TURN
 from ctgpp.language.compiler.refusals import MANOEUVRES, SUPPORTED
@@ -62,7 +62,6 @@ read as it: a small model reads "should not stop" as no collision and "must neve
 staying on the road. Every other behaviour asks for something to happen (a turn, a stop, a
 collision, a lane change), the opposite of denying it."""
 _NOT = re.compile(r"\b(?:not|never)\b", re.I)
-_CLAUSE_END = re.compile(r"[,;.]|\b(?:and|then|but|while|whilst)\b", re.I)
 _MENTION = r"(?:\b(?:vehicle|car|agent)\s+(\d+)\b|\b(the\s+)?ego\b)"
 _BETWEEN = r"(?:(?!\b(?:vehicles?|cars?|agents?|ego)\b)[^,;.])*?"  # no other vehicle in between
 _POSITION = re.compile(rf"{_MENTION}{_BETWEEN}\b(ahead\s+of|in\s+front\s+of|behind|back\s+from)\s+"
@@ -83,7 +82,7 @@ def positions(sentence: str) -> set[tuple[int, int]]:
 
 def _clauses_of(sentence: str, pattern: str) -> list[str]:
     """The pieces of the sentence between clause ends (",", "and", "then", ...) that match ``pattern``."""
-    return [piece for piece in _CLAUSE_END.split(sentence) if re.search(pattern, piece, re.I)]
+    return [piece for piece in CLAUSE_BREAK.split(sentence) if re.search(pattern, piece, re.I)]
 
 
 def check_expressible(calls: list[dict[str, Any]], sentence: str) -> None:
