@@ -27,8 +27,10 @@ from ctgpp.dynamics import bound_yaw_rate, clip_actions, rollout
 
 # x -> the loss, or (the rule's or query's loss, the realism guards' loss): the guards then win where
 # the two pull a vehicle opposite ways (:func:`yield_to_guards`), and they move the plans by their own
-# step along their gradient (:func:`guard_step`)
-Objective = Callable[[Tensor], "Tensor | tuple[Tensor, Tensor]"]
+# step along their gradient (:func:`guard_step`); or (that loss, the guards' loss, the loss of the
+# limits a query asks, ``GuidanceLoss.need_step``): the limits take the guards' kind of step, along
+# their gradient less what opposes the guards
+Objective = Callable[[Tensor], "Tensor | tuple[Tensor, Tensor] | tuple[Tensor, Tensor, Tensor]"]
 ADAM_BETAS = (0.9, 0.999)
 ADAM_EPS = 1e-8
 NEED_FACTOR = 4.0  # GuidanceConfig.need_factor; 1 let collisions back (docs/decisions/guards.md)
@@ -110,7 +112,10 @@ def guide_mean(mean: Tensor, objective: Objective, radius: float, config: Guidan
     rule's loss, the guards' loss): then Adam steps on the rule's gradient with the part that opposes
     the guards removed (:func:`yield_to_guards`), and the guards add their own step along their
     gradient (:func:`guard_step`, ``config.need_factor``; with a factor of 0 their gradient joins the
-    rule's in Adam instead). No gradient reaches ``mean`` or anything it was computed from. Adam
+    rule's in Adam instead); or to the triple (the rule's loss, the guards', the limits'): the limits
+    add a step of the guards' kind along their gradient less the part that opposes the guards (with a
+    factor of 0 that gradient joins Adam's too). No gradient reaches ``mean`` or anything it was
+    computed from. Adam
     (β = 0.9, 0.999, ε = 1e-8, the defaults of ``torch.optim.Adam``, whose update this is) is written
     out: the optimizer object's bookkeeping cost more than the update itself at every one of the many
     small steps of a plan.
@@ -127,13 +132,15 @@ def guide_mean(mean: Tensor, objective: Objective, radius: float, config: Guidan
         if any(part.requires_grad for part in parts):
             g = [_gradient(part, point, retain=k + 1 < len(parts)) for k, part in enumerate(parts)]
             grad = g[0]
-            if len(raw) == 2:  # (rule, guards)
+            if len(raw) >= 2:  # (rule, guards) or (rule, guards, limits)
                 grad = yield_to_guards(g[0], g[1])
+                limits = [yield_to_guards(g[2], g[1])] if len(raw) == 3 else []
                 if config.need_factor > 0:
-                    cost = _per_sample(raw[1].detach(), base.shape[0])
-                    guards_step = guard_step(g[1], cost, config.need_factor)
+                    for part, part_grad in zip(raw[1:], [g[1], *limits], strict=True):
+                        cost = _per_sample(part.detach(), base.shape[0])
+                        guards_step = guards_step + guard_step(part_grad, cost, config.need_factor)
                 else:
-                    grad = grad + g[1]
+                    grad = grad + g[1] + sum(limits, torch.zeros_like(base))
         elif step == 1:  # the loss does not depend on x here (nothing near to avoid, say): no move at all
             break
         else:  # no longer depends on x: a zero gradient, and Adam's momentum carries on

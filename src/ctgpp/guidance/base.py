@@ -26,6 +26,10 @@ from torch import Tensor, nn
 from ctgpp.guidance.constraints import PlanConstraints
 from ctgpp.guidance.scope import LossScope
 
+# what a guidance step minimizes (GuidanceLoss.guided_parts): the cost; (Adam's part, the need step's:
+# the guards or a limit); or (the rule's other parts, the guards, the limits)
+GuidedParts = Tensor | tuple[Tensor, Tensor] | tuple[Tensor, Tensor, Tensor]
+
 
 class GuidanceLoss(nn.Module):
     """Base class of every guidance loss: rules of the library, compiled queries, generated code.
@@ -36,12 +40,26 @@ class GuidanceLoss(nn.Module):
     following distance): a sequence does not also hold such a vehicle to its pace while a later part
     waits (:class:`~ctgpp.guidance.sequence.KeepPace`). ``separable`` is True for a loss whose cost
     of each vehicle reads that vehicle's trajectory alone (a speed, a lane, the road): restricted to
-    some vehicles, it reads only theirs (:meth:`reads`).
+    some vehicles, it reads only theirs (:meth:`reads`). ``need_step`` is True for a limit that a
+    plan meets unless it strays (an acceleration limit): the guidance step moves it only as far as its
+    cost needs, as the realism guards (:meth:`guided_parts`), not by Adam's step, which moves every
+    action with any gradient by the whole learning rate.
     """
 
     couples_agents: ClassVar[bool] = False
     sets_pace: ClassVar[bool] = False
     separable: ClassVar[bool] = False
+    need_step: ClassVar[bool] = False
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        """A subclass that writes its own ``forward`` does not inherit ``separable`` or ``need_step``:
+        they describe the cost the declaring class computes (a user's subclass of a speed rule that
+        reads a pair would otherwise be composed as if it read one vehicle)."""
+        super().__init_subclass__(**kwargs)
+        if "forward" in cls.__dict__:
+            for name in ("separable", "need_step"):
+                if name not in cls.__dict__ and getattr(cls, name) is True:
+                    setattr(cls, name, False)
 
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         raise NotImplementedError
@@ -84,10 +102,13 @@ class GuidanceLoss(nn.Module):
         (:class:`~ctgpp.guidance.rules.relative.ForVehicles`) asks; by default :meth:`reached`."""
         return self.reached(data_batch)
 
-    def guided_parts(self, x: Tensor, data_batch: Any) -> Tensor | tuple[Tensor, Tensor]:
-        """What a guidance step minimizes (:func:`ctgpp.diffusion.guided.guide_mean`): the cost, or the
-        pair (the rule's cost, the realism guards' cost) for a loss that carries the guards apart."""
-        return self(x, data_batch)
+    def guided_parts(self, x: Tensor, data_batch: Any) -> GuidedParts:
+        """What a guidance step minimizes (:func:`ctgpp.diffusion.guided.guide_mean`): the cost; or the
+        pair (what Adam's step minimizes, what the need step does) for a loss that carries the realism
+        guards or a limit apart (``need_step``: (0, the cost)); or, for a guarded loss with limits,
+        (the rule's other parts, the guards, the limits)."""
+        cost = self(x, data_batch)
+        return (cost.new_zeros(()), cost) if self.need_step else cost
 
     def ranking(self, x: Tensor, data_batch: Any) -> Tensor:
         """What filtration minimizes among the samples: the cost (a loss with the realism guards ranks

@@ -14,7 +14,7 @@ from typing import Any
 from torch import Tensor
 
 import ctgpp.guidance.rules  # noqa: F401  (registers the rules library)
-from ctgpp.guidance.base import GuidanceLoss, LossFactory, registered_losses
+from ctgpp.guidance.base import GuidanceLoss, GuidedParts, LossFactory, registered_losses
 from ctgpp.guidance.constraints import PlanConstraints, collide_pairs
 from ctgpp.guidance.scope import LossScope
 from ctgpp.rule_params import MAX_SPEED_MPS, ParamInfo, RuleParams, check_quantity
@@ -61,9 +61,23 @@ class CompositeLoss(GuidanceLoss):
         """Every part's vehicles together; None when a part cannot tell."""
         return joined_reads(self.losses, num_vehicles)
 
+    @property
+    def need_step(self) -> bool:  # type: ignore[override]
+        return all(loss.need_step for loss in self.losses)
+
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         pairs = zip(self.losses, self.weights, strict=True)
         return join_costs([w * loss(x, data_batch, agt_mask) for loss, w in pairs])
+
+    def guided_parts(self, x: Tensor, data_batch: Any) -> GuidedParts:
+        """The cost; with a part that takes the need step (``need_step``), the pair (the other parts'
+        cost, those parts' cost)."""
+        if not any(loss.need_step for loss in self.losses):
+            return self(x, data_batch)
+        pairs = list(zip(self.losses, self.weights, strict=True))
+        goal = [w * loss(x, data_batch) for loss, w in pairs if not loss.need_step]
+        need = join_costs([w * loss(x, data_batch) for loss, w in pairs if loss.need_step])
+        return (join_costs(goal) if goal else need.new_zeros(())), need
 
 
 def joined_reads(losses: Sequence[GuidanceLoss], num_vehicles: int) -> frozenset[int] | None:

@@ -63,7 +63,7 @@ import torch
 from torch import Tensor
 
 from ctgpp.geometry import DISC_CLEARANCE_M
-from ctgpp.guidance.base import GuidanceLoss
+from ctgpp.guidance.base import GuidanceLoss, GuidedParts
 from ctgpp.guidance.composite import CompositeLoss, join_costs
 from ctgpp.guidance.constraints import PlanConstraints, collide_pairs
 from ctgpp.guidance.context import GuidanceBatch
@@ -288,9 +288,16 @@ class GuardedLoss(CompositeLoss):
         """(the weighted rule's cost, the guards' cost), each as the part returns it."""
         return self.rule_weight * self.rule(x, data_batch, agt_mask), self.guards(x, data_batch, agt_mask)
 
-    def guided_parts(self, x: Tensor, data_batch: Any) -> tuple[Tensor, Tensor]:
-        """The rule's cost and the guards' apart: the guidance step lets the guards win."""
-        return self.parts(x, data_batch)
+    def guided_parts(self, x: Tensor, data_batch: Any) -> GuidedParts:
+        """The rule's cost and the guards' apart: the guidance step lets the guards win. A rule with
+        parts that take the need step (``need_step``: limits) gives (its other parts, the guards,
+        those parts): the limits take the guards' kind of step, and yield to the guards too."""
+        rule = self.rule.guided_parts(x, data_batch)
+        guards = self.guards(x, data_batch)
+        if not isinstance(rule, tuple):
+            return self.rule_weight * rule, guards
+        goal, limits = rule[0], rule[-1]
+        return self.rule_weight * goal, guards, self.rule_weight * limits
 
     def involved(self, x: Tensor, data_batch: Any) -> Tensor | None:
         """(B,) bool for one scene x (B, 1, T, 6): the guards' involved vehicles and every vehicle the

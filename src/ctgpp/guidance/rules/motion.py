@@ -190,9 +190,17 @@ class ReachSpeed(Rule):
 @register_loss("acceleration_limit")
 class AccelerationLimit(Rule):
     """Every vehicle keeps its acceleration magnitude, sqrt(longitudinal² + lateral²) with lateral =
-    speed × yaw rate, at or below a limit: mean excess over the horizon (m/s²)."""
+    speed × yaw rate, at or below a limit: mean excess over the horizon (m/s²). A limit that a plan
+    meets unless it strays: guided by the need step (``need_step``), so that a hinge costing at a few
+    steps turns those steps' yaw rates back, not every action of the plan by Adam's whole step (which
+    slowed a car on a straight road from 24 to 11 m/s and made it weave). The lateral term reads the
+    plan's speed as fixed: at the first denoising steps the yaw rates are noise, and through the speed
+    every acceleration before them was braked (the same car still slowed from 23.5 to 15 m/s and
+    weaved at ±2.5 m/s²); so the yaw rates carry the lateral part and the accelerations the
+    longitudinal part (docs/decisions/guards.md, "Limits")."""
 
     separable: ClassVar[bool] = True
+    need_step: ClassVar[bool] = True
 
     param_doc = {"max_mps2": ("m/s²", "the largest allowed acceleration magnitude")}
 
@@ -204,7 +212,7 @@ class AccelerationLimit(Rule):
         return LossScope.everyone()
 
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
-        lat = x[..., 2] * x[..., 5]
+        lat = x[..., 2].detach() * x[..., 5]
         mag = torch.sqrt(x[..., 4] ** 2 + lat**2 + 1e-6)
         return apply_mask(torch.relu(mag - self.max_mps2).mean(-1), agt_mask)
 

@@ -45,6 +45,10 @@ class _ForSomeVehicles(GuidanceLoss):
     def sets_pace(self) -> bool:  # type: ignore[override]
         return bool(self.loss.sets_pace)
 
+    @property
+    def need_step(self) -> bool:  # type: ignore[override]
+        return bool(self.loss.need_step)
+
     def scope(self) -> LossScope:
         """The wrapped loss's scope among ``vehicles``."""
         return self.loss.scope().restricted(self.vehicles)

@@ -31,6 +31,10 @@ class During(GuidanceLoss):
     def couples_agents(self) -> bool:  # type: ignore[override]
         return bool(self.loss.couples_agents)
 
+    @property
+    def need_step(self) -> bool:  # type: ignore[override]
+        return bool(self.loss.need_step)
+
     def scope(self) -> LossScope:
         return self.loss.scope()
 

@@ -28,6 +28,7 @@ from ctgpp.diffusion import Sampler
 from ctgpp.diffusion.guided import GuidanceConfig, Objective, action_trajectories, guidance_radii, guided_step
 from ctgpp.diffusion.schedule import randn_like
 from ctgpp.dynamics import clip_actions
+from ctgpp.guidance.base import GuidedParts
 from ctgpp.guidance.prediction import known_tracks
 from ctgpp.interfaces import Observation
 from ctgpp.model.config import ModelConfig
@@ -82,9 +83,9 @@ class GuidedSampling:
         loss_fn, data_batch = ctx.loss, ctx.batch
         if loss_fn is not None and data_batch is not None:
 
-            def objective(x: Tensor) -> Tensor | tuple[Tensor, Tensor]:  # normalized actions (N, M, F, 2)
+            def objective(x: Tensor) -> GuidedParts:  # normalized actions (N, M, F, 2)
                 traj = every_vehicle(action_trajectories(normalizer.denormalize_actions(x), moving, cfg.dt_s))
-                return loss_fn.guided_parts(traj, data_batch)  # the rule's and the guards' apart
+                return loss_fn.guided_parts(traj, data_batch)  # the rule's, the guards' and limits apart
 
         sampler, config, radii = self.sampler, self.config, guidance_radii(self.sampler, self.config)
 
