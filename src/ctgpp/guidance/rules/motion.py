@@ -195,8 +195,8 @@ class AccelerationLimit(Rule):
     steps turns those steps' yaw rates back, not every action of the plan by Adam's whole step (which
     slowed a car on a straight road from 24 to 11 m/s and made it weave). The lateral term reads the
     plan's speed as fixed: at the first denoising steps the yaw rates are noise, and through the speed
-    every acceleration before them was braked (the same car still slowed from 23.5 to 15 m/s and
-    weaved at ±2.5 m/s²); so the yaw rates carry the lateral part and the accelerations the
+    every acceleration before them was braked (the same car still slowed from 23.5 to 13 m/s and
+    weaved at ±2–3 m/s²); so the yaw rates carry the lateral part and the accelerations the
     longitudinal part (docs/decisions/guards.md, "Limits")."""
 
     separable: ClassVar[bool] = True
