@@ -139,6 +139,12 @@ def test_a_killed_run_resumes_and_the_table_reports_both_sides(catalog: Catalog,
     others_failed = float(collide["fail_excl_guided"]) * (n - 2)
     assert others_failed <= float(collide["fail_guided"]) * n + 1e-4
     assert abs(others_failed - round(others_failed)) < 1e-4  # a count of vehicles
+    # the moving vehicles' fail: a share of them, the pair left out only where a sentence asks a crash
+    assert collide["moving_fail_excl_guided"] != "" and lane["moving_fail_excl_guided"] == ""
+    for row in (collide, lane):
+        for side in ("guided", "unguided"):
+            assert 0.0 <= float(row[f"moving_fail_{side}"]) <= 1.0
+    assert float(lane["moving_fail_unguided"]) == 0.0  # the log neither collides nor leaves the road
 
     # A kill in the middle of writing the second row: the torn line is dropped and redone.
     lines = results.read_text().splitlines(keepends=True)
@@ -152,6 +158,7 @@ def test_a_killed_run_resumes_and_the_table_reports_both_sides(catalog: Catalog,
 
     table = markdown_table(resumed, cases)
     rows = [line for line in table.splitlines() if line.startswith(("| collision", "| follow"))]
-    assert len(rows) == 2 and rows[0].count("|") == 13
+    assert len(rows) == 2 and rows[0].count("|") == 15
+    assert "Moving-vehicle fail over the 2 case-seeds simulated: guided" in table
     assert "| follow its lane | vehicle 0 should follow its lane | scene-0103 | 3.0 |" in table
     assert "Families satisfied by a guided rollout:" in table

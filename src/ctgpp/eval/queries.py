@@ -5,8 +5,10 @@ A case is (family, query, scene, start_s); every episode runs ``duration_s`` sim
 ``history_s`` of log (:func:`~ctgpp.sim.closed_loop.episode_config`: 3 s, less down to 1 s where a
 scene is short). For every case and seed the benchmark records whether the
 query was satisfied (:func:`ctgpp.language.satisfaction.check_satisfied`, every part must hold) for
-the guided and the unguided rollout, their fail rates, for collision queries also the fail rate
-without the vehicles asked to collide (:func:`ctgpp.metrics.rules.fail_excluding`), and ``real``.
+the guided and the unguided rollout, their fail rates over every controlled vehicle and over the
+moving ones (``moving_fail``), for collision queries also both without the vehicles asked to collide
+(:func:`ctgpp.metrics.rules.fail_excluding`, :func:`ctgpp.metrics.moving.moving_fail_excluding`), and
+``real``.
 Rows are appended to a CSV one finished case at a time; a re-run skips the cases already there.
 The unguided rollout does not depend on the query: it is simulated once per scene, start and seed.
 """
@@ -34,6 +36,7 @@ from ctgpp.language.compiler import CompiledQuery
 from ctgpp.language.llm.client import LLMConfig
 from ctgpp.language.query import resolve_query
 from ctgpp.language.satisfaction import check_satisfied
+from ctgpp.metrics.moving import moving_fail_excluding
 from ctgpp.metrics.rules import fail_excluding
 from ctgpp.policies.factory import PolicyFactory
 from ctgpp.scene.types import Scene
@@ -41,7 +44,7 @@ from ctgpp.sim.closed_loop import DURATION_S, SimConfig, episode_config, initial
 
 KEY = ("family", "query", "scene", "start_s", "seed")
 SIDES = ("guided", "unguided")
-MEASURED = ("satisfied", "fail", "fail_excl", "real", "measured")
+MEASURED = ("satisfied", "fail", "fail_excl", "moving_fail", "moving_fail_excl", "real", "measured")
 # path: where the guided loss came from (compiler, llm, cache, fallback); rounds: the language model's
 # replies (0 for the compiler and the cache); llm_s: seconds the model took, all rounds together
 FIELDS = (*KEY, "vehicles", *(f"{m}_{s}" for m in MEASURED for s in SIDES), "path", "rounds", "llm_s",
@@ -116,13 +119,15 @@ def _fmt(value: float) -> str:
 
 def _measure(result: Result, compiled: CompiledQuery, side: str) -> dict[str, str]:
     """The columns of one side: the compiled query's independent check of the episode, its fail rate
-    (without the pair asked to collide too) and ``real``."""
+    and its moving vehicles' (each without the pair asked to collide too) and ``real``."""
     parts = check_satisfied(result.rollout, compiled)
     exempt = colliding_vehicles(compiled)
     return {
         f"satisfied_{side}": str(int(all(p.satisfied for p in parts))),
         f"fail_{side}": _fmt(result.metrics["fail"]),
         f"fail_excl_{side}": _fmt(fail_excluding(result.rollout, exempt)) if exempt else "",
+        f"moving_fail_{side}": _fmt(result.metrics["moving_fail"]),
+        f"moving_fail_excl_{side}": _fmt(moving_fail_excluding(result.rollout, exempt)) if exempt else "",
         f"real_{side}": _fmt(result.metrics["real"]),
         f"measured_{side}": "; ".join(f"[{'ok' if p.satisfied else 'no'}] {p.measured}" for p in parts),
     }
@@ -258,14 +263,16 @@ def markdown_table(records: list[dict[str, str]], cases: Sequence[QueryCase] | N
     order = list(groups) if cases is None else [c.key(0)[:-1] for c in cases if c.key(0)[:-1] in groups]
     head = (
         "| family | query | scene | start (s) | satisfied guided | satisfied unguided | fail guided "
-        "| fail unguided | fail w/o pair guided | fail w/o pair unguided | real guided | real unguided |"
+        "| fail unguided | fail w/o pair guided | fail w/o pair unguided | moving fail guided "
+        "| moving fail unguided | real guided | real unguided |"
     )
-    lines = [head, "|---|---|---|---:|:---:|:---:|---:|---:|---:|---:|---:|---:|"]
+    lines = [head, "|---|---|---|---:|:---:|:---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for key in order:
         rows = groups[key]
         family, query, scene, start = key
         cells = [_rate(rows, "satisfied_guided"), _rate(rows, "satisfied_unguided")]
-        cells += [_num(_mean(rows, f"{m}_{s}")) for m in ("fail", "fail_excl", "real") for s in SIDES]
+        cells += [_num(_mean(rows, f"{m}_{s}")) for m in ("fail", "fail_excl", "moving_fail", "real")
+                  for s in SIDES]
         lines.append(f"| {family} | {query} | {scene} | {start} | " + " | ".join(cells) + " |")
     families = {k[0] for k in order}
     won = {k[0] for k in order if any(r["satisfied_guided"] == "1" for r in groups[k])}
@@ -276,12 +283,31 @@ def markdown_table(records: list[dict[str, str]], cases: Sequence[QueryCase] | N
     missing = sorted(families - won)
     if missing:
         lines.append(f"Not satisfied guided: {', '.join(missing)}.")
+    lines.extend(_moving_summary([r for k in order for r in groups[k]]))
     refused = {k: groups[k][0]["measured_guided"] for k in order if groups[k][0].get("path") == "refused"}
     for (_, query, scene, start), why in refused.items():
         reason = why.removeprefix("refused: ")
         lines.append(f"Refused before simulating ({scene} at {start} s): {query!r}: {reason}")
     lines.extend(_paths_summary(records))
     return "\n".join(lines) + "\n"
+
+
+def _moving_summary(records: list[dict[str, str]]) -> list[str]:
+    """The moving vehicles' fail over the case-seeds simulated (refused ones have none), guided and
+    unguided, and their difference with and without the pairs a sentence asks to collide."""
+    ran = [r for r in records if r.get("moving_fail_guided") and r.get("moving_fail_unguided")]
+    if not ran:
+        return []
+    guided, unguided = _mean(ran, "moving_fail_guided"), _mean(ran, "moving_fail_unguided")
+
+    def without_pair(side: str) -> float:
+        values = [float(r[f"moving_fail_excl_{side}"] or r[f"moving_fail_{side}"]) for r in ran]
+        return sum(values) / len(values)
+
+    excess = without_pair("guided") - without_pair("unguided")
+    return [f"Moving-vehicle fail over the {len(ran)} case-seeds simulated: guided {_num(guided)}, unguided "
+            f"{_num(unguided)} (guided − unguided {guided - unguided:+.3f}; without the pairs asked to "
+            f"collide {excess:+.3f})."]
 
 
 def _paths_summary(records: list[dict[str, str]]) -> list[str]:

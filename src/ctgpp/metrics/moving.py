@@ -115,6 +115,16 @@ def moving_fail(rollout: Rollout) -> MetricValue:
     return _share(rollout, (o.hit_step >= 0) | (o.offroad_step >= 0))
 
 
+def moving_fail_excluding(rollout: Rollout, vehicles: Iterable[int] = ()) -> float:
+    """``moving_fail`` over the moving vehicles other than ``vehicles`` (displayed numbers): the pair
+    a sentence asks to collide left out. NaN when no moving vehicle is left."""
+    o = vehicle_outcomes(rollout)
+    exempt = {int(v) for v in vehicles}
+    keep = o.moving & np.array([int(rollout.number[a]) not in exempt for a in o.agents], dtype=bool)
+    failed = (o.hit_step >= 0) | (o.offroad_step >= 0)
+    return float(failed[keep].mean()) if keep.any() else float("nan")
+
+
 @register_metric("moving_fail_present")
 def moving_fail_present(rollout: Rollout) -> MetricValue:
     """Share of the moving vehicles that collide with an agent present at the start or go off-road."""
