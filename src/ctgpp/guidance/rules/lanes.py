@@ -34,8 +34,20 @@ from ctgpp.guidance.rules.lane_change import one_row
 from ctgpp.guidance.scope import LossScope
 
 
+class _OneOrEvery(Rule):
+    """A lane rule of one vehicle (``vehicle``, a displayed number) or of every vehicle (None)."""
+
+    vehicle: int | None
+
+    def scope(self) -> LossScope:
+        return LossScope.everyone() if self.vehicle is None else LossScope.of([self.vehicle])
+
+    def reads(self, num_vehicles: int) -> frozenset[int] | None:
+        return frozenset(range(num_vehicles)) if self.vehicle is None else frozenset({self.vehicle})
+
+
 @register_loss("follow_lane")
-class FollowLane(Rule):
+class FollowLane(_OneOrEvery):
     """A vehicle (or every vehicle: ``vehicle=None``) follows its current lane: the mean distance
     (m) over the horizon from the centerline of the lane it is on at each re-plan."""
 
@@ -47,12 +59,6 @@ class FollowLane(Rule):
         super().__init__()
         self.vehicle = None if vehicle is None else int(vehicle)
 
-    def scope(self) -> LossScope:
-        return LossScope.everyone() if self.vehicle is None else LossScope.of([self.vehicle])
-
-    def reads(self, num_vehicles: int) -> frozenset[int] | None:
-        return frozenset(range(num_vehicles)) if self.vehicle is None else frozenset({self.vehicle})
-
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         proj = get_current_lane_projection(x[..., :2], x[..., 3:4], data_batch)  # (B, N, T, 3)
         cost = lane_offset(x[..., :2], proj).mean(-1)  # (B, N)
@@ -63,7 +69,7 @@ class FollowLane(Rule):
 
 
 @register_loss("keep_lane")
-class KeepLane(Rule):
+class KeepLane(_OneOrEvery):
     """A vehicle (or every vehicle: ``vehicle=None``) keeps its lane: the mean over the horizon of its
     distance (m) from the nearest of the lane paths it may follow without changing lanes — its lane
     and every continuation ahead, turns included (:func:`~ctgpp.guidance.lane_helpers.get_lane_paths`)
@@ -85,12 +91,6 @@ class KeepLane(Rule):
         super().__init__()
         self.vehicle = None if vehicle is None else int(vehicle)
         self.tolerance_m = float(tolerance_m)
-
-    def scope(self) -> LossScope:
-        return LossScope.everyone() if self.vehicle is None else LossScope.of([self.vehicle])
-
-    def reads(self, num_vehicles: int) -> frozenset[int] | None:
-        return frozenset(range(num_vehicles)) if self.vehicle is None else frozenset({self.vehicle})
 
     def forward(self, x: Tensor, data_batch: Any, agt_mask: Tensor | None = None) -> Tensor:
         n_b = x.shape[0]
