@@ -190,14 +190,15 @@ class ReachSpeed(Rule):
 @register_loss("acceleration_limit")
 class AccelerationLimit(Rule):
     """Every vehicle keeps its acceleration magnitude, sqrt(longitudinal² + lateral²) with lateral =
-    speed × yaw rate, at or below a limit: mean excess over the horizon (m/s²). A limit that a plan
-    meets unless it strays: guided by the need step (``need_step``), so that a hinge costing at a few
-    steps turns those steps' yaw rates back, not every action of the plan by Adam's whole step (which
-    slowed a car on a straight road from 24 to 11 m/s and made it weave). The lateral term reads the
-    plan's speed as fixed: at the first denoising steps the yaw rates are noise, and through the speed
-    every acceleration before them was braked (the same car still slowed from 23.5 to 13 m/s and
-    weaved at ±2–3 m/s²); so the yaw rates carry the lateral part and the accelerations the
-    longitudinal part (docs/decisions/guards.md, "Limits")."""
+    speed × yaw rate, at or below a limit: mean excess over the horizon (m/s²).
+
+    A limit that a plan meets unless it strays: guided by the need step (``need_step``), so that a
+    hinge costing at a few steps turns those steps' yaw rates back, not every action of the plan by
+    Adam's whole step (which slowed a car on a straight road from 24 to 11 m/s and made it weave). The
+    lateral term reads the plan's speed as fixed: at the first denoising steps the yaw rates are
+    noise, and through the speed every acceleration before them was braked (the same car still slowed
+    from 23.5 to 13 m/s and weaved at ±2–3 m/s²); so the yaw rates carry the lateral part and the
+    accelerations the longitudinal part (docs/decisions/guards.md, "Limits")."""
 
     separable: ClassVar[bool] = True
     need_step: ClassVar[bool] = True
