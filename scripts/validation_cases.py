@@ -8,6 +8,9 @@ episode (never from a model's rollout), and stops after ``--limit`` scenes with 
   over the steps) is largest, if above 2.5 m/s²: "vehicle N keeps its acceleration under 2 m/s²".
 - ``slowstop``: the controlled vehicle fastest at the start, at least 8 m/s and valid to the end:
   "vehicle N slows down to X m/s and then stops", X its start speed halved and rounded.
+- ``turn``: the controlled vehicle moving at 3 m/s or more at the start, valid to the end, whose
+  lane reaches an intersection within 40 m with a way left (else right), the nearest such:
+  "vehicle N should turn left (right) at the next intersection".
 
     python scripts/validation_cases.py accel --data DATA/waymo --split val --out accel_val.json
 
@@ -28,10 +31,13 @@ from ctgpp.api.result import Result
 from ctgpp.behaviours.tracks import Track, tracks
 from ctgpp.data.catalog import Catalog
 from ctgpp.io.atomic import write_text_atomic
+from ctgpp.scene.lane_paths import turn_path
+from ctgpp.scene.lanes import nearest_lane
 
 ACCEL_FLOOR_MPS2 = 2.5  # the log must exceed the 2 m/s² asked, with room, or the case is trivial
 MOVING_MPS = 3.0
 FAST_START_MPS = 8.0
+TURN_WITHIN_M = 40.0  # an intersection near enough to reach and turn at within the episode
 
 
 def _accel_p95(t: Track) -> float:
@@ -65,7 +71,28 @@ def slowstop_case(result: Result) -> str | None:
     return f"vehicle {best.number} slows down to {round(best.speed0 / 2)} m/s and then stops"
 
 
-FAMILIES: dict[str, Callable[[Result], str | None]] = {"accel": accel_case, "slowstop": slowstop_case}
+def turn_case(result: Result) -> str | None:
+    lanes = result.scene.lanes
+    best: tuple[float, int, str] | None = None
+    for t in tracks(result.rollout, None):
+        if not t.valid.all() or t.speed0 < MOVING_MPS:
+            continue
+        start = nearest_lane(lanes, t.xy0, t.yaw0)
+        if start is None:
+            continue
+        for direction in ("left", "right"):
+            path = turn_path(lanes, start, direction)
+            if path is not None and path.ahead_m <= TURN_WITHIN_M:
+                if best is None or path.ahead_m < best[0]:
+                    best = (path.ahead_m, t.number, direction)
+                break  # left where there is one, else right
+    if best is None:
+        return None
+    return f"vehicle {best[1]} should turn {best[2]} at the next intersection"
+
+
+FAMILIES: dict[str, Callable[[Result], str | None]] = {
+    "accel": accel_case, "slowstop": slowstop_case, "turn": turn_case}
 
 
 def main() -> None:
