@@ -31,6 +31,7 @@ import numpy as np
 
 import ctgpp
 from ctgpp.api.result import Result
+from ctgpp.behaviours.motion import acceleration_magnitudes
 from ctgpp.behaviours.tracks import Track, tracks
 from ctgpp.data.catalog import Catalog
 from ctgpp.io.atomic import write_text_atomic
@@ -44,12 +45,7 @@ TURN_WITHIN_M = 40.0  # an intersection near enough to reach and turn at within 
 
 
 def _accel_p95(t: Track) -> float:
-    speed = np.concatenate([[t.speed0], t.speed])
-    yaw = np.concatenate([[t.yaw0], t.yaw])
-    valid = np.concatenate([[True], t.valid])
-    lon = np.diff(speed) / t.dt_s
-    lat = speed[1:] * ((np.diff(yaw) + np.pi) % (2 * np.pi) - np.pi) / t.dt_s
-    mag = np.hypot(lon, lat)[valid[1:] & valid[:-1]]
+    mag = acceleration_magnitudes(t)
     return float(np.percentile(mag, 95)) if mag.size else 0.0
 
 

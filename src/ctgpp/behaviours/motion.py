@@ -186,17 +186,22 @@ def acceleration_violation(rollout: Rollout, p: Params, vehicles: Vehicles) -> f
     return paper.acceleration_limit(rollout, p["max_mps2"], _restricted(vehicles))
 
 
+def acceleration_magnitudes(t: Track) -> np.ndarray:
+    """(K,) m/s²: the acceleration magnitude of each step valid at both ends, from t = 0 (speed
+    differences, and speed × yaw rate from heading differences)."""
+    speed = np.concatenate([[t.speed0], t.speed])
+    yaw = np.concatenate([[t.yaw0], t.yaw])
+    valid = np.concatenate([[True], t.valid])
+    lon = np.diff(speed) / t.dt_s
+    lat = speed[1:] * ((np.diff(yaw) + np.pi) % (2 * np.pi) - np.pi) / t.dt_s
+    return np.hypot(lon, lat)[valid[1:] & valid[:-1]]
+
+
 def acceleration_check(rollout: Rollout, p: Params, vehicles: Vehicles) -> Verdict:
     """No step's acceleration magnitude (speed differences, speed × yaw rate) exceeds the limit."""
     top = 0.0
     for t in tracks(rollout, vehicles):
-        speed = np.concatenate([[t.speed0], t.speed])
-        yaw = np.concatenate([[t.yaw0], t.yaw])
-        valid = np.concatenate([[True], t.valid])
-        lon = np.diff(speed) / t.dt_s
-        lat = speed[1:] * ((np.diff(yaw) + np.pi) % (2 * np.pi) - np.pi) / t.dt_s
-        mag = np.hypot(lon, lat)[valid[1:] & valid[:-1]]
-        top = max(top, float(mag.max(initial=0.0)))
+        top = max(top, float(acceleration_magnitudes(t).max(initial=0.0)))
     limit = float(p["max_mps2"])
     return Verdict(top <= limit, f"largest acceleration {top:.2f} m/s² (limit {limit:g})", EVERY_STEP)
 
