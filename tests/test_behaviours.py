@@ -21,8 +21,8 @@ from ctgpp.language.llm.prompt import build_messages
 from ctgpp.language.query import start_states
 from ctgpp.language.satisfaction import check_satisfied, in_order
 from ctgpp.policies.simple import ReplayPolicy
-from ctgpp.scene.lane_paths import same_direction_neighbour, turn_path
-from ctgpp.scene.lanes import lane_points_ahead, nearest_lane
+from ctgpp.scene.lane_paths import lanes_beside, lanes_to_the_right, same_direction_neighbour, turn_path
+from ctgpp.scene.lanes import lane_points_ahead, nearest_lane, project_to_lane
 from ctgpp.scene.types import AgentTracks
 from ctgpp.sim.closed_loop import simulate
 from tests.support.rollouts import T, hand_rollout, straight
@@ -288,6 +288,40 @@ def test_a_lane_reached_before_a_turn_is_judged_up_to_the_turn(replay_0553: Roll
     assert 0.0 < reached <= 3.1 and "after the earlier stage" in turn.measured
     alone = check_satisfied(rollout, compile_query("vehicle 17 moves to the rightmost lane", 40))[0]
     assert "judged up to" not in alone.measured  # no later stage: judged at the end, as ever
+
+
+@pytest.fixture(scope="module")
+def replay_0553_4s() -> Rollout:
+    return simulate(Catalog.open().load("scene-0553"), ReplayPolicy(), 4.0)
+
+
+def test_a_lane_beside_a_turn_pocket_is_not_the_rightmost(replay_0553_4s: Rollout) -> None:
+    """Vehicle 21 of the paper's failure case (scene-0553 from 4 s) driven 10 s at 8 m/s straight
+    along its lanes (98, 280, 50) into the intersection 75 m ahead: lane 50 has a right-turn pocket
+    (lane 89) beside it, so it is not the rightmost lane — not at its last metres, where the pocket has
+    already turned off and no lane lies beside it, nor inside the intersection, where no lane ever
+    lies beside another (both counted as the rightmost lane before). Moved over into the pocket
+    before the intersection, it is."""
+    r = replay_0553_4s
+    lanes, a = r.scene.lanes, int(np.flatnonzero(r.number == 21)[0])
+    own = nearest_lane(lanes, r.sim.xy[a, r.current], float(r.sim.yaw[a, r.current]))
+    assert own is not None and own.lane == 98
+    assert lanes_to_the_right(lanes, 50) == 1 and lanes_to_the_right(lanes, 89) == 0
+    end_of_50 = project_to_lane(lanes, 50, lanes.lane(50)[-1])
+    assert lanes_beside(lanes, end_of_50, "right") == []  # where the pocket has turned off
+    metres = 8.0 * 0.1 * np.arange(r.sim.num_steps - r.current)  # to 80 m
+    points = lane_points_ahead(lanes, own, 150.0, 0.5)
+    straight = points[np.minimum(np.round(metres / 0.5).astype(int), len(points) - 1)]
+    last = nearest_lane(lanes, straight[-1], float(np.arctan2(*(straight[-1] - straight[-2])[::-1])))
+    assert last is not None and lanes.intersection[last.lane]  # it ends inside the intersection
+    ok, said = _verdict(_drive(r, 21, straight, 8.0), "vehicle 21 moves to the rightmost lane")
+    assert not ok and "inside the intersection entered from lane 50, with 1 same-direction" in said, said
+    # over into the pocket between 50 and 62 m (3.5 m to the right), then on into the intersection
+    heading = np.gradient(straight, axis=0)
+    right = np.stack([heading[:, 1], -heading[:, 0]], axis=1) / np.linalg.norm(heading, axis=1)[:, None]
+    over = straight + 3.5 * np.clip((metres - 50.0) / 12.0, 0.0, 1.0)[:, None] * right
+    ok, said = _verdict(_drive(r, 21, over, 8.0), "vehicle 21 moves to the rightmost lane")
+    assert ok and "entered from lane 89" in said, said
 
 
 def _lane_setup(r: Rollout) -> tuple[int, int, object, object]:

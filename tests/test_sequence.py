@@ -18,6 +18,7 @@ from ctgpp.guidance.sequence import KeepPace
 from ctgpp.interfaces import Observation
 from ctgpp.language.compiler import compile_query
 from ctgpp.language.compiler.compiled import prerequisites
+from ctgpp.scene.lanes import nearest_lane
 from tests.support.observations import logged_x, real_observation
 
 FAILURE_CASE = ("vehicle 20 and 21 move to the rightmost lane one by one and then both turn right at the "
@@ -114,6 +115,31 @@ def test_reached_needs_the_lane_not_just_its_neighbourhood(start_obs: Observatio
     turned = pose.copy()
     turned[2] += math.radians(45.0)
     assert rightmost.reached(build_guidance_batch(later(start_obs, 10, {20: turned}))) is False
+
+
+def test_the_connector_from_the_lane_beside_is_not_the_rightmost_lane(start_obs: Observation) -> None:
+    """Vehicle 21's committed rightmost lane (the right-turn pocket, lane 89) is continued straight on
+    into the intersection's connector from the lane beside it (lane 50): a vehicle there, having come
+    from its own lane, has not moved over (it counted as reached before, which handed over to its
+    turn inside the intersection, a lane over). On the pocket itself it has."""
+    first = build_guidance_batch(start_obs)
+    rightmost = make_loss("move_to_rightmost_lane", vehicle=21)
+    line = rightmost.committed_line(first, 21)
+    assert line is not None
+    lanes = start_obs.scene.lanes
+
+    def lane_at(k: int) -> int:
+        d = line[k + 1] - line[k]
+        proj = nearest_lane(lanes, line[k], math.atan2(d[1], d[0]))
+        assert proj is not None
+        return proj.lane
+
+    inside = next(k for k in range(len(line) - 1) if lanes.intersection[lane_at(k)])
+    assert lane_at(inside - 10) == 89 and lane_at(inside + 5) == 368  # the straight connector from 50
+    connector = on_line(first, line, line[inside + 5])
+    assert rightmost.reached(build_guidance_batch(later(start_obs, 10, {21: connector}))) is False
+    pocket = on_line(first, line, line[inside - 10])
+    assert rightmost.reached(build_guidance_batch(later(start_obs, 10, {21: pocket}))) is True
 
 
 def test_keep_pace_by_hand(start_obs: Observation) -> None:

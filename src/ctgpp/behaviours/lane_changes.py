@@ -19,11 +19,11 @@ from typing import Any
 import numpy as np
 
 from ctgpp.behaviours.base import Starts, Vehicles, Verdict
-from ctgpp.behaviours.lane_positions import chain_distance, end_lane, lanes_along, reachable, with_start
+from ctgpp.behaviours.lane_positions import chain_distance, end_lane, reachable, with_start
 from ctgpp.behaviours.tracks import Track, both_valid, track, wrapped_deg
 from ctgpp.interfaces import Rollout
 from ctgpp.scene.holds import held_from
-from ctgpp.scene.lane_paths import lanes_beside, same_direction_neighbour
+from ctgpp.scene.lane_paths import lanes_to_the_right, road_lanes_along, same_direction_neighbour
 from ctgpp.scene.lanes import IN_LANE_M, LANE_HEADING_DEG, LaneProjection, nearest_lane, project_to_lane
 from ctgpp.scene.types import LaneGraph
 from ctgpp.scene.vehicles import MOVING_SPEED_MPS
@@ -98,23 +98,26 @@ END = "the last simulated step (the lane it starts on: t = 0)"
 
 
 def _lanes_to_the_right(lanes: LaneGraph, proj: LaneProjection) -> int:
-    return len(lanes_beside(lanes, proj, "right"))
+    return lanes_to_the_right(lanes, proj.lane)
 
 
 def rightmost_violation(rollout: Rollout, p: Params, vehicles: Vehicles) -> float:
-    """Same-direction lanes to the right of the last lane the vehicle is on (NaN: it is on none)."""
+    """Same-direction lanes to the right of the last road lane the vehicle is on, anywhere along it
+    (inside an intersection: the lane it entered from; NaN: it is on none)."""
     t = _valid(rollout, p["vehicle"])
     lanes = rollout.scene.lanes
-    last = next((q for q in reversed(lanes_along(lanes, *with_start(t))) if q is not None), None)
+    last = next((q for q in reversed(road_lanes_along(lanes, *with_start(t))[0]) if q is not None), None)
     return math.nan if last is None else float(_lanes_to_the_right(lanes, last))
 
 
 def rightmost_check(rollout: Rollout, p: Params, vehicles: Vehicles) -> Verdict:
-    """The lane the vehicle ends on has no same-direction lane to its right; achieved (``done_s``)
-    at the first step from which every lane it is on has none, to the end."""
+    """The lane the vehicle ends on has no same-direction lane to its right, anywhere along it
+    (:func:`~ctgpp.scene.lane_paths.lanes_to_the_right`); achieved (``done_s``) at the first step from
+    which every lane it is on has none, to the end. Inside an intersection the lane is the road lane
+    the vehicle entered it from (:func:`~ctgpp.scene.lane_paths.road_lanes_along`)."""
     t = _valid(rollout, p["vehicle"])
     lanes = rollout.scene.lanes
-    along = lanes_along(lanes, *with_start(t))  # (T+1,) from t = 0
+    along, inside = road_lanes_along(lanes, *with_start(t))  # (T+1,) from t = 0
     proj = along[-1]
     # on a lane with no same-direction lane to its right, at each step
     rightmost = [q is not None and _lanes_to_the_right(lanes, q) == 0 for q in along]
@@ -124,7 +127,8 @@ def rightmost_check(rollout: Rollout, p: Params, vehicles: Vehicles) -> Verdict:
     since = held_from(np.array(rightmost))
     done = None if since is None else (0.0 if since == 0 else t.time(since - 1))
     when = "" if done is None else f" (from t = {done:.1f} s)"
-    said = f"ends on lane {proj.lane}, with {n} same-direction lane(s) to its right{when}"
+    where = f"inside the intersection entered from lane {proj.lane}" if inside else f"on lane {proj.lane}"
+    said = f"ends {where}, with {n} same-direction lane(s) to its right{when}"
     return Verdict(n == 0, said, END, done)
 
 

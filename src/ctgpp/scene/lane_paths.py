@@ -9,13 +9,23 @@ lane change or a turn is to end in, so that the verdict and the guidance agree.
 from __future__ import annotations
 
 import math
+import weakref
 from dataclasses import dataclass, replace
 from typing import Literal
 
 import numpy as np
 
 from ctgpp.geometry import wrap_angle
-from ctgpp.scene.lanes import LaneProjection, lane_length, lanes_ahead, left_lane, nearest_lane, right_lane
+from ctgpp.scene.lanes import (
+    LaneProjection,
+    follow_lane,
+    lane_length,
+    lanes_ahead,
+    left_lane,
+    nearest_lane,
+    project_to_lane,
+    right_lane,
+)
 from ctgpp.scene.types import LaneGraph
 
 Side = Literal["left", "right"]
@@ -27,6 +37,8 @@ NEIGHBOUR_OFFSET_M = (2.0, 6.0)  # centerline spacing of a plausible neighbour l
 NEIGHBOUR_MAX_HEADING_RAD = math.radians(20.0)
 LANE_WIDTH_M = 3.5  # where a neighbour is looked for when the lane graph links none
 CONTINUE_SPACING_M = 2.0  # point spacing of a path continued past the end of its last lane
+RIGHT_SAMPLE_M = 5.0  # lanes_to_the_right looks beside a lane this often: shorter than a turn pocket
+_RIGHT_CACHE: weakref.WeakKeyDictionary[LaneGraph, dict[int, int]] = weakref.WeakKeyDictionary()
 
 
 def path_polyline(lanes: LaneGraph, path: list[int], start_s_m: float, reach_m: float) -> np.ndarray:
@@ -89,6 +101,43 @@ def lanes_beside(lanes: LaneGraph, proj: LaneProjection, side: Side) -> list[Lan
         out.append(nxt)
         proj = nxt
     return out
+
+
+def lanes_to_the_right(lanes: LaneGraph, lane: int) -> int:
+    """The most same-direction lanes that lie to the right of road lane ``lane`` anywhere along it
+    (:func:`lanes_beside` at points every ``RIGHT_SAMPLE_M`` of its centerline, both ends included); 0
+    for an intersection lane, beside which no lane lies. A property of the lane, not of a point on it:
+    a turn pocket beside a lane's last metres makes it not the rightmost lane there too, although at
+    its very end, where the pocket has turned into the intersection, no lane is found beside it."""
+    cache = _RIGHT_CACHE.setdefault(lanes, {})
+    if lane not in cache:
+        points = lanes.lane(lane)  # (P, 2)
+        s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))])
+        marks = np.unique(np.concatenate([np.arange(0.0, s[-1], RIGHT_SAMPLE_M), [s[-1]]]))
+        at = np.stack([np.interp(marks, s, points[:, 0]), np.interp(marks, s, points[:, 1])], axis=1)
+        cache[lane] = max(len(lanes_beside(lanes, project_to_lane(lanes, lane, xy), "right")) for xy in at)
+    return cache[lane]
+
+
+def road_lanes_along(
+    lanes: LaneGraph, xy: np.ndarray, yaw: np.ndarray
+) -> tuple[list[LaneProjection | None], bool]:
+    """The lane a track xy (T, 2), yaw (T,) is on at each step, followed with the hysteresis of
+    :func:`~ctgpp.scene.lanes.follow_lane`, a step inside an intersection taking the road lane the
+    track entered it from: inside an intersection no lane lies beside another
+    (:func:`same_direction_neighbour`), so the straight-on connector from a middle lane would otherwise
+    count as the rightmost lane. Also whether the last step is such a step."""
+    out: list[LaneProjection | None] = []
+    proj: LaneProjection | None = None
+    road: LaneProjection | None = None
+    inside = False
+    for p, h in zip(xy, yaw, strict=True):
+        proj = follow_lane(lanes, proj, p, float(h))
+        inside = proj is not None and bool(lanes.intersection[proj.lane]) and road is not None
+        if proj is not None and not lanes.intersection[proj.lane]:
+            road = proj
+        out.append(road if inside else proj)
+    return out, inside
 
 
 def first_intersection(lanes: LaneGraph, path: list[int], start_s_m: float) -> tuple[int, float] | None:

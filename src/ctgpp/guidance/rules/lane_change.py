@@ -25,6 +25,7 @@ from ctgpp.guidance.lane_helpers import ramp_weights, signed_offset
 from ctgpp.guidance.lane_paths import EPISODE_REACH_MAX_M, get_adjacent_lane, get_rightmost_lane, reach_m
 from ctgpp.guidance.rules.common import Rule, apply_mask, check_vehicle, past_poses, soft_abs, world_states
 from ctgpp.guidance.scope import LossScope
+from ctgpp.scene.lane_paths import lanes_to_the_right, road_lanes_along
 from ctgpp.scene.lanes import IN_LANE_M, LANE_HEADING_DEG, lane_points_ahead, nearest_lane
 from ctgpp.scene.polylines import project_onto_polyline
 
@@ -112,7 +113,8 @@ class CommittedLaneRule(Rule):
     def reached(self, data_batch: Any) -> bool | None:
         """The vehicle has been on its committed lane at a step from the episode's start to the
         re-plan (:func:`past_poses`: once reached, it stays reached): within ``REACHED_M`` of its
-        centerline, heading its way within ``REACHED_DEG``. None without a target lane."""
+        centerline, heading its way within ``REACHED_DEG`` (and what :meth:`counts` adds). None
+        without a target lane."""
         if self.vehicle >= data_batch.num_vehicles:
             return None
         line = self.target_line(data_batch, self.vehicle)
@@ -126,7 +128,12 @@ class CommittedLaneRule(Rule):
             _, heading = project_onto_polyline(xy, line)  # (K,) rad
             turned = wrap_angle(yaw - heading).abs()
             on = (offset < REACHED_M) & (turned < math.radians(REACHED_DEG))
-        return bool(on.any())
+        return bool(on.any()) and bool((on & self.counts(data_batch, xy, yaw)).any())
+
+    def counts(self, data_batch: GuidanceBatch, xy: Tensor, yaw: Tensor) -> Tensor:
+        """(K,) bool: which of the past poses xy (K, 2) local m, yaw (K,) rad may reach the rule's
+        lane besides lying on its line (:meth:`reached`): by default every one."""
+        return torch.ones(len(xy), dtype=torch.bool, device=xy.device)
 
     def cost(self, pos: Tensor, x_row: Tensor, line: Tensor, data_batch: GuidanceBatch, row: int) -> Tensor:
         """(N,) lateral offset cost of vehicle ``row``'s positions pos (N, T, 2) from ``line``, ramped
@@ -178,6 +185,20 @@ class MoveToRightmostLane(CommittedLaneRule):
 
     def choose(self, data_batch: GuidanceBatch, i: int) -> Tensor | None:
         return get_rightmost_lane(data_batch, i)
+
+    def counts(self, data_batch: GuidanceBatch, xy: Tensor, yaw: Tensor) -> Tensor:
+        """The poses on a lane with no same-direction lane to its right anywhere along it — inside an
+        intersection the lane the vehicle entered from — as the check judges them
+        (:func:`~ctgpp.scene.lane_paths.road_lanes_along`,
+        :func:`~ctgpp.scene.lane_paths.lanes_to_the_right`).
+        The committed line alone does not tell: it runs on from a turn pocket's end into the
+        connectors of the lane beside it, and a vehicle entering the intersection from there counted
+        as moved over (the paper's failure case, vehicle 21)."""
+        lanes = data_batch.scene.lanes
+        along, _ = road_lanes_along(lanes, data_batch.to_world(xy.cpu().double().numpy()),
+                                    yaw.cpu().double().numpy())
+        ok = [q is not None and lanes_to_the_right(lanes, q.lane) == 0 for q in along]
+        return torch.tensor(ok, dtype=torch.bool, device=xy.device)
 
 
 __all__ = [
