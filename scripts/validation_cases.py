@@ -11,6 +11,10 @@ episode (never from a model's rollout), and stops after ``--limit`` scenes with 
 - ``turn``: the controlled vehicle moving at 3 m/s or more at the start, valid to the end, whose
   lane reaches an intersection within 40 m with a way left (else right), the nearest such:
   "vehicle N should turn left (right) at the next intersection".
+- ``merge``: the controlled vehicle moving at 5 m/s or more at the start, valid to the end, with a
+  same-direction lane beside it (left first) where another vehicle, moving, drives within 15 m ahead
+  or behind at the start — a lane change that needs a gap — the one with the other nearest
+  alongside: "vehicle N changes to the left (right) lane".
 
     python scripts/validation_cases.py accel --data DATA/waymo --split val --out accel_val.json
 
@@ -35,13 +39,15 @@ from ctgpp.behaviours.motion import acceleration_magnitudes
 from ctgpp.behaviours.tracks import Track, tracks
 from ctgpp.data.catalog import Catalog
 from ctgpp.io.atomic import write_text_atomic
-from ctgpp.scene.lane_paths import turn_path
+from ctgpp.scene.lane_paths import same_direction_neighbour, turn_path
 from ctgpp.scene.lanes import nearest_lane
 
 ACCEL_FLOOR_MPS2 = 2.5  # the log must exceed the 2 m/s² asked, with room, or the case is trivial
 MOVING_MPS = 3.0
 FAST_START_MPS = 8.0
 TURN_WITHIN_M = 40.0  # an intersection near enough to reach and turn at within the episode
+MERGE_FROM_MPS = 5.0  # a lane change at speed, where a vehicle beside decides when it can be made
+MERGE_ALONGSIDE_M = 15.0  # the other within this far ahead or behind: a gap is needed
 
 
 def _accel_p95(t: Track) -> float:
@@ -90,8 +96,36 @@ def turn_case(result: Result) -> str | None:
     return f"vehicle {best[1]} should turn {best[2]} at the next intersection"
 
 
+def merge_case(result: Result) -> str | None:
+    lanes = result.scene.lanes
+    everyone = [t for t in tracks(result.rollout, None)]
+    best: tuple[float, int, str] | None = None
+    for t in everyone:
+        if not t.valid.all() or t.speed0 < MERGE_FROM_MPS:
+            continue
+        start = nearest_lane(lanes, t.xy0, t.yaw0)
+        if start is None:
+            continue
+        for side in ("left", "right"):
+            target = same_direction_neighbour(lanes, start, side)
+            if target is None:
+                continue
+            heading = np.array([np.cos(t.yaw0), np.sin(t.yaw0)])
+            for o in everyone:
+                if o.number == t.number or o.speed0 < MOVING_MPS:
+                    continue
+                on = nearest_lane(lanes, o.xy0, o.yaw0)
+                along = abs(float((o.xy0 - t.xy0) @ heading))
+                if on is not None and on.lane == target.lane and along <= MERGE_ALONGSIDE_M:
+                    if best is None or along < best[0]:
+                        best = (along, t.number, side)
+    if best is None:
+        return None
+    return f"vehicle {best[1]} changes to the {best[2]} lane"
+
+
 FAMILIES: dict[str, Callable[[Result], str | None]] = {
-    "accel": accel_case, "slowstop": slowstop_case, "turn": turn_case}
+    "accel": accel_case, "merge": merge_case, "slowstop": slowstop_case, "turn": turn_case}
 
 
 def main() -> None:
