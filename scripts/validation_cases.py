@@ -15,6 +15,11 @@ episode (never from a model's rollout), and stops after ``--limit`` scenes with 
   same-direction lane beside it (left first) where another vehicle, moving, drives within 15 m ahead
   or behind at the start — a lane change that needs a gap — the one with the other nearest
   alongside: "vehicle N changes to the left (right) lane".
+- ``rightturn``: the controlled vehicle moving at 3 m/s or more at the start, valid to the end, on a
+  lane with a same-direction lane to its right, whose way right through the next intersection lies
+  30 m ahead or more (room to move over first) and no further than it drives in 6 s at its start
+  speed (time left to turn), the nearest: "vehicle N moves to the rightmost lane and then turns right
+  at the next intersection" (the paper's failure case, one vehicle).
 
     python scripts/validation_cases.py accel --data DATA/waymo --split val --out accel_val.json
 
@@ -39,7 +44,7 @@ from ctgpp.behaviours.motion import acceleration_magnitudes
 from ctgpp.behaviours.tracks import Track, tracks
 from ctgpp.data.catalog import Catalog
 from ctgpp.io.atomic import write_text_atomic
-from ctgpp.scene.lane_paths import same_direction_neighbour, turn_path
+from ctgpp.scene.lane_paths import lanes_beside, same_direction_neighbour, turn_path
 from ctgpp.scene.lanes import nearest_lane
 
 ACCEL_FLOOR_MPS2 = 2.5  # the log must exceed the 2 m/s² asked, with room, or the case is trivial
@@ -48,6 +53,8 @@ FAST_START_MPS = 8.0
 TURN_WITHIN_M = 40.0  # an intersection near enough to reach and turn at within the episode
 MERGE_FROM_MPS = 5.0  # a lane change at speed, where a vehicle beside decides when it can be made
 MERGE_ALONGSIDE_M = 15.0  # the other within this far ahead or behind: a gap is needed
+RIGHT_TURN_ROOM_M = 30.0  # a lane change first: 3 s of ramp at 10 m/s
+RIGHT_TURN_WITHIN_S = 6.0  # the intersection reached at the start speed with 2 s of an 8-s episode left
 
 
 def _accel_p95(t: Track) -> float:
@@ -124,8 +131,28 @@ def merge_case(result: Result) -> str | None:
     return f"vehicle {best[1]} changes to the {best[2]} lane"
 
 
+def rightturn_case(result: Result) -> str | None:
+    lanes = result.scene.lanes
+    best: tuple[float, int] | None = None
+    for t in tracks(result.rollout, None):
+        if not t.valid.all() or t.speed0 < MOVING_MPS:
+            continue
+        start = nearest_lane(lanes, t.xy0, t.yaw0)
+        if start is None or not lanes_beside(lanes, start, "right"):
+            continue
+        path = turn_path(lanes, start, "right")
+        reach = t.speed0 * RIGHT_TURN_WITHIN_S
+        room = path is not None and RIGHT_TURN_ROOM_M <= path.ahead_m <= reach
+        if room and path is not None and (best is None or path.ahead_m < best[0]):
+            best = (path.ahead_m, t.number)
+    if best is None:
+        return None
+    return f"vehicle {best[1]} moves to the rightmost lane and then turns right at the next intersection"
+
+
 FAMILIES: dict[str, Callable[[Result], str | None]] = {
-    "accel": accel_case, "merge": merge_case, "slowstop": slowstop_case, "turn": turn_case}
+    "accel": accel_case, "merge": merge_case, "rightturn": rightturn_case, "slowstop": slowstop_case,
+    "turn": turn_case}
 
 
 def main() -> None:

@@ -200,7 +200,8 @@ lane_change_rule(
      "vehicle 3 should move one lane over to the right"),
 )
 lane_change_rule(
-    "move_to_rightmost_lane", "A vehicle ends on a lane with no same-direction lane to its right.",
+    "move_to_rightmost_lane", "A vehicle ends on a lane with no same-direction lane to its right anywhere "
+    "along it (inside an intersection: the lane it entered from).",
     "lanes", "same-direction lanes to the right of the lane it ends on",
     ("vehicle 5 should move to the rightmost lane",),
     measures="rightmost",
