@@ -105,7 +105,7 @@ def turn_case(result: Result) -> str | None:
 
 def merge_case(result: Result) -> str | None:
     lanes = result.scene.lanes
-    everyone = [t for t in tracks(result.rollout, None)]
+    everyone = list(tracks(result.rollout, None))
     best: tuple[float, int, str] | None = None
     for t in everyone:
         if not t.valid.all() or t.speed0 < MERGE_FROM_MPS:
