@@ -45,7 +45,7 @@ from ctgpp.behaviours.tracks import Track, tracks
 from ctgpp.data.catalog import Catalog
 from ctgpp.io.atomic import write_text_atomic
 from ctgpp.scene.lane_paths import lanes_beside, same_direction_neighbour, turn_path
-from ctgpp.scene.lanes import nearest_lane
+from ctgpp.scene.lanes import LaneProjection, nearest_lane
 
 ACCEL_FLOOR_MPS2 = 2.5  # the log must exceed the 2 m/s² asked, with room, or the case is trivial
 MOVING_MPS = 3.0
@@ -83,15 +83,23 @@ def slowstop_case(result: Result) -> str | None:
     return f"vehicle {best.number} slows down to {round(best.speed0 / 2)} m/s and then stops"
 
 
+def _moving_on_lanes(result: Result, min_speed_mps: float) -> list[tuple[Track, LaneProjection]]:
+    """The controlled vehicles valid to the end, at ``min_speed_mps`` or more at the start, with the
+    lane each starts on (those on none left out)."""
+    out = []
+    for t in tracks(result.rollout, None):
+        if not t.valid.all() or t.speed0 < min_speed_mps:
+            continue
+        start = nearest_lane(result.scene.lanes, t.xy0, t.yaw0)
+        if start is not None:
+            out.append((t, start))
+    return out
+
+
 def turn_case(result: Result) -> str | None:
     lanes = result.scene.lanes
     best: tuple[float, int, str] | None = None
-    for t in tracks(result.rollout, None):
-        if not t.valid.all() or t.speed0 < MOVING_MPS:
-            continue
-        start = nearest_lane(lanes, t.xy0, t.yaw0)
-        if start is None:
-            continue
+    for t, start in _moving_on_lanes(result, MOVING_MPS):
         for direction in ("left", "right"):
             path = turn_path(lanes, start, direction)
             if path is not None and path.ahead_m <= TURN_WITHIN_M:
@@ -105,27 +113,22 @@ def turn_case(result: Result) -> str | None:
 
 def merge_case(result: Result) -> str | None:
     lanes = result.scene.lanes
-    everyone = list(tracks(result.rollout, None))
+    # every moving vehicle's start lane, found once (the others a lane change would merge beside)
+    others = [(o, nearest_lane(lanes, o.xy0, o.yaw0)) for o in tracks(result.rollout, None)
+              if o.speed0 >= MOVING_MPS]
     best: tuple[float, int, str] | None = None
-    for t in everyone:
-        if not t.valid.all() or t.speed0 < MERGE_FROM_MPS:
-            continue
-        start = nearest_lane(lanes, t.xy0, t.yaw0)
-        if start is None:
-            continue
+    for t, start in _moving_on_lanes(result, MERGE_FROM_MPS):
+        heading = np.array([np.cos(t.yaw0), np.sin(t.yaw0)])
         for side in ("left", "right"):
             target = same_direction_neighbour(lanes, start, side)
             if target is None:
                 continue
-            heading = np.array([np.cos(t.yaw0), np.sin(t.yaw0)])
-            for o in everyone:
-                if o.number == t.number or o.speed0 < MOVING_MPS:
+            for o, on in others:
+                if o.number == t.number or on is None or on.lane != target.lane:
                     continue
-                on = nearest_lane(lanes, o.xy0, o.yaw0)
                 along = abs(float((o.xy0 - t.xy0) @ heading))
-                if on is not None and on.lane == target.lane and along <= MERGE_ALONGSIDE_M:
-                    if best is None or along < best[0]:
-                        best = (along, t.number, side)
+                if along <= MERGE_ALONGSIDE_M and (best is None or along < best[0]):
+                    best = (along, t.number, side)
     if best is None:
         return None
     return f"vehicle {best[1]} changes to the {best[2]} lane"
@@ -134,11 +137,8 @@ def merge_case(result: Result) -> str | None:
 def rightturn_case(result: Result) -> str | None:
     lanes = result.scene.lanes
     best: tuple[float, int] | None = None
-    for t in tracks(result.rollout, None):
-        if not t.valid.all() or t.speed0 < MOVING_MPS:
-            continue
-        start = nearest_lane(lanes, t.xy0, t.yaw0)
-        if start is None or not lanes_beside(lanes, start, "right"):
+    for t, start in _moving_on_lanes(result, MOVING_MPS):
+        if not lanes_beside(lanes, start, "right"):
             continue
         path = turn_path(lanes, start, "right")
         reach = t.speed0 * RIGHT_TURN_WITHIN_S
