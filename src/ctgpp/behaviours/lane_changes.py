@@ -7,7 +7,7 @@ verdict asks for is chosen by the same lane-graph functions the guidance steers 
 (:func:`~ctgpp.scene.lane_paths.same_direction_neighbour`,
 :func:`~ctgpp.scene.lane_paths.lanes_beside`).
 The lane a track is on is followed with the hysteresis of :func:`ctgpp.scene.lanes.follow_lane`
-(:func:`~ctgpp.behaviours.lane_positions.lanes_along`, which does switch to a neighbour).
+(:func:`~ctgpp.scene.lanes.lanes_along`, which does switch to a neighbour).
 """
 
 from __future__ import annotations

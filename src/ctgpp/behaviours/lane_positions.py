@@ -19,8 +19,8 @@ from ctgpp.behaviours.base import Starts
 from ctgpp.behaviours.tracks import Track
 from ctgpp.scene.lanes import (
     LaneProjection,
-    follow_lane,
     lane_length,
+    lanes_along,
     nearest_lane,
     project_to_lane,
 )
@@ -90,16 +90,6 @@ def chain_offsets(lanes: LaneGraph, xy: np.ndarray, yaw: np.ndarray) -> tuple[np
         out.append(q.d_m)
         seq.append(current)
     return np.array(out), seq
-
-
-def lanes_along(lanes: LaneGraph, xy: np.ndarray, yaw: np.ndarray) -> list[LaneProjection | None]:
-    """The lane a track xy (T, 2), yaw (T,) is on at each step, followed with hysteresis."""
-    out: list[LaneProjection | None] = []
-    proj = None
-    for p, h in zip(xy, yaw, strict=True):
-        proj = follow_lane(lanes, proj, p, float(h))
-        out.append(proj)
-    return out
 
 
 def end_lane(lanes: LaneGraph, xy: np.ndarray, yaw: np.ndarray) -> LaneProjection | None:

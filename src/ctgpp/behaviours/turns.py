@@ -16,12 +16,12 @@ from typing import Any
 import numpy as np
 
 from ctgpp.behaviours.base import Starts, Vehicles, Verdict
-from ctgpp.behaviours.lane_positions import from_start_lane, lanes_along, with_start
+from ctgpp.behaviours.lane_positions import from_start_lane, with_start
 from ctgpp.behaviours.tracks import Track, track, wrapped_deg
 from ctgpp.interfaces import Rollout
 from ctgpp.scene.holds import held_from
 from ctgpp.scene.lane_paths import turn_path
-from ctgpp.scene.lanes import LaneProjection, nearest_lane
+from ctgpp.scene.lanes import LaneProjection, lanes_along, nearest_lane
 from ctgpp.scene.types import LaneGraph
 from ctgpp.scene.vehicles import MOVING_SPEED_MPS
 

@@ -18,9 +18,9 @@ import numpy as np
 from ctgpp.geometry import wrap_angle
 from ctgpp.scene.lanes import (
     LaneProjection,
-    follow_lane,
     lane_length,
     lanes_ahead,
+    lanes_along,
     left_lane,
     nearest_lane,
     project_to_lane,
@@ -123,16 +123,14 @@ def road_lanes_along(
     lanes: LaneGraph, xy: np.ndarray, yaw: np.ndarray
 ) -> tuple[list[LaneProjection | None], bool]:
     """The lane a track xy (T, 2), yaw (T,) is on at each step, followed with the hysteresis of
-    :func:`~ctgpp.scene.lanes.follow_lane`, a step inside an intersection taking the road lane the
+    :func:`~ctgpp.scene.lanes.lanes_along`, a step inside an intersection taking the road lane the
     track entered it from: inside an intersection no lane lies beside another
     (:func:`same_direction_neighbour`), so the straight-on connector from a middle lane would otherwise
     count as the rightmost lane. Also whether the last step is such a step."""
     out: list[LaneProjection | None] = []
-    proj: LaneProjection | None = None
     road: LaneProjection | None = None
     inside = False
-    for p, h in zip(xy, yaw, strict=True):
-        proj = follow_lane(lanes, proj, p, float(h))
+    for proj in lanes_along(lanes, xy, yaw):
         inside = proj is not None and bool(lanes.intersection[proj.lane]) and road is not None
         if proj is not None and not lanes.intersection[proj.lane]:
             road = proj

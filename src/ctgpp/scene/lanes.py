@@ -288,3 +288,13 @@ def follow_lane(
         if abs(p.d_m) <= max_offset_m and p.s_m < lane_length(lanes, current.lane) - 1e-6:
             return p
     return nearest_lane(lanes, xy, yaw)
+
+
+def lanes_along(lanes: LaneGraph, xy: np.ndarray, yaw: np.ndarray) -> list[LaneProjection | None]:
+    """The lane a track xy (T, 2), yaw (T,) is on at each step, followed with hysteresis."""
+    out: list[LaneProjection | None] = []
+    proj = None
+    for p, h in zip(xy, yaw, strict=True):
+        proj = follow_lane(lanes, proj, p, float(h))
+        out.append(proj)
+    return out
