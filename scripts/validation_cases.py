@@ -20,6 +20,14 @@ episode (never from a model's rollout), and stops after ``--limit`` scenes with 
   30 m ahead or more (room to move over first) and no further than it drives in 6 s at its start
   speed (time left to turn), the nearest: "vehicle N moves to the rightmost lane and then turns right
   at the next intersection" (the paper's failure case, one vehicle).
+- ``cutin``: a pair of controlled vehicles valid to the end, both moving at 4 m/s or more at the
+  start, headings within 20°, the one 2.5–5.5 m from the centreline of the lane the other starts on
+  (the lane beside) and from 4 m behind to 12 m ahead of it, the other keeping 70 % of its start
+  speed through the log (a cut-in ahead of a vehicle that brakes is no cut-in); the pair nearest 4 m
+  ahead: "vehicle N should cut in ahead of vehicle M".
+
+``--max-vehicles`` leaves out scenes with more controlled vehicles present at the start (large
+scenes spend most of their time composing the plan).
 
     python scripts/validation_cases.py accel --data DATA/waymo --split val --out accel_val.json
 
@@ -43,9 +51,10 @@ from ctgpp.api.result import Result
 from ctgpp.behaviours.motion import acceleration_magnitudes
 from ctgpp.behaviours.tracks import Track, tracks
 from ctgpp.data.catalog import Catalog
+from ctgpp.geometry.frames import wrap_angle
 from ctgpp.io.atomic import write_text_atomic
 from ctgpp.scene.lane_paths import lanes_beside, same_direction_neighbour, turn_path
-from ctgpp.scene.lanes import LaneProjection, nearest_lane
+from ctgpp.scene.lanes import LaneProjection, nearest_lane, project_to_lane
 
 ACCEL_FLOOR_MPS2 = 2.5  # the log must exceed the 2 m/s² asked, with room, or the case is trivial
 MOVING_MPS = 3.0
@@ -55,6 +64,12 @@ MERGE_FROM_MPS = 5.0  # a lane change at speed, where a vehicle beside decides w
 MERGE_ALONGSIDE_M = 15.0  # the other within this far ahead or behind: a gap is needed
 RIGHT_TURN_ROOM_M = 30.0  # a lane change first: 3 s of ramp at 10 m/s
 RIGHT_TURN_WITHIN_S = 6.0  # the intersection reached at the start speed with 2 s of an 8-s episode left
+CUT_IN_FROM_MPS = 4.0  # both vehicles moving: a cut-in in traffic, not a start from rest
+CUT_IN_HEADING_RAD = np.radians(20.0)  # the two drive the same way (lanes beside each other)
+CUT_IN_LATERAL_M = (2.5, 5.5)  # in the lane beside: outside the other's (1.75 m) and not two over
+CUT_IN_ALONG_M = (-4.0, 12.0)  # from a little behind to a little ahead: room to merge within 8 s
+CUT_IN_AIM_M = 4.0  # the pair nearest this far ahead is the most natural cut-in
+CUT_IN_KEEPS = 0.7  # the other keeps this share of its start speed in the log (the check asks 0.5)
 
 
 def _accel_p95(t: Track) -> float:
@@ -150,9 +165,34 @@ def rightturn_case(result: Result) -> str | None:
     return f"vehicle {best[1]} moves to the rightmost lane and then turns right at the next intersection"
 
 
+def cutin_case(result: Result) -> str | None:
+    lanes = result.scene.lanes
+    moving = [t for t in tracks(result.rollout, None) if t.valid.all() and t.speed0 >= CUT_IN_FROM_MPS]
+    best: tuple[float, int, int] | None = None
+    for o in moving:  # the one cut in front of
+        if float(o.speed.min(initial=o.speed0)) < CUT_IN_KEEPS * o.speed0:
+            continue
+        lane = nearest_lane(lanes, o.xy0, o.yaw0)
+        if lane is None:
+            continue
+        for t in moving:
+            if t.number == o.number or abs(wrap_angle(t.yaw0 - o.yaw0)) > CUT_IN_HEADING_RAD:
+                continue
+            lateral = abs(project_to_lane(lanes, lane.lane, t.xy0).d_m)
+            along = float((t.xy0 - o.xy0) @ np.array([np.cos(o.yaw0), np.sin(o.yaw0)]))
+            near = CUT_IN_LATERAL_M[0] <= lateral <= CUT_IN_LATERAL_M[1]
+            if near and CUT_IN_ALONG_M[0] <= along <= CUT_IN_ALONG_M[1]:
+                miss = abs(along - CUT_IN_AIM_M)
+                if best is None or miss < best[0]:
+                    best = (miss, t.number, o.number)
+    if best is None:
+        return None
+    return f"vehicle {best[1]} should cut in ahead of vehicle {best[2]}"
+
+
 FAMILIES: dict[str, Callable[[Result], str | None]] = {
-    "accel": accel_case, "merge": merge_case, "rightturn": rightturn_case, "slowstop": slowstop_case,
-    "turn": turn_case}
+    "accel": accel_case, "cutin": cutin_case, "merge": merge_case, "rightturn": rightturn_case,
+    "slowstop": slowstop_case, "turn": turn_case}
 
 
 def main() -> None:
@@ -164,6 +204,7 @@ def main() -> None:
     parser.add_argument("--history", type=float, default=1.0)
     parser.add_argument("--duration", type=float, default=8.0)
     parser.add_argument("--limit", type=int, default=8)
+    parser.add_argument("--max-vehicles", type=int, default=None)
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
     catalog = Catalog.open(args.data)
@@ -171,6 +212,8 @@ def main() -> None:
     for scene_id in catalog.ids(args.split):
         result = ctgpp.simulate(catalog.load(scene_id), policy="replay", start_s=args.start,
                                 duration_s=args.duration, history_s=args.history)
+        if args.max_vehicles is not None and len(tracks(result.rollout, None)) > args.max_vehicles:
+            continue
         query = FAMILIES[args.family](result)
         if query is not None:
             cases.append({"family": args.family, "query": query, "scene": scene_id, "start_s": args.start})
