@@ -193,6 +193,28 @@ def test_vehicles_outside_the_scene(query: str) -> None:
         compile_query(query, N_VEHICLES)
 
 
+@pytest.mark.parametrize("query", ["vehicle 2 leaves the road", "vehicle 2 should drive off-road",
+                                   "vehicle 4 goes off the road"])
+def test_leaving_the_road_is_refused_not_turned_round(query: str) -> None:
+    """Asked for without a negation, leaving the road is refused by name: it was read as staying on it."""
+    with pytest.raises(QueryError, match="driving off the road is not supported"):
+        compile_query(query, N_VEHICLES)
+
+
+@pytest.mark.parametrize("query", ["vehicle 2 never leaves the road", "no vehicle drives off the road",
+                                   "vehicle 2 should not go off the road", "everyone stays on the road"])
+def test_staying_on_the_road_in_other_words(query: str) -> None:
+    assert [p.rule for p in compile_query(query, N_VEHICLES).parts] == ["no_offroad"]
+
+
+def test_a_negative_subject_prohibits_for_every_vehicle() -> None:
+    for query in ("no vehicle changes lanes", "nobody should switch lanes", "none of the cars changes lanes"):
+        parts = compile_query(query, N_VEHICLES).parts
+        assert [(p.rule, p.params["vehicle"]) for p in parts] == [("keep_lane", None)], query
+    parts = compile_query("nobody goes faster than 10 m/s", N_VEHICLES).parts
+    assert [(p.rule, p.params["limit_mps"]) for p in parts] == [("speed_limit", 10.0)]
+
+
 def test_missing_second_vehicle_is_an_error() -> None:
     with pytest.raises(QueryError, match="two vehicles"):
         compile_query("vehicle 1 should collide", N_VEHICLES)

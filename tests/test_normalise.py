@@ -91,6 +91,16 @@ def test_correct_word(word: str, fixed: str) -> None:
     ("vehicle 3 should move one lane over to the right", "vehicle 3 should move one lane over to the right"),
     ("vehicle 1 should come to a stop", "vehicle 1 should come to a stop"),
     ("everyone stays on the road", "everyone stays on the road"),
+    # a negative subject is the prohibition for every vehicle, the verb in its base form
+    ("no vehicle changes lanes", "every vehicle must not change lanes"),
+    ("Nobody should switch lanes", "every vehicle must not switch lanes"),
+    ("none of the cars crashes", "every vehicle must not crash"),
+    ("no one goes faster than 10 m/s", "every vehicle must not go faster than 10 m/s"),
+    ("no-one tries to overtake", "every vehicle must not try to overtake"),
+    ("vehicle 1 turns left and nobody changes lanes",
+     "vehicle 1 turns left and every vehicle must not change lanes"),
+    ("no collisions", "no collisions"),  # no subject: left as it is
+    ("vehicle 2 passes no vehicle", "vehicle 2 passes no vehicle"),  # an object, not a subject
 ])
 def test_normalise_hand_cases(query: str, read_as: str) -> None:
     assert normalise(query) == read_as

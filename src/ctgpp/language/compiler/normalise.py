@@ -18,7 +18,8 @@ left unchanged):
 5. Wording (:func:`canonical_wording`): bounds ("not more than", "no farther than" -> "at most"; "not
    less than", "no closer than" -> "at least"), "over one lane to the left" -> "one lane over to the
    left", "tell vehicle 3 to ..." / "I want vehicle 3 to ..." -> "vehicle 3 should ...", "keep
-   vehicles 1 & 2 in their lanes" -> "vehicles 1 & 2 keep their lanes".
+   vehicles 1 & 2 in their lanes" -> "vehicles 1 & 2 keep their lanes", a negative subject to the
+   prohibition for every vehicle ("nobody changes lanes" -> "every vehicle must not change lanes").
 6. Lists (:func:`join_lists`): "vehicles 1, 2 and 3" -> "vehicles 1 & 2 & 3", so a list is never split
    into clauses at its commas.
 """
@@ -265,11 +266,49 @@ def canonical_units(text: str) -> str:
     return text
 
 
+# a clause whose subject is a negative quantifier ("no vehicle", "nobody", "none of the cars"), its
+# optional modal and its verb
+_NO_ONE = re.compile(
+    r"(^|[,;]\s*|\b(?:and|but|while)\s+)"
+    r"(?:no\s+(?:vehicle|car|agent|truck)s?|nobody|no\s*-?\s*one|none\s+of\s+(?:the|them)(?:\s+(?:vehicles|cars))?)"
+    r"\s+(?:(?:should|must|may|can|will|shall|is\s+allowed\s+to)\s+)?([a-z]+)\b",
+    re.IGNORECASE,
+)
+_IRREGULAR = {"goes": "go", "does": "do", "has": "have", "is": "be"}
+
+
+def _base_form(verb: str) -> str:
+    """The base form of a verb in the third person singular ("changes" -> "change", "switches" ->
+    "switch", "tries" -> "try", "goes" -> "go"); other words unchanged."""
+    low = verb.lower()
+    if low in _IRREGULAR:
+        return _IRREGULAR[low]
+    if re.search(r"(?:ss|sh|ch|x|z)es$", low):
+        return verb[:-2]
+    if re.search(r"[^aeiou]ies$", low):
+        return verb[:-3] + "y"
+    if low.endswith("s") and not low.endswith("ss"):
+        return verb[:-1]
+    return verb
+
+
+def negative_subjects(text: str) -> str:
+    """"no vehicle changes lanes", "nobody should stop", "none of the cars speeds" -> "every vehicle must
+    not change lanes": a negative quantifier is the prohibition for every vehicle, which each behaviour
+    that can be denied reads (and those that cannot refuse, as they would for "every vehicle")."""
+
+    def every(m: re.Match[str]) -> str:
+        return f"{m.group(1)}every vehicle must not {_base_form(m.group(2))}"
+
+    return _NO_ONE.sub(every, text)
+
+
 def canonical_wording(text: str) -> str:
-    """Bounds, "over one lane" and imperatives in the compiler's wording (module docstring, step 5)."""
+    """Bounds, "over one lane", imperatives and negative subjects in the compiler's wording (module
+    docstring, step 5)."""
     for pattern, repl in _WORDING:
         text = re.sub(pattern, repl, text, flags=re.IGNORECASE)
-    return text
+    return negative_subjects(text)
 
 
 _LIST = re.compile(

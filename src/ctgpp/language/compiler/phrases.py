@@ -96,9 +96,9 @@ REACH_ABOVE = (
     r"\b(?:over|above|more\s+than|at\s+least|faster\s+than)\b"
 )
 
+OFFROAD_STAY = r"(?:stay|remain|keep|drive)\w*\s+on\s+(?:the\s+)?(?:road|drivable|pavement|street)"
 OFFROAD = (
-    r"(?:stay|remain|keep|drive)\w*\s+on\s+(?:the\s+)?(?:road|drivable|pavement|street)|off[- ]?road"
-    r"|leav\w*\s+the\s+(?:road|drivable\s+area)|drivable\s+area"
+    OFFROAD_STAY + r"|off[- ]?(?:the\s+)?road|leav\w*\s+the\s+(?:road|drivable\s+area)|drivable\s+area"
 )
 
 STOP = r"\bstop\w*|\bhalt\w*|standstill|\bpark(?:s|ed)?\b"
