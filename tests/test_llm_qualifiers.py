@@ -93,6 +93,11 @@ REFUSED = [
      calls({"behaviour": "stop", "vehicles": [1]},
            {"behaviour": "turn_at_next_intersection", "vehicle": 2, "direction": "left"}),
      "says what must not happen, but the reading asks for it (stop)"),
+    # leaving the road read as staying on it, and pulling over read as a plain stop
+    ("vehicle 5 should leave the road", calls({"behaviour": "no_offroad", "vehicles": [5]}),
+     "driving off the road is not supported"),
+    ("vehicle 4 should pull over and stop", calls({"behaviour": "stop", "vehicles": [4]}),
+     "asks for pulling over to the roadside"),
 ]
 
 
@@ -126,6 +131,7 @@ ACCEPTED = [
      calls({"behaviour": "speed_limit", "vehicles": [2], "limit_mps": 15})),
     ("vehicle 3 does not change lanes and vehicle 4 stops",
      calls({"behaviour": "keep_lane", "vehicle": 3}, {"behaviour": "stop", "vehicles": [4]})),
+    ("vehicle 7 never drives off the road", calls({"behaviour": "no_offroad", "vehicles": [7]})),
 ]
 
 

@@ -26,6 +26,7 @@ from ctgpp.language.compiler.phrases import (
     BOUND,
     FOLLOW_VEHICLE,
     LANE_CHANGE,
+    LEAVE_ROAD,
     OFFROAD_STAY,
     PACE,
     REACH_BELOW,
@@ -267,17 +268,16 @@ def follow_vehicle(c: Clause, ctx: Context) -> list[PartSpec]:
             for a, b in pairs(c, ctx, "following a vehicle")]
 
 
-# leaving the road, as opposed to staying on it: asked for without a negation, it is no behaviour
-_LEAVE_ROAD = r"off[- ]?(?:the\s+)?road|leav\w*\s+the\s+(?:road|drivable\s+area)"
+LEAVING_THE_ROAD = ("driving off the road is not supported (the behaviours keep vehicles on it: say e.g. "
+                    "'no vehicle leaves the road')")
 
 
 def offroad(c: Clause, ctx: Context) -> list[PartSpec]:
     """Staying on the road ("stays on the road", "no vehicle leaves the road"); leaving it asked for
     ("vehicle 2 drives off the road") is refused: no behaviour drives a vehicle off the road, and
     reading it as staying on it would turn the sentence round."""
-    if c.has(_LEAVE_ROAD) and not c.negated and not c.has(OFFROAD_STAY):
-        raise QueryError(f"{c.text.strip()!r}: driving off the road is not supported (the behaviours keep "
-                         f"vehicles on it: say e.g. 'no vehicle leaves the road')")
+    if c.has(LEAVE_ROAD) and not c.negated and not c.has(OFFROAD_STAY):
+        raise QueryError(f"{c.text.strip()!r}: {LEAVING_THE_ROAD}")
     return [PartSpec("no_offroad", "no_offroad", {}, scope(c, ctx))]
 
 

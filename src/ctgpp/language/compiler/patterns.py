@@ -41,7 +41,7 @@ _EVERYONE = re.compile(
     r"\b(?:everyone|everybody|every\s+(?:vehicle|car|agent|one)|each\s+(?:vehicle|car)"
     r"|all\s+(?:the\s+)?(?:vehicles|cars|agents|traffic)|the\s+whole\s+scene)\b(?!\s+(?:else|other))"
 )
-_NEGATION = re.compile(
+NEGATION = re.compile(
     r"\b(?:no|not|never|avoid\w*|without|prevent\w*|nobody|none)\b|n't\b|\bdont\b|\bdoesnt\b"
 )
 _PRONOUN = re.compile(r"\b(?:it|its|itself|they|their|them|he|she|his|her)\b")
@@ -271,7 +271,7 @@ def analyse(text: str, start: int) -> Clause:
         points=tuple(points),
         bare=bare,
         everyone=bool(_EVERYONE.search(low)) and not others,
-        negated=bool(_NEGATION.search(low)),
+        negated=bool(NEGATION.search(low)),
         pronoun=bool(_PRONOUN.search(low)),
         modal_start=bool(_MODAL_START.search(low)),
         subjects=subjects,

@@ -120,6 +120,9 @@ MANOEUVRES = (
     (r"\brevers\w*|\bback(?:s|ing)?\s+up\b|\bbackwards?\b", "driving in reverse"),
     (r"\btwo\s+lanes\b|\b\d+\s+lanes\s+(?:over|to)\b", "changing more than one lane"),
     (r"\bhonk\w*|\bsignal\w*|\bindicat\w*|\bblinker|\bheadlight", "signals and lights (not simulated)"),
+    (r"\bpull(?:s|ed|ing)?\s+over\b|\bpull(?:s|ed|ing)?\s+(?:in\s+)?to\s+the\s+(?:side|kerb|curb|verge|shoulder)\b",
+     "pulling over to the roadside (the lanes end at the kerb; \"vehicle 4 moves to the rightmost lane and "
+     "then stops\" is the nearest)"),
 )
 
 SUPPORTED = ("the supported manoeuvres are: a lane change one lane to the left or right, moving to the "

@@ -12,6 +12,9 @@ offline compiler knows it cannot honour:
 - a manoeuvre the vocabulary has no behaviour for (:data:`ctgpp.language.compiler.refusals.MANOEUVRES`:
   passing each other, three-point turns, reversing, more than one lane, signals);
 - a time gap ("a 2 second gap", "a 3 s headway"): distances between vehicles are in metres;
+- leaving the road asked for (the compiler's refusal,
+  :data:`~ctgpp.language.compiler.handlers.LEAVING_THE_ROAD`: a small model reads "vehicle 5 should
+  leave the road" as staying on it);
 - a qualifier a behaviour cannot take: a U-turn's place or side
   (:data:`~ctgpp.language.compiler.handlers.U_TURN_PLACE`, :data:`~.handlers.U_TURN_SIDE`);
 - a relation whose vehicles are in the other order than the sentence puts them ("vehicle 3 ...
@@ -31,8 +34,9 @@ from typing import Any
 
 from ctgpp.behaviours import get_behaviour
 from ctgpp.language.bounds import CLAUSE_BREAK, bound_mismatch
-from ctgpp.language.compiler.handlers import U_TURN_PLACE, U_TURN_SIDE
-from ctgpp.language.compiler.phrases import U_TURN
+from ctgpp.language.compiler.handlers import LEAVING_THE_ROAD, U_TURN_PLACE, U_TURN_SIDE
+from ctgpp.language.compiler.patterns import NEGATION
+from ctgpp.language.compiler.phrases import LEAVE_ROAD, OFFROAD_STAY, U_TURN
 from ctgpp.language.compiler.refusals import MANOEUVRES, SUPPORTED
 from ctgpp.language.llm.calls import StructuredRefused, is_vehicle_param
 from ctgpp.language.llm.sentence import named_vehicles
@@ -102,6 +106,9 @@ def check_expressible(calls: list[dict[str, Any]], sentence: str) -> None:
             if (m := re.search(qualifier, clause, re.I)) is not None:
                 raise StructuredRefused(f"a U-turn cannot take {m.group(0)!r}: it turns round where the map "
                                         "has a lane running the other way, towards it")
+    for clause in _clauses_of(sentence, LEAVE_ROAD):  # as the compiler: no behaviour drives off the road
+        if not NEGATION.search(clause.lower()) and not re.search(OFFROAD_STAY, clause, re.I):
+            raise StructuredRefused(LEAVING_THE_ROAD)
     for call in calls:
         name = str(call.get("behaviour", ""))
         params = {p.name: p.default for p in get_behaviour(name).params}  # what an unset field means
