@@ -64,13 +64,14 @@ SET = [  # the compiler reads the first; the model is asked on the other three, 
         [{"rule": "lane_change", "params": {"vehicle": 2, "side": "left"}, "vehicles": None, "window": None,
           "stage": 0}]),
     row("vehicle 2 must come to a stop by the 6 second mark", STOP_BY_6, "heldout"),
-    row("vehicle 4 should pull over and stop", "refuse"),
+    row("vehicle 2 drives at 5 m/s for 4 seconds", "refuse"),
     row("vehicles 1 and 2 pass each other", "refuse", "heldout"),
 ]
 REPLIES = [
     json.dumps({"calls": [{"behaviour": "stop", "vehicles": [1]}]}),  # the warm-up
     json.dumps({"calls": [{"behaviour": "stop", "vehicles": [2], "within_s": 6}]}),  # right
-    json.dumps({"calls": [{"behaviour": "stop", "vehicles": [4]}]}),  # "pull over" dropped: wrong
+    # a time the compiler cannot honour read as a window: used, and wrong
+    json.dumps({"calls": [{"behaviour": "target_speed", "speed_mps": 5, "vehicles": [2], "until_s": 4}]}),
     json.dumps({"calls": [{"behaviour": "reach_ahead", "vehicle": 1},
                           {"behaviour": "reach_ahead", "vehicle": 2}]}),  # refused: understood
 ]
