@@ -99,9 +99,7 @@ REACH_ABOVE = (
 OFFROAD_STAY = r"(?:stay|remain|keep|drive)\w*\s+on\s+(?:the\s+)?(?:road|drivable|pavement|street)"
 # leaving the road, as opposed to staying on it: asked for without a negation, it is no behaviour
 LEAVE_ROAD = r"off[- ]?(?:the\s+)?road|leav\w*\s+the\s+(?:road|drivable\s+area)"
-OFFROAD = (
-    OFFROAD_STAY + r"|off[- ]?(?:the\s+)?road|leav\w*\s+the\s+(?:road|drivable\s+area)|drivable\s+area"
-)
+OFFROAD = rf"{OFFROAD_STAY}|{LEAVE_ROAD}|drivable\s+area"
 
 STOP = r"\bstop\w*|\bhalt\w*|standstill|\bpark(?:s|ed)?\b"
 

@@ -10,7 +10,7 @@ and still means something else. :func:`check_expressible` refuses such a sentenc
 offline compiler knows it cannot honour:
 
 - a manoeuvre the vocabulary has no behaviour for (:data:`ctgpp.language.compiler.refusals.MANOEUVRES`:
-  passing each other, three-point turns, reversing, more than one lane, signals);
+  passing each other, three-point turns, reversing, more than one lane, signals, pulling over);
 - a time gap ("a 2 second gap", "a 3 s headway"): distances between vehicles are in metres;
 - leaving the road asked for (the compiler's refusal,
   :data:`~ctgpp.language.compiler.handlers.LEAVING_THE_ROAD`: a small model reads "vehicle 5 should
