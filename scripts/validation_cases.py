@@ -156,9 +156,9 @@ def rightturn_case(result: Result) -> str | None:
         if not lanes_beside(lanes, start, "right"):
             continue
         path = turn_path(lanes, start, "right")
-        reach = t.speed0 * RIGHT_TURN_WITHIN_S
-        room = path is not None and RIGHT_TURN_ROOM_M <= path.ahead_m <= reach
-        if room and path is not None and (best is None or path.ahead_m < best[0]):
+        if path is None or not RIGHT_TURN_ROOM_M <= path.ahead_m <= t.speed0 * RIGHT_TURN_WITHIN_S:
+            continue
+        if best is None or path.ahead_m < best[0]:
             best = (path.ahead_m, t.number)
     if best is None:
         return None
@@ -175,11 +175,12 @@ def cutin_case(result: Result) -> str | None:
         lane = nearest_lane(lanes, o.xy0, o.yaw0)
         if lane is None:
             continue
+        heading = np.array([np.cos(o.yaw0), np.sin(o.yaw0)])
         for t in moving:
             if t.number == o.number or abs(wrap_angle(t.yaw0 - o.yaw0)) > CUT_IN_HEADING_RAD:
                 continue
             lateral = abs(project_to_lane(lanes, lane.lane, t.xy0).d_m)
-            along = float((t.xy0 - o.xy0) @ np.array([np.cos(o.yaw0), np.sin(o.yaw0)]))
+            along = float((t.xy0 - o.xy0) @ heading)
             near = CUT_IN_LATERAL_M[0] <= lateral <= CUT_IN_LATERAL_M[1]
             if near and CUT_IN_ALONG_M[0] <= along <= CUT_IN_ALONG_M[1]:
                 miss = abs(along - CUT_IN_AIM_M)

@@ -15,12 +15,13 @@ steer both: the pair meets halfway, and the vehicle cut in front of keeps its la
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
 
 from ctgpp.behaviours.timing import TimeWindow
-from ctgpp.language.compiler.patterns import Clause
+from ctgpp.language.compiler.patterns import NEGATION, Clause
 from ctgpp.language.compiler.phrases import (
     ACCELERATION,
     BOUND,
@@ -272,11 +273,18 @@ LEAVING_THE_ROAD = ("driving off the road is not supported (the behaviours keep 
                     "'no vehicle leaves the road')")
 
 
+def asks_to_leave_road(clause: str) -> bool:
+    """Whether a clause (lower case) asks for leaving the road — says so with no negation and no "stay
+    on" — which no behaviour does (the compiler's and the structured reading's refusal alike)."""
+    stays = NEGATION.search(clause) or re.search(OFFROAD_STAY, clause)
+    return bool(re.search(LEAVE_ROAD, clause)) and not stays
+
+
 def offroad(c: Clause, ctx: Context) -> list[PartSpec]:
     """Staying on the road ("stays on the road", "no vehicle leaves the road"); leaving it asked for
     ("vehicle 2 drives off the road") is refused: no behaviour drives a vehicle off the road, and
     reading it as staying on it would turn the sentence round."""
-    if c.has(LEAVE_ROAD) and not c.negated and not c.has(OFFROAD_STAY):
+    if asks_to_leave_road(c.text):
         raise QueryError(f"{c.text.strip()!r}: {LEAVING_THE_ROAD}")
     return [PartSpec("no_offroad", "no_offroad", {}, scope(c, ctx))]
 

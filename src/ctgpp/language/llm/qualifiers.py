@@ -34,9 +34,8 @@ from typing import Any
 
 from ctgpp.behaviours import get_behaviour
 from ctgpp.language.bounds import CLAUSE_BREAK, bound_mismatch
-from ctgpp.language.compiler.handlers import LEAVING_THE_ROAD, U_TURN_PLACE, U_TURN_SIDE
-from ctgpp.language.compiler.patterns import NEGATION
-from ctgpp.language.compiler.phrases import LEAVE_ROAD, OFFROAD_STAY, U_TURN
+from ctgpp.language.compiler.handlers import LEAVING_THE_ROAD, U_TURN_PLACE, U_TURN_SIDE, asks_to_leave_road
+from ctgpp.language.compiler.phrases import U_TURN
 from ctgpp.language.compiler.refusals import MANOEUVRES, SUPPORTED
 from ctgpp.language.llm.calls import StructuredRefused, is_vehicle_param
 from ctgpp.language.llm.sentence import named_vehicles
@@ -106,9 +105,8 @@ def check_expressible(calls: list[dict[str, Any]], sentence: str) -> None:
             if (m := re.search(qualifier, clause, re.I)) is not None:
                 raise StructuredRefused(f"a U-turn cannot take {m.group(0)!r}: it turns round where the map "
                                         "has a lane running the other way, towards it")
-    for clause in _clauses_of(sentence, LEAVE_ROAD):  # as the compiler: no behaviour drives off the road
-        if not NEGATION.search(clause.lower()) and not re.search(OFFROAD_STAY, clause, re.I):
-            raise StructuredRefused(LEAVING_THE_ROAD)
+    if any(asks_to_leave_road(clause.lower()) for clause in CLAUSE_BREAK.split(sentence)):  # as the compiler
+        raise StructuredRefused(LEAVING_THE_ROAD)
     for call in calls:
         name = str(call.get("behaviour", ""))
         params = {p.name: p.default for p in get_behaviour(name).params}  # what an unset field means
