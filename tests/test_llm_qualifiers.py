@@ -67,6 +67,14 @@ REFUSED = [
      calls({"behaviour": "u_turn", "vehicle": 1}), "a U-turn cannot take 'at the next junction'"),
     ("vehicle 9 turns around to the right", calls({"behaviour": "u_turn", "vehicle": 9}),
      "a U-turn cannot take 'right'"),
+    # a stop's place on the map, a turn further on than the next intersection
+    ("vehicle 5 should stop before the intersection", calls({"behaviour": "stop", "vehicles": [5]}),
+     "a stop at a place of the map ('before the intersection')"),
+    ("vehicle 3 parks on the shoulder", calls({"behaviour": "stop", "vehicles": [3]}),
+     "a stop at a place of the map ('on the shoulder')"),
+    ("vehicle 2 turns left at the second intersection",
+     calls({"behaviour": "turn_at_next_intersection", "vehicle": 2, "direction": "left"}),
+     "a turn at the second intersection cannot be expressed"),
     # two vehicles in the other order
     ("vehicle 5 stays 12 m ahead of vehicle 6",
      calls({"behaviour": "keep_distance", "follower": 5, "leader": 6, "min_m": 12}),

@@ -99,6 +99,17 @@ def test_correct_word(word: str, fixed: str) -> None:
     ("no-one tries to overtake", "every vehicle must not try to overtake"),
     ("vehicle 1 turns left and nobody changes lanes",
      "vehicle 1 turns left and every vehicle must not change lanes"),
+    # a range of vehicle numbers is listed; a range of speeds, a falling one or one too long is not
+    ("vehicles 1 to 4 should stop", "vehicles 1 & 2 & 3 & 4 should stop"),
+    ("cars 2-4 keep their lanes", "cars 2 & 3 & 4 keep their lanes"),
+    ("vehicles 3 through 5 stop", "vehicles 3 & 4 & 5 stop"),
+    ("vehicles 4 to 2 stop", "vehicles 4 to 2 stop"),
+    ("vehicles 1 to 200 stop", "vehicles 1 to 200 stop"),
+    ("vehicles 1 and 2 drive at 5 to 8 m/s", "vehicles 1 & 2 drive at 5 to 8 m/s"),
+    ("the car numbered 9 should stop", "the car 9 should stop"),
+    # participles are words, not typos: the passive keeps who acts
+    ("vehicle 3 is overtaken by vehicle 4", "vehicle 3 is overtaken by vehicle 4"),
+    ("vehicle 1 is passed by vehicle 2", "vehicle 1 is passed by vehicle 2"),
     ("no collisions", "no collisions"),  # no subject: left as it is
     ("vehicle 2 passes no vehicle", "vehicle 2 passes no vehicle"),  # an object, not a subject
 ])

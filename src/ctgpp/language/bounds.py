@@ -7,7 +7,7 @@ refused naming the phrase.
 Rules, on the sentence as the compiler reads it (:func:`~ctgpp.language.compiler.normalise.normalise`:
 "no more than" already "at most", "shouldn't" already "should not"):
 
-- a number is an *upper* bound after "at most", "up to" (not "speeds up to"), "within", "under",
+- a number is an *upper* bound after "at most", "up to" (not "speeds up to", "gets up to"), "within", "under",
   "below", "less / fewer / slower / closer / nearer / lower than", "max", "maximum (of)", or before
   "or less / fewer / under / below / slower / closer / lower", "at most", "max", "maximum";
 - a *lower* bound after "at least", "more / faster / farther / further / higher / greater than",
@@ -39,7 +39,7 @@ _THAN = r"(?:less|fewer|slower|closer|nearer|lower|more|faster|farther|further|h
 _UPPER_WORDS = ("at most", "up to", "within", "under", "below", "max", "a max", "less than", "fewer than",
                 "slower than", "closer than", "nearer than", "lower than")
 _BEFORE = re.compile(
-    r"\b(at\s+most|at\s+least|(?<!speed\s)(?<!speeds\s)(?<!speeding\s)up\s+to|within|under|below|over|above"
+    r"\b(at\s+most|at\s+least|(?<!speed\s)(?<!speeds\s)(?<!speeding\s)(?<!get\s)(?<!gets\s)(?<!got\s)(?<!getting\s)up\s+to|within|under|below|over|above"
     rf"|beyond|{_THAN}|(?:a\s+)?(?:max|min)(?:imum)?(?:\s+of)?)\s+(?:a\s+(?:distance|speed|gap)\s+of\s+)?"
     rf"{_NUM}{_UNIT}", re.I)
 _AFTER = re.compile(

@@ -122,6 +122,14 @@ def _refines(parts: list[QueryPart], part: QueryPart, refinable: set[int]) -> in
     return None
 
 
+def _same(a: QueryPart, b: QueryPart) -> bool:
+    """Whether two parts ask the same thing of the same vehicles at the same time."""
+    def key(p: QueryPart) -> tuple[object, ...]:
+        return p.rule, p.params, p.vehicles, p.window, p.stage
+
+    return key(a) == key(b)
+
+
 def _vehicle_of(spec: PartSpec) -> int | None:
     got = part_vehicles(spec)
     return min(got) if got and len(got) == 1 else None
@@ -178,6 +186,8 @@ def compile_query(query: str, num_vehicles: int) -> CompiledQuery:
                 span = (old.span[0], part.span[1])
                 parts[hit] = replace(part, text=query[span[0] : span[1]].strip(), span=span, stage=old.stage)
                 refinable.discard(hit)
+                continue
+            if any(_same(p, part) for p in parts):  # "parks and stays put": one stop, said twice
                 continue
             if spec.refinable:
                 refinable.add(len(parts))

@@ -32,9 +32,11 @@ from ctgpp.language.compiler.phrases import (
     PACE,
     REACH_BELOW,
     SIDE_OF,
+    STOP_PLACE,
     STRAIGHT,
     TARGET_DISTANCE,
     TURN,
+    TURN_LATER,
 )
 from ctgpp.language.compiler.subjects import Context, PartSpec, QueryError, pairs, scope, subjects
 
@@ -116,6 +118,10 @@ def lane_change(c: Clause, ctx: Context) -> list[PartSpec]:
 
 
 def turn(c: Clause, ctx: Context) -> list[PartSpec]:
+    """A turn at the next intersection (one further on, :data:`TURN_LATER`, refused by name)."""
+    if (m := c.has(TURN_LATER)) is not None:
+        raise QueryError(f"{c.text.strip()!r}: a turn at the {m.group(0)} is not supported: a turn is made "
+                         f"at the next intersection on the vehicle's way")
     direction = "straight" if c.has(STRAIGHT) else _side_word(c, TURN)
     return [PartSpec("turn", "turn_at_next_intersection", {"vehicle": v, "direction": direction})
             for v in subjects(c, ctx)]
@@ -160,6 +166,11 @@ def stop(c: Clause, ctx: Context) -> list[PartSpec]:
         x, y = c.points[0]
         return [PartSpec("stop_region", "stop_region", {"vehicle": v, "x": x, "y": y, "radius_m": radius})
                 for v in subjects(c, ctx)]
+    place = c.has(STOP_PLACE)
+    if place:
+        raise QueryError(f"{c.text.strip()!r}: a stop at a place of the map ({place.group(0).strip()!r}) is "
+                         "not supported: say where as a point ('stops within 3 m of (x, y)') or when "
+                         "('stops within 4 s')")
     only = scope(c, ctx)
     if c.at_s is None:
         return [PartSpec("stop", "stop", {}, only)]
@@ -170,6 +181,33 @@ def stop(c: Clause, ctx: Context) -> list[PartSpec]:
     moving = PartSpec("stop", "reach_speed", {"speed_mps": MOVING_BEFORE_STOP_MPS, "bound": "above"}, only,
                       window=TimeWindow(0.0, moving_until))
     return [moving, stopped]
+
+
+def _whole_episode(c: Clause, ctx: Context, what: str) -> TimeWindow | None:
+    """The window of a state held from the start ("stands still", "keeps moving"): from t = 0, or from
+    "after N s", to the end, or "until N s" / "for the first N s"; held from its first step. A clause
+    that goes on about the vehicles of the clause before ("parks and stays put") holds the state from
+    where that left it: no window of its own (the behaviour's: reached, then held to the end)."""
+    if c.deadline_s is not None or c.at_s is not None:
+        raise QueryError(f"{c.text.strip()!r}: {what} holds from the start; a deadline or a time point "
+                         f"does not apply (say 'until N s' or 'after N s')")
+    goes_on = bool(ctx.previous) and (not c.vehicles or bool(set(c.vehicles) & set(ctx.previous)))
+    if goes_on and c.start_s is None and c.end_s is None:
+        return None
+    return TimeWindow(c.start_s or 0.0, c.end_s, hold=True)
+
+
+def stand_still(c: Clause, ctx: Context) -> list[PartSpec]:
+    """Stopped (under 0.5 m/s) at every step of the window: "stands still", "does not move"."""
+    return [PartSpec("stop", "stop", {}, scope(c, ctx), window=_whole_episode(c, ctx, "standing still"))]
+
+
+def keep_moving(c: Clause, ctx: Context) -> list[PartSpec]:
+    """At least :data:`MOVING_BEFORE_STOP_MPS` at every step of the window: "keeps moving", "never
+    stops" (a stop's opposite, as "still moving" before a stop at a time is judged)."""
+    params = {"speed_mps": MOVING_BEFORE_STOP_MPS, "bound": "above"}
+    return [PartSpec("keep_moving", "reach_speed", params, scope(c, ctx),
+                     window=_whole_episode(c, ctx, "moving without stopping"))]
 
 
 def reach(c: Clause, ctx: Context) -> list[PartSpec]:

@@ -80,6 +80,7 @@ scene scenes seconds minute minutes episode during whole start begin begins begi
 gently softly hardly quick quicker fastest slowest nearest farthest furthest behind beside
 together alongside across toward along because before after until since being doing having
 take takes taking took make makes making made
+overtaken overtook passed followed rammed struck tailgated collided crashed bumped smashed
 """
 
 
@@ -249,6 +250,8 @@ _WORDING = (  # (pattern, replacement), case-insensitive, in order
     (r"\b(into|in|to|onto)\s+the\s+lane\s+(?:on|to)\s+(?:its|his|her|their|the)\s+(left|right)\b",
      r"\1 the \2 lane"),
     (r"\binfront\b", "in front"),
+    (r"\b(vehicle|car|agent|truck)\s+(?:numbered|labell?ed|tagged|with\s+(?:the\s+)?(?:number|id|label))\s+",
+     r"\1 "),
     (r"\b(?:one|a)\s+lane\s+(?:to\s+)?(?:the\s+)?(left|right)\b", r"one lane over to the \1"),
     (rf"^\s*(?:please\s+)?(?:i\s+want|i'd\s+like|i\s+would\s+like|we\s+want|we'd\s+like|tell|ask|get|make"
      rf"|have|let|force|i\s+need|we\s+need)\s+({_VEH})\s+to\s+", r"\1 should "),
@@ -317,6 +320,29 @@ _LIST = re.compile(
 )
 
 
+# "vehicles 1 to 4", "cars 2-5", "vehicles 3 through 6": a range of vehicle numbers (no unit after it)
+_RANGE = re.compile(
+    r"\b((?:vehicles|cars|agents|trucks)\s+)#?(\d+)\s*(?:-|to|through|thru|until)\s*#?(\d+)\b"
+    r"(?!\s*(?:m/s|km|mph|m\b|meters?|metres?|s\b|secs?\b|seconds?|feet|ft|%|\.\d))",
+    re.IGNORECASE,
+)
+MAX_RANGE = 64  # a longer range of vehicle numbers is left as written (and refused, its numbers unread)
+
+
+def expand_ranges(text: str) -> str:
+    """"vehicles 1 to 4" -> "vehicles 1, 2, 3 and 4" (a range of at most :data:`MAX_RANGE` numbers,
+    low to high); anything else left as it is."""
+
+    def listed(m: re.Match[str]) -> str:
+        lo, hi = int(m.group(2)), int(m.group(3))
+        if not lo < hi or hi - lo >= MAX_RANGE:
+            return m.group(0)
+        numbers = [str(v) for v in range(lo, hi + 1)]
+        return f"{m.group(1)}{', '.join(numbers[:-1])} and {numbers[-1]}"
+
+    return _RANGE.sub(listed, text)
+
+
 def join_lists(text: str) -> str:
     """"vehicles 1, 2 and 3" -> "vehicles 1 & 2 & 3": a list of vehicles is one subject, not clauses."""
 
@@ -337,6 +363,7 @@ def normalise(query: str) -> str:
     text = numbers_to_digits(text)
     text = canonical_units(text)
     text = canonical_wording(text)
+    text = expand_ranges(text)
     text = join_lists(text)
     return re.sub(r"[ \t]{2,}", " ", text).strip()
 

@@ -15,6 +15,12 @@ equal the expected ones, as a multiset, numbers to 1e-3; or refused when a refus
 qualifier, or compiled when it should be refused) or *refused* (a ValueError where a structure was
 expected).
 
+The fresh batches (``paraphrases_fresh.jsonl``, the same form, ``source`` "author" or "helper"): 130
+sentences written on 2026-11-29 by people who had not read the compiler (50 by a developer before
+reading it that session, 80 by a helper that never did), scored once before any change (docs/benchmarks.md)
+and tuned on since, so all "dev": a regression set, and the measure of what a set the compiler was
+tuned on over many sessions overstates.
+
 Another reader's parts (the structured local model's, where the compiler refuses: ``--llm-mode auto``)
 are scored the same way by :func:`score_reading`, with each behaviour's defaults filled in on both
 sides (a model may leave out a parameter the compiler spells out: "follows" is 10-30 m either way).
@@ -52,10 +58,15 @@ class Outcome:
         return not isinstance(self.got, str)
 
 
+FRESH = "fresh"  # load(FRESH): the fresh batches (module docstring)
+
+
 def load(path: str | None = None) -> list[dict[str, Any]]:
-    """The paraphrase set (the packaged one when ``path`` is None)."""
-    if path is None:
-        text = resources.files("ctgpp.assets").joinpath("queries/paraphrases.jsonl").read_text()
+    """The paraphrase set (the packaged one when ``path`` is None, the packaged fresh batches when it
+    is :data:`FRESH`)."""
+    if path is None or path == FRESH:
+        name = "paraphrases.jsonl" if path is None else "paraphrases_fresh.jsonl"
+        text = resources.files("ctgpp.assets").joinpath(f"queries/{name}").read_text()
     else:
         with open(path, encoding="utf-8") as f:
             text = f.read()

@@ -58,6 +58,11 @@ _OTHERS = re.compile(  # the vehicles not named: "every other car", "the others"
     r"(?:vehicles|cars|traffic))?|(?:every|each|any|all)\s+(?:vehicles?|cars?)\s+(?:other\s+than|except|but)"
     r"|(?:everyone|everybody)\s+(?:except|but|other\s+than))\b"
 )
+_PASSIVE = re.compile(  # "vehicle 1 gets rear-ended by vehicle 2", "is overtaken by", "is cut off by": 2 acts
+    r"\b(?:is|are|was|were|be|been|being|gets?|got|getting)\s+(?:\w+\s+){0,2}?"
+    r"(?:[\w-]+ed|[\w-]+en|hit|cut|struck|run|rammed|followed|passed)\b[^.;]*?"
+    r"\bby\s+(?:(?:vehicle|car|agent|truck)s?\s*#?\d|v\d|#\d|(?:the\s+)?ego)"
+)
 _GROUP = re.compile(r"\b(?:both|they|them|their|all\s+of\s+them|each\s+of\s+them|the\s+two)\b")
 _ONE_BY_ONE = re.compile(r"\b(?:one\s+by\s+one|one\s+after\s+(?:the\s+)?other|in\s+turn|in\s+sequence)\b")
 _SECONDS = r"(?:s|secs?|seconds?)\b"
@@ -104,7 +109,8 @@ class Clause:
     ("within 5 s"), start_s ("after 3 s"), end_s ("for the first 4 s", "until 4 s"), at_s ("at 4 s": a
     time point), always ("at all times"); durations: times in seconds no time phrase reads ("a 2 s
     gap"). Flags: everyone, others ("every other car", "the others"), group ("both", "they"),
-    one_by_one, negated, pronoun, modal_start ("should ..."), verb_start ("stays below ...")."""
+    one_by_one, negated, pronoun, modal_start ("should ..."), verb_start ("stays below ..."), passive
+    (the vehicle after "by" acts: "vehicle 1 is overtaken by vehicle 2")."""
 
     text: str
     start: int
@@ -132,6 +138,7 @@ class Clause:
     group: bool = False
     one_by_one: bool = False
     verb_start: bool = False
+    passive: bool = False
 
     def has(self, pattern: str) -> re.Match[str] | None:
         """The first match of a regular expression in the clause's text."""
@@ -287,6 +294,7 @@ def analyse(text: str, start: int) -> Clause:
         group=bool(_GROUP.search(low)),
         one_by_one=bool(_ONE_BY_ONE.search(low)),
         verb_start=bool(_VERB_START.search(low)),
+        passive=bool(_PASSIVE.search(low)),
     )
 
 

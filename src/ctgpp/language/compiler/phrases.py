@@ -16,6 +16,12 @@ LANE_CHANGE = (
     r"|\b(?:mov|shift|go|chang|switch)\w*\s+(?:one\s+|a\s+)?lanes?\s+(?:over\s+)?(?:to\s+(?:the\s+)?)?(?:left|right)"
 )
 
+# a turn the next-intersection rule cannot be told: one further on ("at the second intersection")
+TURN_LATER = (
+    r"\b(?:second|third|fourth|2nd|3rd|4th|last|final)\s+(?:intersection|junction|crossing"
+    r"|light|lights|corner|street|road|exit)\b"
+)
+
 TURN = (
     r"\bturn\w*\s+(?:to\s+the\s+)?(?:left|right)|\b(?:left|right)\s*-?\s*turn"
     r"|\btak\w*\s+(?:a\s+)?(?:left|right)"
@@ -23,7 +29,10 @@ TURN = (
 
 # a U-turn: "makes a U-turn", "does a u turn", "U-turns", "turns around" / "turns round" (a three-point
 # turn reverses, and stays refused: refusals.MANOEUVRES)
-U_TURN = r"\bu[- ]?turn\w*|\bturn\w*\s+(?:a)?round\b"
+U_TURN = (
+    r"\bu[- ]?turn\w*|\bturn\w*\s+(?:a)?round\b"
+    r"|\b(?:head|go|drive|turn|come)\w*\s+back\s+(?:the\s+way|where)\s+(?:it|they|he|she)\s+came"
+)
 
 STRAIGHT = r"\b(?:go|goes|going|drive\w*|continu\w*|head\w*|keep\w*\s+going)\s+straight"
 
@@ -36,6 +45,8 @@ ACCELERATION = re.compile(
 COLLIDE = (
     r"\bcollid\w*|\bcollision\w*|\bcrash\w*|\bhit\b|\bhits\b|\bsmash\w*|\brams?\b|\bbump\w*\s+into"
     r"|accident"
+    r"|\b(?:run|runs|ran|running|swerv\w*|veer\w*|plow\w*|plough\w*|slam\w*|driv\w*|drove)\s+into\s+"
+    r"(?:(?:vehicle|car|agent|truck)\s*#?\d+|v\d+|#\d+|(?:the\s+)?ego)\b"
 )
 
 REAR_END = r"rear[- ]?end|from\s+behind|into\s+the\s+(?:back|rear)\s+of"
@@ -46,7 +57,7 @@ CUT_IN = r"\bcut\w*\s+(?:in|off|ahead|in\s+front)\b|\bmerg\w*\s+(?:\w+\s+){0,2}?
 # refused (refusals.MANOEUVRES)
 _A_VEHICLE = r"(?:(?:vehicle|car|agent|truck)\s*#?\d+|v\d+|#\d+|(?:the\s+)?ego)\b"
 OVERTAKE = (
-    rf"\bovertak\w*|\bpass(?:es|ed|ing)?\s+(?:by\s+)?{_A_VEHICLE}"
+    rf"\bovert(?:ak|ook)\w*|\bpass(?:es|ed|ing)?\s+(?:by\s+)?{_A_VEHICLE}"
     rf"|\b(?:get|go|drive|move)(?:s|es|ing)?\s+past\s+{_A_VEHICLE}"
 )
 
@@ -56,13 +67,14 @@ FOLLOW_VEHICLE = r"\bfollow\w*|\btail\w*|\bbehind\b"
 
 SPEED_LIMIT = (
     r"speed\s+limit|exceed|slower\s+than|(?:no|not)\s+(?:faster|quicker|more)\s+than|at\s+most|\bbelow\b"
-    r"|(?<!speeds\s)(?<!speed\s)(?<!speeding\s)\bup\s+to\b|(?:never|not|n't)\s+(?:go|drive|get)\w*\s+(?:over|above)"
+    r"|(?<!speeds\s)(?<!speed\s)(?<!speeding\s)(?<!gets\s)(?<!get\s)(?<!got\s)(?<!getting\s)\bup\s+to\b|(?:never|not|n't)\s+(?:go|drive|get)\w*\s+(?:over|above)"
     r"|\bunder\b|max(?:imum)?\s+(?:speed|of)|\blimit\w*|(?:faster|above|over)\s+than"
 )
 
 TARGET_SPEED = (
     r"target\s+speed|(?:drive|travel|go|move|cruise|run|ride|proceed)\w*\s+(?:at|with)|speed\s+of|\bat\s+"
     r"|maintain\w*|hold\w*|keep\w*|speed\w*\s+(?:up|down)|accelerat\w*|slow\w*|decelerat\w*|\bspeed\b"
+    r"|\breach\w*|\bget\w*\s+(?:up\s+)?to\b"
 )
 
 STAY_AWAY = (
@@ -77,23 +89,26 @@ WITHIN = (
 
 FOLLOW_LANE = (
     r"follow\w*\s+(?:its|their|his|her|the|a|current)?\s*(?:own\s+|current\s+)?lanes?\b"
-    r"|(?:stay|remain)\w*\s+in\s+(?:its|their|the|his|her)?\s*(?:own\s+|current\s+)?lanes?\b"
+    r"|(?:stay|remain)\w*\s+(?:in|within|inside)\s+(?:its|their|the|his|her)?\s*(?:own\s+|current\s+)?lanes?\b"
     r"|lane[- ]following"
+    r"|(?:stay|keep|stick|remain|driv)\w*\s+(?:\w+\s+){0,2}?(?:in|to|at|along)\s+the\s+(?:cent(?:er|re)|middle)"
+    r"\s+of\s+(?:its|their|the|his|her)\s+(?:own\s+)?lanes?|\bcent(?:er|re)d\s+(?:in|on)\s+(?:its|their|the)\s+lanes?"
 )
 
 KEEP_LANE = (
     r"\bkeep\w*\s+(?:to\s+)?(?:its|their|his|her|the)\s+(?:own\s+|current\s+)?lanes?\b|lane[- ]keeping"
     r"|(?:not|n't|never)\s+(?:change|switch|leave)\w*\s+(?:its\s+|their\s+)?lanes?"
+    r"|\bno\s+(?:lane[- ]chang\w*|chang\w*\s+(?:of\s+)?lanes?)"
 )
 
 REACH_BELOW = (
     r"\b(?:slow\w*|decelerat\w*|brak\w*|reduc\w*)\b.*"
-    r"\b(?:under|below|less\s+than|at\s+most|no\s+more\s+than)\b"
+    r"(?:\b(?:under|below|less\s+than|at\s+most|no\s+more\s+than)\b|\bor\s+(?:less|lower|slower|under|below)\b)"
 )
 
 REACH_ABOVE = (
     r"\b(?:speed\w*\s+up|accelerat\w*|get\w*\s+to|reach\w*|pick\w*\s+up)\b.*"
-    r"\b(?:over|above|more\s+than|at\s+least|faster\s+than)\b"
+    r"(?:\b(?:over|above|more\s+than|at\s+least|faster\s+than)\b|\bor\s+(?:more|higher|faster|over|above)\b)"
 )
 
 OFFROAD_STAY = r"(?:stay|remain|keep|drive)\w*\s+on\s+(?:the\s+)?(?:road|drivable|pavement|street)"
@@ -103,8 +118,29 @@ OFFROAD = rf"{OFFROAD_STAY}|{LEAVE_ROAD}|drivable\s+area"
 
 STOP = r"\bstop\w*|\bhalt\w*|standstill|\bpark(?:s|ed)?\b"
 
+# stopped from the start to the end: "stands still", "remains stationary", "stays put", "does not move"
+STAND_STILL = (
+    r"\bstand\w*\s+still|\b(?:remain|stay)\w*\s+(?:still|put|stationary|motionless|at\s+rest)\b"
+    r"|\b(?:not|never|n't)\s+(?:move|budge)\b"
+)
+
+# moving from the start to the end: "keeps moving", "keeps going", "does not stop", "never stops"
+KEEP_MOVING = (
+    r"\bkeep\w*\s+(?:on\s+)?(?:moving|going|driving|rolling)\b|\bwithout\s+stopping\b"
+    r"|\b(?:not|never|n't)\s+(?:come\s+to\s+a\s+)?(?:stop|halt)\w*"
+)
+
+# a place on the map a stop may be asked at that the compiler has no coordinates for
+STOP_PLACE = (
+    r"\b(?:before|at|in|near|after|past|by|behind)\s+(?:the\s+)?(?:next\s+|first\s+)?(?:intersection|junction"
+    r"|crossing|crosswalk|zebra|stop\s*(?:line|sign)|(?:traffic\s+)?lights?|corner|roundabout|kerb|curb|exit)"
+    r"|\b(?:on|onto|to|at|in|by)\s+(?:the\s+|a\s+)?(?:hard\s+)?(?:shoulder|roadside|verge|side\s+of\s+the\s+road"
+    r"|parking\s+(?:spot|space|lot|bay)|driveway|car\s+park)"
+)
+
 REACH = (
     r"\breach\w*|\b(?:go|drive|head|move|navigate|travel|get)\w*\s+(?:\w+\s+)?(?:to|towards?)\b|arriv\w*"
+    r"|\b(?:send|bring|take|steer|direct|route)\w*\s+(?:\w+\s+){0,3}?(?:to|towards?)\b"
     r"|\bgoal\b|destination|waypoint"
 )
 
@@ -116,6 +152,10 @@ AHEAD = (
     rf"({NUM})\s*(?:m|meters?|metres?|ft|feet)\s+(?:further\s+|farther\s+)?"
     r"(?:ahead|in\s+front|down|along|forward|on|up)\b"
 )
+
+# a lower bound on speed said positively, the number right after it ("goes faster than 10 m/s", "drives
+# above 30 km/h", "should exceed 8 m/s"): a minimum speed unless the clause is negated ("never exceeds")
+LOWER_SPEED = rf"\b(?:faster|quicker)\s+than\s+{NUM}|\b(?:above|over|exceed\w*|more\s+than)\s+{NUM}"
 
 MIN_SPEED = (
     r"\bat\s+least|\bno\s+(?:less|slower)\s+than|\bnot\s+(?:less|slower)\s+than|\bminimum(?:\s+speed)?"

@@ -16,7 +16,7 @@ from ctgpp.behaviours import behaviours
 from ctgpp.guidance.composite import check_quantity
 from ctgpp.language.bounds import bound_mismatch
 from ctgpp.language.compiler.patterns import Clause
-from ctgpp.language.compiler.phrases import KEEP_LANE, STAY_AWAY
+from ctgpp.language.compiler.phrases import KEEP_LANE, KEEP_MOVING, STAND_STILL, STAY_AWAY
 from ctgpp.language.compiler.subjects import PartSpec, QueryError
 
 VEHICLE_PARAMS = {"vehicle", "vehicle_a", "vehicle_b", "follower", "leader", "other", "target", "ahead_of"}
@@ -120,6 +120,9 @@ MANOEUVRES = (
     (r"\brevers\w*|\bback(?:s|ing)?\s+up\b|\bbackwards?\b", "driving in reverse"),
     (r"\btwo\s+lanes\b|\b\d+\s+lanes\s+(?:over|to)\b", "changing more than one lane"),
     (r"\bhonk\w*|\bsignal\w*|\bindicat\w*|\bblinker|\bheadlight", "signals and lights (not simulated)"),
+    (r"\bhead[- ]?on\b|\bt[- ]?bon\w*|\bside[- ]?swip\w*|\bbroadsid\w*",
+     "a collision of a given kind (head-on, T-bone, sideswipe): \"vehicle 4 crashes into vehicle 5\" asks "
+     "for any collision, \"vehicle 4 rear-ends vehicle 5\" for one from behind"),
     (r"\bpull(?:s|ed|ing)?\s+over\b|\bpull(?:s|ed|ing)?\s+(?:in\s+)?to\s+the\s+(?:side|kerb|curb|verge|shoulder)\b",
      "pulling over to the roadside (the lanes end at the kerb; \"vehicle 4 moves to the rightmost lane and "
      "then stops\" is the nearest)"),
@@ -182,7 +185,8 @@ def check_times(clause: Clause, specs: list[PartSpec], text: str) -> None:
 # accelerate more than 2 m/s²"), and those whose negative wording is their own phrase ("must not change
 # lanes", "should not get close to"): any other family negated would be read as its opposite
 NEGATION_KEEPS = frozenset({"collision", "no_offroad", "speed_limit", "min_speed", "acceleration_limit"})
-NEGATION_INSIDE = {"keep_lane": KEEP_LANE, "stay_away": STAY_AWAY}
+NEGATION_INSIDE = {"keep_lane": KEEP_LANE, "stay_away": STAY_AWAY, "keep_moving": KEEP_MOVING,
+                   "stand_still": STAND_STILL}
 _NEGATIVE = r"\b(?:no|not|never|avoid\w*|without)\b|n't\b"
 
 

@@ -72,12 +72,14 @@ def others(c: Clause, ctx: Context) -> tuple[int, ...]:
 
 
 def subjects(c: Clause, ctx: Context) -> list[int]:
-    """The vehicles a one-vehicle rule applies to: the others, those named, everyone, else the
-    previous clause's subjects."""
+    """The vehicles a one-vehicle rule applies to: the others, the clause's subject (its leading
+    vehicles; else every vehicle it names), everyone, else the previous clause's subjects. A vehicle
+    named after the subject ("vehicle 3 stops behind vehicle 2") is not one it applies to: unread, it
+    makes the clause refused (:func:`~ctgpp.language.compiler.refusals.check_none_dropped`)."""
     if c.others:
         return list(others(c, ctx))
     if c.vehicles:
-        return list(c.vehicles)
+        return list(c.subjects or c.vehicles)
     if c.everyone and ctx.num_vehicles:
         return list(range(ctx.num_vehicles))
     if c.group and ctx.previous:
@@ -88,11 +90,12 @@ def subjects(c: Clause, ctx: Context) -> list[int]:
 
 
 def scope(c: Clause, ctx: Context) -> tuple[int, ...] | None:
-    """The vehicles a global rule is restricted to: None for everyone."""
+    """The vehicles a global rule is restricted to (the clause's subject, as :func:`subjects`): None
+    for everyone."""
     if c.others:
         return others(c, ctx)
     if c.vehicles:
-        return c.vehicles
+        return c.subjects or c.vehicles
     if c.everyone:
         return None
     if c.group and ctx.previous:
@@ -106,7 +109,8 @@ def scope(c: Clause, ctx: Context) -> tuple[int, ...] | None:
 def pairs(c: Clause, ctx: Context, what: str) -> list[tuple[int, int]]:
     """(subject, other) pairs of a two-vehicle rule: each subject (the clause's leading vehicles, else
     the previous clause's) with each object (the other vehicles it names, "it": the previous clause's
-    object, "the others"); with no object, the first subject with each other one."""
+    object, "the others"); with no object, the first subject with each other one. In the passive
+    ("vehicle 1 is overtaken by vehicle 2") the vehicle after "by" acts: (2, 1)."""
     own = c.subjects
     leads = list(own) if own else list(ctx.subjects)
     objects = [v for v in c.vehicles if v not in own]
@@ -118,4 +122,6 @@ def pairs(c: Clause, ctx: Context, what: str) -> list[tuple[int, int]]:
         leads, objects = leads[:1], leads[1:]
     if not leads or not objects:
         raise QueryError(f"{c.text.strip()!r}: {what} needs two vehicles (e.g. 'vehicle 1 ... vehicle 2')")
+    if c.passive:
+        return [(b, a) for a in leads for b in objects if a != b]
     return [(a, b) for a in leads for b in objects if a != b]

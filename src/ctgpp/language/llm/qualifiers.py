@@ -16,7 +16,10 @@ offline compiler knows it cannot honour:
   :data:`~ctgpp.language.compiler.handlers.LEAVING_THE_ROAD`: a small model reads "vehicle 5 should
   leave the road" as staying on it);
 - a qualifier a behaviour cannot take: a U-turn's place or side
-  (:data:`~ctgpp.language.compiler.handlers.U_TURN_PLACE`, :data:`~.handlers.U_TURN_SIDE`);
+  (:data:`~ctgpp.language.compiler.handlers.U_TURN_PLACE`, :data:`~.handlers.U_TURN_SIDE`), a stop's
+  place on the map ("before the intersection", "on the shoulder":
+  :data:`~ctgpp.language.compiler.phrases.STOP_PLACE`), a turn further on than the next intersection
+  (:data:`~ctgpp.language.compiler.phrases.TURN_LATER`), as the compiler refuses them;
 - a relation whose vehicles are in the other order than the sentence puts them ("vehicle 3 ...
   ahead of vehicle 4" read with vehicle 3 behind: following it, cutting in behind it, ...);
 - a bound read the other way round or as an exact value (:func:`~ctgpp.language.bounds.bound_mismatch`,
@@ -35,7 +38,7 @@ from typing import Any
 from ctgpp.behaviours import get_behaviour
 from ctgpp.language.bounds import CLAUSE_BREAK, bound_mismatch
 from ctgpp.language.compiler.handlers import LEAVING_THE_ROAD, U_TURN_PLACE, U_TURN_SIDE, asks_to_leave_road
-from ctgpp.language.compiler.phrases import U_TURN
+from ctgpp.language.compiler.phrases import STOP, STOP_PLACE, TURN, TURN_LATER, U_TURN
 from ctgpp.language.compiler.refusals import MANOEUVRES, SUPPORTED
 from ctgpp.language.llm.calls import StructuredRefused, is_vehicle_param
 from ctgpp.language.llm.sentence import named_vehicles
@@ -105,6 +108,14 @@ def check_expressible(calls: list[dict[str, Any]], sentence: str) -> None:
             if (m := re.search(qualifier, clause, re.I)) is not None:
                 raise StructuredRefused(f"a U-turn cannot take {m.group(0)!r}: it turns round where the map "
                                         "has a lane running the other way, towards it")
+    for clause in _clauses_of(sentence, STOP):
+        if (m := re.search(STOP_PLACE, clause, re.I)) is not None:
+            raise StructuredRefused(f"a stop at a place of the map ({m.group(0).strip()!r}) cannot be "
+                                    "expressed: a stop is asked where (a point) or when")
+    for clause in _clauses_of(sentence, TURN):
+        if (m := re.search(TURN_LATER, clause, re.I)) is not None:
+            raise StructuredRefused(f"a turn at the {m.group(0)} cannot be expressed: a turn is made at the "
+                                    "next intersection")
     if any(asks_to_leave_road(clause.lower()) for clause in CLAUSE_BREAK.split(sentence)):  # as the compiler
         raise StructuredRefused(LEAVING_THE_ROAD)
     for call in calls:
