@@ -220,7 +220,7 @@ def test_structured_mode_uses_the_models_reading_and_compares(server: CannedServ
 def test_auto_asks_the_model_only_where_the_compiler_refuses(server: CannedServer, obs: Any) -> None:
     got = resolve_query("vehicle 1 should come to a stop", obs, config(server, "auto"))
     assert got.path == "offline query compiler" and server.requests == []
-    refused = "vehicle 2 must come to a stop by the 6 second mark"
+    refused = "vehicle 2 has to be at a standstill six seconds from now"
     with pytest.raises(QueryError):
         compile_query(refused, len(obs.controlled))
     server.replies = [calls({"behaviour": "stop", "vehicles": [2], "within_s": 6})]
@@ -245,7 +245,7 @@ def test_path_recorded_in_metrics_json(server: CannedServer, tmp_path: Path,
     monkeypatch.setenv("CTGPP_CACHE_DIR", str(tmp_path / "cache"))
     short = ["--scene", "0103", "--policy", "replay", "--duration", "1", "--animation", "none",
              "--llm-model", MODEL, "--llm-base-url", server.url, "--llm-mode", "auto"]
-    query = "vehicle 2 must come to a stop by the 6 second mark"
+    query = "vehicle 2 has to be at a standstill six seconds from now"
     server.replies = [calls({"behaviour": "stop", "vehicles": [2], "within_s": 6})]
     assert main(["simulate", query, *short, "--out", str(tmp_path / "ok")]) == 0
     record = json.loads((tmp_path / "ok" / "metrics.json").read_text())["query"]

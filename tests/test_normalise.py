@@ -50,9 +50,13 @@ def test_one_edit(a: str, b: str, one: bool) -> None:
 @pytest.mark.parametrize(("word", "fixed"), [
     ("chnage", "change"), ("vehicel", "vehicle"), ("shoudl", "should"), ("intersecton", "intersection"),
     ("colide", "collide"), ("exceeed", "exceed"),
-    # left alone: known words and their inflections, short words, words two edits from any known one,
-    # and words one edit from two known ones ("slowe": slow, slower)
-    ("slowed", "slowed"), ("brakes", "brakes"), ("lanes", "lanes"), ("tunr", "tunr"), ("raod", "raod"),
+    # a 4-letter word: two neighbouring letters swapped only
+    ("tunr", "turn"), ("raod", "road"), ("lfet", "left"), ("stpo", "stop"),
+    # left alone: known words and their inflections, words under 4 letters, 4-letter words another edit
+    # away from a known one ("lame": lane, "rood": road), words two edits from any known one, and words
+    # one edit from two known ones ("slowe": slow, slower)
+    ("slowed", "slowed"), ("brakes", "brakes"), ("lanes", "lanes"), ("lame", "lame"), ("rood", "rood"),
+    ("tuen", "tuen"), ("teh", "teh"),
     ("cxhangx", "cxhangx"), ("slowe", "slowe"),
 ])
 def test_correct_word(word: str, fixed: str) -> None:

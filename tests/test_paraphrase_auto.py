@@ -63,7 +63,7 @@ SET = [  # the compiler reads the first; the model is asked on the other three, 
     row("vehicle 2 should change to the left lane",
         [{"rule": "lane_change", "params": {"vehicle": 2, "side": "left"}, "vehicles": None, "window": None,
           "stage": 0}]),
-    row("vehicle 2 must come to a stop by the 6 second mark", STOP_BY_6, "heldout"),
+    row("vehicle 2 has to be at a standstill six seconds from now", STOP_BY_6, "heldout"),
     row("vehicle 2 drives at 5 m/s for 4 seconds", "refuse"),
     row("vehicles 1 and 2 pass each other", "refuse", "heldout"),
 ]

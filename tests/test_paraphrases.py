@@ -106,7 +106,6 @@ def test_a_number_or_time_no_part_reads_is_refused(query: str) -> None:
 
 @pytest.mark.parametrize("query", [
     "vehicle 1 should not follow vehicle 2",
-    "vehicle 3 should not get within 10 m of vehicle 4",
     "vehicle 2 should not rear-end vehicle 4",
     "vehicle 2 should not keep its lane",
     "vehicle 3 should not turn left at the next intersection",
@@ -120,6 +119,8 @@ def test_a_negated_or_relative_reading_is_refused_never_reversed(query: str) -> 
 @pytest.mark.parametrize(("query", "rule", "params"), [
     ("vehicle 2 must not change lanes", "keep_lane", {"vehicle": 2}),  # the negation is the phrase
     ("vehicle 9 should not get close to vehicle 10", "stay_away", {"vehicle": 9, "other": 10, "min_m": 10.0}),
+    ("vehicle 3 should not get within 10 m of vehicle 4", "stay_away",
+     {"vehicle": 3, "other": 4, "min_m": 10.0}),
     ("vehicle 2 should never exceed 10 m/s", "speed_limit", {"limit_mps": 10.0}),
     ("vehicle 2 should not drive below 10 m/s", "reach_speed", {"speed_mps": 10.0, "bound": "above"}),
 ])
@@ -208,10 +209,10 @@ def test_a_range_of_vehicles_is_every_vehicle_in_it() -> None:
 
 
 def test_the_fresh_batches_are_read_as_meant_or_refused_never_wrongly() -> None:
-    """The 130 sentences written on 2026-11-29 without reading the compiler (10 read wrongly before the
+    """The 290 sentences written on 2026-11-29 without reading the compiler (21 read wrongly before the
     changes they prompted: docs/benchmarks.md): none wrong, nearly all understood."""
     outcomes = [score(r) for r in load(FRESH)]
-    assert len(outcomes) == 130
+    assert len(outcomes) == 290
     wrong = [(o.query, o.got) for o in outcomes if o.verdict == "wrong"]
     assert not wrong, wrong
     assert shares(outcomes)["understood"] >= 0.95

@@ -39,7 +39,7 @@ _THAN = r"(?:less|fewer|slower|closer|nearer|lower|more|faster|farther|further|h
 _UPPER_WORDS = ("at most", "up to", "within", "under", "below", "max", "a max", "less than", "fewer than",
                 "slower than", "closer than", "nearer than", "lower than")
 _BEFORE = re.compile(
-    r"\b(at\s+most|at\s+least|(?<!speed\s)(?<!speeds\s)(?<!speeding\s)(?<!get\s)(?<!gets\s)(?<!got\s)(?<!getting\s)up\s+to|within|under|below|over|above"
+    r"\b(at\s+most|at\s+least|(?<!speed\s)(?<!speeds\s)(?<!speeding\s)(?<!get\s)(?<!gets\s)(?<!got\s)(?<!getting\s)(?<!back\s)up\s+to|within|under|below|over|above"
     rf"|beyond|{_THAN}|(?:a\s+)?(?:max|min)(?:imum)?(?:\s+of)?)\s+(?:a\s+(?:distance|speed|gap)\s+of\s+)?"
     rf"{_NUM}{_UNIT}", re.I)
 _AFTER = re.compile(
@@ -48,7 +48,7 @@ _AFTER = re.compile(
 _UPPER_AFTER = ("less", "fewer", "under", "below", "slower", "closer", "lower", "most", "max")
 CLAUSE_BREAK = re.compile(r"[,;.]|\b(?:and|then|but|while|whilst)\b", re.I)
 """Where a clause of a sentence ends: a "not" turns round what follows it in its own clause only."""
-_NEGATION = re.compile(r"\b(?:not|never|no)\b", re.I)
+_NEGATION = re.compile(r"\b(?:not|never|no|avoid\w*)\b", re.I)
 
 
 @dataclass(frozen=True)

@@ -115,12 +115,24 @@ def _one_edit(a: str, b: str) -> bool:
     return short[i:] == long[i + 1 :]
 
 
+def _swapped(a: str, b: str) -> bool:
+    """Whether ``b`` is ``a`` with two neighbouring letters swapped ("trun" -> "turn")."""
+    if len(a) != len(b) or a == b:
+        return False
+    diff = [i for i in range(len(a)) if a[i] != b[i]]
+    return len(diff) == 2 and diff[1] == diff[0] + 1 and a[diff[0]] == b[diff[1]] and a[diff[1]] == b[diff[0]]
+
+
 def correct_word(word: str) -> str:
-    """``word`` (lower case) corrected against :data:`VOCABULARY`: itself when known, shorter than 5
-    letters, or not one edit from exactly one known word."""
-    if len(word) < 5 or word in KNOWN:
+    """``word`` (lower case) corrected against :data:`VOCABULARY`: itself when known, shorter than 4
+    letters, or not one edit from exactly one known word (a 4-letter word: only two neighbouring
+    letters swapped, "trun", "lfet"; any other edit of so short a word is too often another word)."""
+    if len(word) < 4 or word in KNOWN:
         return word
-    near = [w for w in VOCABULARY if len(w) >= 4 and _one_edit(word, w)]
+    if len(word) == 4:
+        near = [w for w in VOCABULARY if _swapped(word, w)]
+    else:
+        near = [w for w in VOCABULARY if len(w) >= 4 and _one_edit(word, w)]
     return near[0] if len(near) == 1 else word
 
 
@@ -255,6 +267,8 @@ _WORDING = (  # (pattern, replacement), case-insensitive, in order
     (r"\b(?:one|a)\s+lane\s+(?:to\s+)?(?:the\s+)?(left|right)\b", r"one lane over to the \1"),
     (rf"^\s*(?:please\s+)?(?:i\s+want|i'd\s+like|i\s+would\s+like|we\s+want|we'd\s+like|tell|ask|get|make"
      rf"|have|let|force|i\s+need|we\s+need)\s+({_VEH})\s+to\s+", r"\1 should "),
+    (rf"^\s*(?:please\s+)?(?:send|bring|take|route|steer|direct)\s+({_VEH})\s+", r"\1 should drive "),
+    (rf"^\s*(?:please\s+)?(drive|move)\s+({_VEH})\s+", r"\2 should \1 "),
     (rf"\bkeep\s+({_VEH})\s+in\s+(?:its|their|the)\s+(?:own\s+|current\s+)?lanes?\b",
      r"\1 keep their lanes"),
     (rf"^\s*(?:please\s+)?({_VEH})\s*[,:]\s*(?!(?:and|or|{_NUMBER_WORD})\b)(?=[a-z])",
@@ -304,6 +318,33 @@ def negative_subjects(text: str) -> str:
         return f"{m.group(1)}every vehicle must not {_base_form(m.group(2))}"
 
     return _NO_ONE.sub(every, text)
+
+
+# an aside that asks for nothing: a parenthesis or a ", which ...," remark without a number, and a
+# framing phrase before the first comma ("For this study, ...", "To test the brakes, ..."); one with a
+# number is kept (and refused if no part reads it), as is one that names a place on the map
+_PLACE = r"intersection|junction|crossing|crosswalk|light|sign|lane|road|roundabout|corner|kerb|curb|shoulder"
+_ASIDES = (
+    re.compile(r"\s*\((?=[^()]*[a-z])[^()\d]*\)", re.IGNORECASE),
+    re.compile(r",\s*(?:which|who)\s+[^,\d]*(?:,|(?=[.!?]?\s*$))", re.IGNORECASE),
+    re.compile(rf"^\s*(?:for|in|to|as\s+part\s+of|whatever)\b(?![^,]*\b(?:{_PLACE})\b)[^,\d]*,\s*",
+               re.IGNORECASE),
+)
+# a prohibition of collisions said as a manner ("... without hitting anyone")
+_WITHOUT_HITTING = re.compile(
+    r",?\s+without\s+(?:hitting|crashing\s+into|colliding\s+with|touching|striking|bumping\s+into)\s+"
+    r"(?:anyone|anybody|anything|any(?:\s+other)?\s+(?:vehicle|car|agent)s?|other\s+(?:vehicles|cars|traffic))\b",
+    re.IGNORECASE,
+)
+
+
+def drop_asides(text: str) -> str:
+    """Asides that ask for nothing removed (:data:`_ASIDES`), "without hitting anyone" as "and must not
+    collide"."""
+    for pattern in _ASIDES:
+        text = pattern.sub(" ", text)
+    text = _WITHOUT_HITTING.sub(" and must not collide", text)
+    return text.strip()
 
 
 def canonical_wording(text: str) -> str:
@@ -359,6 +400,7 @@ def normalise(query: str) -> str:
     for fancy, plain in (("–", "-"), ("—", "-"), ("’", "'"), ("‘", "'"), ("\u00a0", " ")):
         text = text.replace(fancy, plain)
     text = expand_contractions(text)
+    text = drop_asides(text)
     text = correct_typos(text)
     text = numbers_to_digits(text)
     text = canonical_units(text)

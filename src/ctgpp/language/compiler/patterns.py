@@ -68,7 +68,7 @@ _ONE_BY_ONE = re.compile(r"\b(?:one\s+by\s+one|one\s+after\s+(?:the\s+)?other|in
 _SECONDS = r"(?:s|secs?|seconds?)\b"
 _DEADLINE = re.compile(
     rf"\b(?:within(?:\s+the\s+first)?|in(?:\s+(?:under|less\s+than|at\s+most))?|by(?:\s+t\s*=)?|before(?:\s+t\s*=)?"
-    rf"|no\s+later\s+than)\s+({NUM})\s*{_SECONDS}"
+    rf"|no\s+later\s+than)\s+(?:the\s+)?({NUM})\s*{_SECONDS}(?:\s+mark\b)?"
 )
 _START = re.compile(
     rf"\b(?:after(?:\s+the\s+first)?|from(?:\s+t\s*=)?|starting(?:\s+(?:at|from|after))?(?:\s+t\s*=)?|once)\s+"
@@ -83,7 +83,8 @@ _AT = re.compile(  # a time point: "stops at 4 s", "at t = 4 s", "at the 4 s mar
 _DURATION = re.compile(rf"(?<![\w.])({NUM})\s*{_SECONDS}")
 _ALWAYS = re.compile(
     r"\b(?:at\s+all\s+times|always|throughout(?:\s+the\s+(?:episode|scene|drive))?|the\s+whole\s+time"
-    r"|all\s+the\s+time|for\s+the\s+whole\s+(?:episode|scene|drive))\b"
+    r"|all\s+the\s+time|for\s+the\s+(?:whole|entire)\s+(?:episode|scene|drive|scenario|simulation|run|time)"
+    r"|the\s+entire\s+time|at\s+any\s+time)\b"
 )
 _SPEED_RANGE = re.compile(
     rf"\bbetween\s+({NUM})\s*(?:and|to|-)\s*({NUM})\s*({_SPEED_UNIT})|\b({NUM})\s*(?:-|–|to)\s*({NUM})\s*({_SPEED_UNIT})"
@@ -189,6 +190,7 @@ def _vehicles(text: str) -> tuple[list[tuple[int, int, int]], str]:
 
 _LEAD = re.compile(
     r"^(?:\s|,|#|\b(?:the|make|let|have|get|keep|for|both|and|then|also|now|please|that|i|we|want|would|like"
+    r"|can|could|you|will|may|shall|should|must"
     r"|vehicles?|cars?|agents?"
     r"|trucks?|number|no\.?)\b)*$"
 )

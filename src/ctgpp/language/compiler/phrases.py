@@ -14,6 +14,7 @@ LANE_CHANGE = (
     r"(?:left|right)(?:[- ]hand)?\s+lane|lane[- ]change\s+(?:to\s+the\s+)?(?:left|right)"
     r"|chang\w*\s+lanes?\s+(?:to\s+(?:the\s+)?)?(?:left|right)|(?:left|right)\s+lane[- ]change"
     r"|\b(?:mov|shift|go|chang|switch)\w*\s+(?:one\s+|a\s+)?lanes?\s+(?:over\s+)?(?:to\s+(?:the\s+)?)?(?:left|right)"
+    r"|\b(?:chang|switch|mov|shift|merg|pull|go)\w*\s+back\s+(?:in)?to\s+the\s+(?:left|right)\b"
 )
 
 # a turn the next-intersection rule cannot be told: one further on ("at the second intersection")
@@ -24,7 +25,7 @@ TURN_LATER = (
 
 TURN = (
     r"\bturn\w*\s+(?:to\s+the\s+)?(?:left|right)|\b(?:left|right)\s*-?\s*turn"
-    r"|\btak\w*\s+(?:a\s+)?(?:left|right)"
+    r"|\btak\w*\s+(?:a\s+|the\s+(?:next\s+|first\s+)?)?(?:left|right)"
 )
 
 # a U-turn: "makes a U-turn", "does a u turn", "U-turns", "turns around" / "turns round" (a three-point
@@ -58,7 +59,7 @@ CUT_IN = r"\bcut\w*\s+(?:in|off|ahead|in\s+front)\b|\bmerg\w*\s+(?:\w+\s+){0,2}?
 _A_VEHICLE = r"(?:(?:vehicle|car|agent|truck)\s*#?\d+|v\d+|#\d+|(?:the\s+)?ego)\b"
 OVERTAKE = (
     rf"\bovert(?:ak|ook)\w*|\bpass(?:es|ed|ing)?\s+(?:by\s+)?{_A_VEHICLE}"
-    rf"|\b(?:get|go|drive|move)(?:s|es|ing)?\s+past\s+{_A_VEHICLE}"
+    rf"|\b(?:get|go|drive|move)(?:s|es|ing)?\s+(?:past|around)\s+{_A_VEHICLE}"
 )
 
 RIGHTMOST = r"right-?\s?most\s+lane|far(?:thest)?[- ]right\s+lane"
@@ -67,8 +68,8 @@ FOLLOW_VEHICLE = r"\bfollow\w*|\btail\w*|\bbehind\b"
 
 SPEED_LIMIT = (
     r"speed\s+limit|exceed|slower\s+than|(?:no|not)\s+(?:faster|quicker|more)\s+than|at\s+most|\bbelow\b"
-    r"|(?<!speeds\s)(?<!speed\s)(?<!speeding\s)(?<!gets\s)(?<!get\s)(?<!got\s)(?<!getting\s)\bup\s+to\b|(?:never|not|n't)\s+(?:go|drive|get)\w*\s+(?:over|above)"
-    r"|\bunder\b|max(?:imum)?\s+(?:speed|of)|\blimit\w*|(?:faster|above|over)\s+than"
+    r"|(?<!speeds\s)(?<!speed\s)(?<!speeding\s)(?<!gets\s)(?<!get\s)(?<!got\s)(?<!getting\s)(?<!back\s)\bup\s+to\b|(?:never|not|n't)\s+(?:go|drive|get)\w*\s+(?:over|above)"
+    r"|\bunder\b|max(?:imum)?\s+(?:speed|of)|\blimit\w*|(?:faster|above|over)\s+than|\bcap(?:s|ped|ping)?\b"
 )
 
 TARGET_SPEED = (
@@ -79,7 +80,7 @@ TARGET_SPEED = (
 
 STAY_AWAY = (
     r"away\s+from|at\s+least|(?<!no )(?:more|further|farther)\s+than|keep\w*\s+(?:a\s+)?(?:safe\s+)?distance"
-    r"|(?:not|n't|never)\s+(?:get|come|go|drive)\w*\s+(?:too\s+)?(?:close|near)|minimum\s+distance|\bavoid\w*\s+"
+    r"|(?:not|n't|never)\s+(?:get|come|go|drive)\w*\s+(?:too\s+)?(?:close|near|within)|minimum\s+distance|\bavoid\w*\s+"
 )
 
 WITHIN = (
@@ -87,12 +88,16 @@ WITHIN = (
     r"|at\s+most|\bstay\w*\s+with\b|\bstick\w*\s+(?:close\s+)?to\b|\bup\s+to\b|\bunder\b|\bmax(?:imum)?\b"
 )
 
+# the centre of a lane, which following a lane keeps to (keeping to a lane only stays in it)
+LANE_CENTRE = r"\bcent(?:er|re)(?:d|\s*line)?\b|\bmiddle\b"
+
 FOLLOW_LANE = (
     r"follow\w*\s+(?:its|their|his|her|the|a|current)?\s*(?:own\s+|current\s+)?lanes?\b"
     r"|(?:stay|remain)\w*\s+(?:in|within|inside)\s+(?:its|their|the|his|her)?\s*(?:own\s+|current\s+)?lanes?\b"
     r"|lane[- ]following"
     r"|(?:stay|keep|stick|remain|driv)\w*\s+(?:\w+\s+){0,2}?(?:in|to|at|along)\s+the\s+(?:cent(?:er|re)|middle)"
-    r"\s+of\s+(?:its|their|the|his|her)\s+(?:own\s+)?lanes?|\bcent(?:er|re)d\s+(?:in|on)\s+(?:its|their|the)\s+lanes?"
+    r"\s+of\s+(?:its|their|the|his|her)\s+(?:own\s+)?lanes?|\bcent(?:er|re|ere)d\s+(?:in|on)\s+(?:its|their|the)\s+lanes?"
+    r"|\b(?:stay|keep|stick|remain|driv)\w*\s+(?:to|on|at|along)\s+(?:the|its|their)\s+lane(?:'s)?\s+(?:cent(?:er|re)|middle)"
 )
 
 KEEP_LANE = (
@@ -116,7 +121,7 @@ OFFROAD_STAY = r"(?:stay|remain|keep|drive)\w*\s+on\s+(?:the\s+)?(?:road|drivabl
 LEAVE_ROAD = r"off[- ]?(?:the\s+)?road|leav\w*\s+the\s+(?:road|drivable\s+area)"
 OFFROAD = rf"{OFFROAD_STAY}|{LEAVE_ROAD}|drivable\s+area"
 
-STOP = r"\bstop\w*|\bhalt\w*|standstill|\bpark(?:s|ed)?\b"
+STOP = r"\bstop\w*|\bhalt\w*|standstill|\bpark(?:s|ed)?\b|\b(?:come|comes|came|coming)\s+to\s+rest\b"
 
 # stopped from the start to the end: "stands still", "remains stationary", "stays put", "does not move"
 STAND_STILL = (
@@ -132,15 +137,16 @@ KEEP_MOVING = (
 
 # a place on the map a stop may be asked at that the compiler has no coordinates for
 STOP_PLACE = (
-    r"\b(?:before|at|in|near|after|past|by|behind)\s+(?:the\s+)?(?:next\s+|first\s+)?(?:intersection|junction"
-    r"|crossing|crosswalk|zebra|stop\s*(?:line|sign)|(?:traffic\s+)?lights?|corner|roundabout|kerb|curb|exit)"
+    r"\b(?:before|at|in|near|after|past|by|behind)\s+(?:the\s+|a\s+)?(?:next\s+|first\s+)?(?:red\s+)?(?:intersection|junction"
+    r"|crossing|crosswalk|zebra|stop\s*(?:line|sign)|(?:traffic\s+)?(?:lights?|signals?)|corner|roundabout|kerb|curb"
+    r"|exit)"
     r"|\b(?:on|onto|to|at|in|by)\s+(?:the\s+|a\s+)?(?:hard\s+)?(?:shoulder|roadside|verge|side\s+of\s+the\s+road"
     r"|parking\s+(?:spot|space|lot|bay)|driveway|car\s+park)"
 )
 
 REACH = (
     r"\breach\w*|\b(?:go|drive|head|move|navigate|travel|get)\w*\s+(?:\w+\s+)?(?:to|towards?)\b|arriv\w*"
-    r"|\b(?:send|bring|take|steer|direct|route)\w*\s+(?:\w+\s+){0,3}?(?:to|towards?)\b"
+    r"|\b(?:send|bring|take|steer|direct|route)\w*\s+(?:\w+\s+){0,3}?(?:to|towards?)\b|\bhead\w*\s+for\b"
     r"|\bgoal\b|destination|waypoint"
 )
 

@@ -117,8 +117,12 @@ MANOEUVRES = (
      "two vehicles passing each other (name the one that overtakes: \"vehicle 2 overtakes vehicle 5\")"),
     (r"\bthree[- ]point\s+turn|\b3[- ]point\s+turn|\bk[- ]turn\b",
      "a three-point turn (it reverses; a U-turn that drives round is: \"vehicle 4 makes a U-turn\")"),
-    (r"\brevers\w*|\bback(?:s|ing)?\s+up\b|\bbackwards?\b", "driving in reverse"),
+    (r"\brevers\w*|(?<!speed\s)(?<!speeds\s)(?<!speeding\s)\bback(?:s|ing)?\s+up\b|\bbackwards?\b",
+     "driving in reverse"),
     (r"\btwo\s+lanes\b|\b\d+\s+lanes\s+(?:over|to)\b", "changing more than one lane"),
+    (r"\brun(?:s|ning)?\s+(?:the\s+|a\s+)?(?:red\s+light|red|stop\s*sign|light|signal)\b|\bran\s+(?:the\s+|a\s+)?"
+     r"(?:red\s+light|red|stop\s*sign|light|signal)\b",
+     "running a red light or a stop sign (traffic signals and signs are not simulated)"),
     (r"\bhonk\w*|\bsignal\w*|\bindicat\w*|\bblinker|\bheadlight", "signals and lights (not simulated)"),
     (r"\bhead[- ]?on\b|\bt[- ]?bon\w*|\bside[- ]?swip\w*|\bbroadsid\w*",
      "a collision of a given kind (head-on, T-bone, sideswipe): \"vehicle 4 crashes into vehicle 5\" asks "
@@ -196,10 +200,8 @@ def check_negation(clause: Clause, family: str, text: str) -> None:
     if not clause.negated or family in NEGATION_KEEPS:
         return
     inside = NEGATION_INSIDE.get(family)
-    if inside is not None:
-        m = clause.has(inside)
-        if m is not None and re.search(_NEGATIVE, m.group(0)):
-            return
+    if inside is not None and any(re.search(_NEGATIVE, m.group(0)) for m in re.finditer(inside, clause.text)):
+        return
     what = family.replace("_", " ")
     raise QueryError(f"{text.strip()!r}: a negated {what} is not supported (it would be read as its "
                      f"opposite); say what the vehicle should do instead")

@@ -109,7 +109,8 @@ def scope(c: Clause, ctx: Context) -> tuple[int, ...] | None:
 def pairs(c: Clause, ctx: Context, what: str) -> list[tuple[int, int]]:
     """(subject, other) pairs of a two-vehicle rule: each subject (the clause's leading vehicles, else
     the previous clause's) with each object (the other vehicles it names, "it": the previous clause's
-    object, "the others"); with no object, the first subject with each other one. In the passive
+    object, "the others"; "it" after a subject of its own: the previous clause's subject); with no
+    object, the first subject with each other one. In the passive
     ("vehicle 1 is overtaken by vehicle 2") the vehicle after "by" acts: (2, 1)."""
     own = c.subjects
     leads = list(own) if own else list(ctx.subjects)
@@ -118,6 +119,8 @@ def pairs(c: Clause, ctx: Context, what: str) -> list[tuple[int, int]]:
         objects = [v for v in others(c, ctx) if v not in leads]
     if not objects and not own and c.pronoun and ctx.objects:
         objects = [v for v in ctx.objects if v not in leads]
+    if not objects and own and c.pronoun and ctx.subjects:  # "... and vehicle 5 follows it": the one before
+        objects = [v for v in ctx.subjects if v not in leads]
     if not objects and len(leads) >= 2:
         leads, objects = leads[:1], leads[1:]
     if not leads or not objects:
