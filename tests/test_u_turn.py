@@ -27,9 +27,10 @@ DT = 0.1
 GAP_M = 8.0  # the opposite lane's centerline lies this far to the left of the vehicle's
 
 
-def _road(opposite: bool = True) -> LaneGraph:
-    """Lane 0 along +x at y = 0; lane 1 at y = ``GAP_M``, along -x (``opposite``) or +x."""
-    x = np.linspace(-100.0, 100.0, 101)
+def _road(opposite: bool = True, x_min: float = -100.0) -> LaneGraph:
+    """Lane 0 along +x at y = 0; lane 1 at y = ``GAP_M``, along -x (``opposite``) or +x; both from
+    ``x_min`` to x = 100."""
+    x = np.linspace(x_min, 100.0, 101)
     own = np.stack([x, np.zeros_like(x)], axis=-1)
     other = np.stack([x[::-1] if opposite else x, np.full_like(x, GAP_M)], axis=-1)
     edges = np.zeros((0, 2), dtype=np.int64)
@@ -38,13 +39,17 @@ def _road(opposite: bool = True) -> LaneGraph:
                      edges, none, none)
 
 
-def _rollout(xy: np.ndarray, yaw: np.ndarray, speed: np.ndarray, lanes: LaneGraph) -> Rollout:
-    """One controlled car (vehicle 0) on ``lanes``, everything drivable, simulated from index 0."""
+EVERYWHERE = DrivableArea(mask=np.ones((10, 10), dtype=bool), origin_xy=np.array([-1e4, -1e4]),
+                          resolution_m=2e3)
+
+
+def _rollout(xy: np.ndarray, yaw: np.ndarray, speed: np.ndarray, lanes: LaneGraph,
+             area: DrivableArea = EVERYWHERE) -> Rollout:
+    """One controlled car (vehicle 0) on ``lanes`` and ``area`` (default: everything drivable), simulated
+    from index 0."""
     n = len(speed)
     tracks = AgentTracks(np.array(["v0"]), np.zeros(1, dtype=np.int8), xy[None], yaw[None], speed[None],
                          np.array([[4.0, 2.0]]), np.ones((1, n), dtype=bool))
-    area = DrivableArea(mask=np.ones((10, 10), dtype=bool), origin_xy=np.array([-1e4, -1e4]),
-                        resolution_m=2e3)
     scene = Scene("hand", "none", "hand", DT, tracks, lanes, area)
     return Rollout(scene, 0, 0, tracks, np.ones(1, dtype=bool), np.arange(1), "hand")
 
@@ -80,6 +85,21 @@ def test_a_track_that_turns_round_onto_the_opposite_lane_is_a_u_turn() -> None:
     assert verdict.done_s == pytest.approx(2.0 + math.radians(150.0) + DT, abs=0.15)
     assert verdict.began_s == pytest.approx(2.0 + math.radians(30.0) + DT, abs=0.15)
     assert get_behaviour("u_turn").violation(_rollout(xy, yaw, speed, _road()), U_TURN).value < 1.0
+
+
+def test_where_it_ends_is_judged_on_the_map() -> None:
+    """A U-turn onto the opposite lane that drives on past where the map ends (the lanes and the
+    raster stop at x = -10 m; the track ends at x = -19 m): judged at its last step on the map. Where
+    the map goes on (drivable) but the lane does not, the end off every lane is no U-turn."""
+    xy, yaw, speed = _turning(180.0)
+    assert xy[-1, 0] < -15.0 and math.cos(yaw[-1]) < -0.99
+    lanes = _road(x_min=-10.0)
+    cropped = DrivableArea(mask=np.ones((200, 200), dtype=bool), origin_xy=np.array([-10.0, -100.0]),
+                           resolution_m=1.0)
+    verdict = get_behaviour("u_turn").verdict(_rollout(xy, yaw, speed, lanes, cropped), U_TURN)
+    assert verdict.satisfied, verdict.measured
+    on_map = get_behaviour("u_turn").verdict(_rollout(xy, yaw, speed, lanes), U_TURN)
+    assert not on_map.satisfied and "not within half a lane" in on_map.measured
 
 
 def test_a_right_angle_turn_is_no_u_turn() -> None:

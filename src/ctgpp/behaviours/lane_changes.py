@@ -20,7 +20,7 @@ import numpy as np
 
 from ctgpp.behaviours.base import Starts, Vehicles, Verdict
 from ctgpp.behaviours.lane_positions import chain_distance, end_lane, reachable, with_start
-from ctgpp.behaviours.tracks import Track, both_valid, track, wrapped_deg
+from ctgpp.behaviours.tracks import Track, both_valid, on_the_map, track, wrapped_deg
 from ctgpp.interfaces import Rollout
 from ctgpp.scene.holds import held_from
 from ctgpp.scene.lane_paths import lanes_to_the_right, road_lanes_along, same_direction_neighbour
@@ -35,7 +35,9 @@ Params = Mapping[str, Any]
 
 
 def _valid(rollout: Rollout, number: int) -> Track:
-    return track(rollout, number).valid_part()
+    """The vehicle's valid steps on the map (:func:`~ctgpp.behaviours.tracks.on_the_map`): where it
+    ends is judged where the map still has lanes."""
+    return on_the_map(rollout, track(rollout, number))
 
 
 def _lane_change_target(lanes: LaneGraph, xy0: np.ndarray, yaw0: float,
@@ -94,7 +96,7 @@ def lane_change_check(rollout: Rollout, p: Params, vehicles: Vehicles) -> Verdic
     return Verdict(ok, said, END)
 
 
-END = "the last simulated step (the lane it starts on: t = 0)"
+END = "the last simulated step on the map (the lane it starts on: t = 0)"
 
 
 def _lanes_to_the_right(lanes: LaneGraph, proj: LaneProjection) -> int:

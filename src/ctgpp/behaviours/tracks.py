@@ -17,6 +17,7 @@ import numpy as np
 from ctgpp.behaviours.base import MissingVehicle, Vehicles
 from ctgpp.interfaces import Rollout
 from ctgpp.metrics.collision import controlled_vehicle_indices
+from ctgpp.metrics.offroad import past_map_end
 
 
 @dataclass(frozen=True)
@@ -54,6 +55,24 @@ class Track:
         return Track(self.number, self.agent, self.xy0, self.yaw0, self.speed0, self.xy[keep], self.yaw[keep],
                      self.speed[keep], self.valid[keep], self.extent, self.dt_s, self.shift_steps, self.hold,
                      self.once)
+
+
+def on_the_map(rollout: Rollout, t: Track) -> Track:
+    """``t`` (its valid part) up to its first step beyond the mapped area, as the metrics find it for
+    a simulated vehicle (:func:`~ctgpp.metrics.offroad.beyond_map_steps`): off the drivable area where
+    the raster ends, or just past the end of a lane where the mapped road stops. Where a vehicle ends
+    is judged there (the map says nothing of the lanes beyond); the whole track when it never leaves
+    the map or is beyond it from its first step."""
+    t = t.valid_part()
+    if not t.xy.size:
+        return t
+    drivable = rollout.scene.drivable
+    beyond = ~drivable.is_drivable(t.xy) & (~drivable.covers(t.xy) | past_map_end(rollout.scene, t.xy))
+    k = int(np.argmax(beyond)) if beyond.any() else len(beyond)
+    if k in (0, len(beyond)):
+        return t
+    return Track(t.number, t.agent, t.xy0, t.yaw0, t.speed0, t.xy[:k], t.yaw[:k], t.speed[:k], t.valid[:k],
+                 t.extent, t.dt_s, t.shift_steps, t.hold, t.once)
 
 
 def track(rollout: Rollout, number: int) -> Track:

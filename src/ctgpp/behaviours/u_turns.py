@@ -30,7 +30,7 @@ import numpy as np
 
 from ctgpp.behaviours.base import Starts, Vehicles, Verdict
 from ctgpp.behaviours.lane_positions import from_start_lane, with_start
-from ctgpp.behaviours.tracks import Track, track, wrapped_deg
+from ctgpp.behaviours.tracks import Track, on_the_map, track, wrapped_deg
 from ctgpp.interfaces import Rollout
 from ctgpp.scene.holds import held_from
 from ctgpp.scene.lanes import IN_LANE_M, LANE_HEADING_DEG, LaneProjection, nearest_lane
@@ -40,7 +40,7 @@ from ctgpp.scene.vehicles import MOVING_SPEED_MPS
 
 U_TURN_DEG = 150.0
 BEGUN_DEG = 30.0  # the U-turn has begun once the heading has turned this much (a turn's threshold)
-MOVING_STEPS = "t = 0 to the end, steps at which the vehicle moves; where it ends"
+MOVING_STEPS = "t = 0 to the end, steps at which the vehicle moves; where it ends on the map"
 
 Params = Mapping[str, Any]
 
@@ -103,15 +103,17 @@ def _u_turn(lanes: LaneGraph, t: Track) -> tuple[bool, float, str, float | None,
 
 def u_turn_violation(rollout: Rollout, p: Params, vehicles: Vehicles) -> float:
     """How far (°) the heading change while moving falls short of 180° (0 at or beyond it)."""
-    return _u_turn(rollout.scene.lanes, track(rollout, p["vehicle"]).valid_part())[1]
+    return _u_turn(rollout.scene.lanes, on_the_map(rollout, track(rollout, p["vehicle"])))[1]
 
 
 def u_turn_check(rollout: Rollout, p: Params, vehicles: Vehicles) -> Verdict:
     """The vehicle turns round while moving (heading change beyond ±150°, unwrapped), ends within half
     a lane of the centerline of a lane running opposite to its heading at t = 0, heading along it, and
-    still moves at its last step. Achieved from when the heading change stays beyond 150°; begun when
+    still moves at its last step (on the map: :func:`~ctgpp.behaviours.tracks.on_the_map`). Achieved
+    from when the heading change stays beyond 150°; begun when
     it first passes 30°."""
-    ok, _, said, done, began = _u_turn(rollout.scene.lanes, track(rollout, p["vehicle"]).valid_part())
+    t = on_the_map(rollout, track(rollout, p["vehicle"]))
+    ok, _, said, done, began = _u_turn(rollout.scene.lanes, t)
     return Verdict(ok, said, MOVING_STEPS, done, began)
 
 
