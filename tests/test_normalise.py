@@ -114,6 +114,18 @@ def test_correct_word(word: str, fixed: str) -> None:
     # participles are words, not typos: the passive keeps who acts
     ("vehicle 3 is overtaken by vehicle 4", "vehicle 3 is overtaken by vehicle 4"),
     ("vehicle 1 is passed by vehicle 2", "vehicle 1 is passed by vehicle 2"),
+    # asides that ask for nothing dropped; one with a number kept
+    ("For this study, vehicle 3 stops (nothing fancy)", "vehicle 3 stops"),
+    ("The ego, which is initially parked, should stop", "The ego should stop"),
+    ("vehicle 3 stops (within 5 s)", "vehicle 3 stops (within 5 s)"),
+    ("At the intersection, vehicle 3 stops", "At the intersection, vehicle 3 stops"),  # a place: kept
+    ("vehicle 2 makes a U-turn without hitting anyone", "vehicle 2 makes a U-turn and must not collide"),
+    # a distance after a comma or "but" belongs to the relation before it
+    ("vehicle 1 follows vehicle 0 but no farther than 18 m back",
+     "vehicle 1 follows vehicle 0 at most 18 m back"),
+    ("vehicle 6 cuts in ahead of vehicle 7, leaving 5 m", "vehicle 6 cuts in ahead of vehicle 7 leaving 5 m"),
+    ("vehicle 1 stops, and vehicle 2 drives 30 m ahead", "vehicle 1 stops, and vehicle 2 drives 30 m ahead"),
+    ("send vehicle 7 to (40, 8)", "vehicle 7 should drive to (40, 8)"),
     ("no collisions", "no collisions"),  # no subject: left as it is
     ("vehicle 2 passes no vehicle", "vehicle 2 passes no vehicle"),  # an object, not a subject
 ])

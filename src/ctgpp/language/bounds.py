@@ -42,8 +42,10 @@ _BEFORE = re.compile(
     r"\b(at\s+most|at\s+least|(?<!speed\s)(?<!speeds\s)(?<!speeding\s)(?<!get\s)(?<!gets\s)(?<!got\s)(?<!getting\s)(?<!back\s)up\s+to|within|under|below|over|above"
     rf"|beyond|{_THAN}|(?:a\s+)?(?:max|min)(?:imum)?(?:\s+of)?)\s+(?:a\s+(?:distance|speed|gap)\s+of\s+)?"
     rf"{_NUM}{_UNIT}", re.I)
-_AFTER = re.compile(
-    rf"{_NUM}{_UNIT}\s+(or\s+(?:less|fewer|under|below|slower|closer|lower|more|over|above|faster|farther"
+_VEHICLE_NUMBER = (r"(?<!vehicle\s)(?<!vehicles\s)(?<!car\s)(?<!cars\s)(?<!agent\s)(?<!truck\s)(?<!veh\s)"
+                   r"(?<!#)")
+_AFTER = re.compile(  # "10 m or less", "15 m at most" (never a vehicle's number: "vehicle 0 at most 18 m")
+    rf"{_VEHICLE_NUMBER}\b{_NUM}{_UNIT}\s+(or\s+(?:less|fewer|under|below|slower|closer|lower|more|over|above|faster|farther"
     r"|further|higher|greater)|at\s+(?:the\s+)?(?:most|least)|max(?:imum)?|min(?:imum)?)\b", re.I)
 _UPPER_AFTER = ("less", "fewer", "under", "below", "slower", "closer", "lower", "most", "max")
 CLAUSE_BREAK = re.compile(r"[,;.]|\b(?:and|then|but|while|whilst)\b", re.I)

@@ -6,10 +6,13 @@ left unchanged):
 
 1. Typography: dashes and quotes to ASCII, "°"-free, runs of spaces to one; contractions spelt out
    (:func:`expand_contractions`: "shouldn't" -> "should not", "won't" -> "will not", before the typo
-   step could read "shouldn" as "should" and drop the "not").
+   step could read "shouldn" as "should" and drop the "not"); asides that ask for nothing dropped
+   (:func:`drop_asides`: a parenthesis or ", which ...," without a number, a framing "For this study,"
+   that names no place), "without hitting anyone" -> "and must not collide".
 2. Typos (:func:`correct_typos`): a word of at least 5 letters that is not in :data:`VOCABULARY` and
    is one edit away (insert, delete, substitute, or swap two neighbours) from exactly one word of it is
-   replaced by that word ("chnage" -> "change", "vehicel" -> "vehicle").
+   replaced by that word ("chnage" -> "change", "vehicel" -> "vehicle"); a 4-letter word only by a
+   swap of two neighbours ("trun" -> "turn").
 3. Numbers in words (:func:`numbers_to_digits`): "thirty", "twenty-five", "one hundred", "two and a
    half", "a dozen" -> digits, where a unit follows or a vehicle noun precedes ("thirty km/h", "vehicle
    two", "a two-second gap"); "one lane over", "one by one" are left as words.
@@ -18,8 +21,11 @@ left unchanged):
 5. Wording (:func:`canonical_wording`): bounds ("not more than", "no farther than" -> "at most"; "not
    less than", "no closer than" -> "at least"), "over one lane to the left" -> "one lane over to the
    left", "tell vehicle 3 to ..." / "I want vehicle 3 to ..." -> "vehicle 3 should ...", "keep
-   vehicles 1 & 2 in their lanes" -> "vehicles 1 & 2 keep their lanes", a negative subject to the
-   prohibition for every vehicle ("nobody changes lanes" -> "every vehicle must not change lanes").
+   vehicles 1 & 2 in their lanes" -> "vehicles 1 & 2 keep their lanes", "send vehicle 3 to" ->
+   "vehicle 3 should drive to", a distance said after a comma or "but" joined to the clause it
+   qualifies ("follows vehicle 0 but no farther than 18 m back"), a negative subject to the
+   prohibition for every vehicle ("nobody changes lanes" -> "every vehicle must not change lanes"), and
+   a range of vehicles listed (:func:`expand_ranges`: "vehicles 1 to 4" -> "vehicles 1, 2, 3 and 4").
 6. Lists (:func:`join_lists`): "vehicles 1, 2 and 3" -> "vehicles 1 & 2 & 3", so a list is never split
    into clauses at its commas.
 """
@@ -338,6 +344,16 @@ _WITHOUT_HITTING = re.compile(
 )
 
 
+# a distance said after a comma or "but" about the relation just named ("vehicle 1 follows vehicle 0 but
+# no farther than 18 m back", "cuts in ahead of vehicle 7, leaving at most 5 m"): part of that clause
+_DISTANCE_AFTER = re.compile(
+    r"\s*(?:,\s*(?:but\s+)?|\s+but\s+)(?=(?:leaving|staying|keeping|with|at|no|not|within|between|under|less"
+    r"|\d)[^,.;]*?\d\s*(?:m|meters?|metres?|ft|feet)\b(?:\s+(?:of\s+)?(?:gap|back|behind|ahead|apart|away))?"
+    r"\s*(?:[.!?]?\s*$))",
+    re.IGNORECASE,
+)
+
+
 def drop_asides(text: str) -> str:
     """Asides that ask for nothing removed (:data:`_ASIDES`), "without hitting anyone" as "and must not
     collide"."""
@@ -352,6 +368,7 @@ def canonical_wording(text: str) -> str:
     docstring, step 5)."""
     for pattern, repl in _WORDING:
         text = re.sub(pattern, repl, text, flags=re.IGNORECASE)
+    text = _DISTANCE_AFTER.sub(" ", text)
     return negative_subjects(text)
 
 
