@@ -85,6 +85,9 @@ def test_a_time_gap_is_refused_by_name() -> None:
     ("vehicle 3 backs up 10 m", "driving in reverse"),
     ("vehicles 1 and 2 pass each other", "pass each other"),
     ("vehicle 4 does a three-point turn", "three-point turn"),
+    ("vehicle 1 must yield to vehicle 3", "yielding to another vehicle"),
+    ("vehicle 3 brakes hard", "braking hard"),
+    ("vehicle 9 runs the stop sign", "running a red light or a stop sign"),
 ])
 def test_an_unsupported_manoeuvre_is_refused_by_name_without_suggestions(query: str, named: str) -> None:
     with pytest.raises(UnsupportedQuery, match="not a supported manoeuvre") as info:
@@ -217,3 +220,9 @@ def test_the_fresh_batches_are_read_as_meant_or_refused_never_wrongly() -> None:
     wrong = [(o.query, o.got) for o in outcomes if o.verdict == "wrong"]
     assert not wrong, wrong
     assert shares(outcomes)["understood"] >= 0.85
+
+
+def test_braking_hard_into_a_stop_is_the_stop() -> None:
+    assert structure("veh 4: hard brake, full stop within 3s", N) == [
+        {"rule": "stop", "params": {}, "vehicles": [4], "window": [3.0, None], "stage": 0}]
+    assert structure("vehicle 3 slams on the brakes and stops", N)[0]["rule"] == "stop"

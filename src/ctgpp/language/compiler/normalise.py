@@ -354,11 +354,20 @@ _DISTANCE_AFTER = re.compile(
 )
 
 
+# braking hard on the way to a stop said in the same sentence: how it stops, which the stop is
+_HARD_BRAKE_TO_STOP = re.compile(
+    r"\b(?:hard\s+brak\w*|brak\w*\s+hard|slam\w*\s+on\s+(?:the\s+|its\s+)?brakes?)\s*(?:,\s*|\s+and\s+|\s+then\s+)?"
+    r"(?=(?:to\s+a\s+|a\s+|comes?\s+to\s+a\s+|come\s+to\s+a\s+)?(?:full\s+|complete\s+)?stop)",
+    re.IGNORECASE,
+)
+
+
 def drop_asides(text: str) -> str:
-    """Asides that ask for nothing removed (:data:`_ASIDES`), "without hitting anyone" as "and must not
-    collide"."""
+    """Asides that ask for nothing removed (:data:`_ASIDES`), braking hard into a stop left to the stop,
+    "without hitting anyone" as "and must not collide"."""
     for pattern in _ASIDES:
         text = pattern.sub(" ", text)
+    text = _HARD_BRAKE_TO_STOP.sub("", text)
     text = _WITHOUT_HITTING.sub(" and must not collide", text)
     return text.strip()
 

@@ -123,6 +123,13 @@ MANOEUVRES = (
     (r"\brun(?:s|ning)?\s+(?:the\s+|a\s+)?(?:red\s+light|red|stop\s*sign|light|signal)\b|\bran\s+(?:the\s+|a\s+)?"
      r"(?:red\s+light|red|stop\s*sign|light|signal)\b",
      "running a red light or a stop sign (traffic signals and signs are not simulated)"),
+    (r"\byield\w*\s+to\b|\bgiv\w*\s+way\b",
+     "yielding to another vehicle (\"vehicle 1 stays at least 10 m away from vehicle 3\" or \"vehicle 1 "
+     "stops within 3 s\" are the nearest)"),
+    (r"(?:\bbrak\w*\s+hard\b|\bhard\s+brak\w*|\bslam\w*\s+on\s+(?:the\s+|its\s+|his\s+|her\s+)?brakes?"
+     r"|\bemergency\s+brak\w*)(?![^.;]*\b(?:stop|halt|standstill)\w*)",  # braking hard to a stop is a stop
+     "braking hard (a deceleration: \"vehicle 3 stops within 2 s\" or \"slows down to 2 m/s within 2 s\" "
+     "asks for one)"),
     (r"\bhonk\w*|\bsignal\w*|\bindicat\w*|\bblinker|\bheadlight", "signals and lights (not simulated)"),
     (r"\bhead[- ]?on\b|\bt[- ]?bon\w*|\bside[- ]?swip\w*|\bbroadsid\w*",
      "a collision of a given kind (head-on, T-bone, sideswipe): \"vehicle 4 crashes into vehicle 5\" asks "
