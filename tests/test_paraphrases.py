@@ -226,3 +226,35 @@ def test_braking_hard_into_a_stop_is_the_stop() -> None:
     assert structure("veh 4: hard brake, full stop within 3s", N) == [
         {"rule": "stop", "params": {}, "vehicles": [4], "window": [3.0, None], "stage": 0}]
     assert structure("vehicle 3 slams on the brakes and stops", N)[0]["rule"] == "stop"
+
+
+@pytest.mark.parametrize(("query", "expect"), [
+    # the clause before, again, for other vehicles (its time too, unless they have their own)
+    ("vehicle 9 moves one lane over to the right, then vehicle 10 does the same",
+     [("lane_change", {"vehicle": 9, "side": "right"}, None, None, 0),
+      ("lane_change", {"vehicle": 10, "side": "right"}, None, None, 1)]),
+    ("vehicle 2 stops within 4 s and vehicles 3 and 4 do the same",
+     [("stop", {}, [2], [4.0, None], 0), ("stop", {}, [3], [4.0, None], 0),
+      ("stop", {}, [4], [4.0, None], 0)]),
+    ("vehicle 2 stops within 4 s and vehicle 3 does the same within 6 s",
+     [("stop", {}, [2], [4.0, None], 0), ("stop", {}, [3], [6.0, None], 0)]),
+    ("vehicle 8 gets into the left lane; as soon as it has done so, vehicle 9 does the same",
+     [("lane_change", {"vehicle": 8, "side": "left"}, None, None, 0),
+      ("lane_change", {"vehicle": 9, "side": "left"}, None, None, 1)]),
+    # waiting, then setting off
+    ("vehicle 5 waits for 3 seconds then drives off",
+     [("stop", {}, [5], [0.0, 3.0], 0), ("reach_speed", {"speed_mps": 1.0, "bound": "above"}, [5], None, 1)]),
+    ("vehicle 5 starts moving", [("reach_speed", {"speed_mps": 1.0, "bound": "above"}, [5], None, 0)]),
+    ("vehicle 2 drives away from vehicle 3",
+     [("stay_away", {"vehicle": 2, "other": 3, "min_m": 10.0}, None, None, 0)]),
+])
+def test_the_same_again_and_setting_off(query: str, expect: list) -> None:
+    got = [(p["rule"], p["params"], p["vehicles"], p["window"], p["stage"]) for p in structure(query, N)]
+    assert got == expect
+
+
+def test_the_same_needs_a_clause_about_another_vehicle_before_it() -> None:
+    with pytest.raises(QueryError, match="'the same' needs"):
+        compile_query("vehicle 5 does the same", N)
+    with pytest.raises(ValueError):  # "drives off the road" stays a refusal to leave the road
+        compile_query("vehicle 3 drives off the road", N)

@@ -196,7 +196,8 @@ def compile_query(query: str, num_vehicles: int) -> CompiledQuery:
         subjects = clause.subjects or (tuple(clause.vehicles) if not clause.objects else ())
         if clause.others and not clause.vehicles:
             subjects = involved
-        ctx = replace(ctx, subjects=subjects or ctx.subjects,
+        done = tuple(replace(s, window=s.window or _window(clause, s.rule, text)) for s in specs if s.rule)
+        ctx = replace(ctx, subjects=subjects or ctx.subjects, specs=done,
                       objects=clause.objects or ctx.objects,
                       named=tuple(dict.fromkeys([*ctx.named, *clause.vehicles])),
                       previous=involved or ctx.previous,

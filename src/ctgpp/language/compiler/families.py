@@ -30,6 +30,7 @@ from ctgpp.language.compiler.handlers import (
     keep_within,
     lane_change,
     min_speed,
+    move_off,
     offroad,
     overtake,
     pace,
@@ -38,6 +39,7 @@ from ctgpp.language.compiler.handlers import (
     reach_speed,
     rear_end,
     rightmost,
+    same_again,
     same_direction,
     side_of,
     speed_limit,
@@ -64,6 +66,7 @@ from ctgpp.language.compiler.phrases import (
     LANE_CHANGE,
     LOWER_SPEED,
     MIN_SPEED,
+    MOVE_OFF,
     OFFROAD,
     OVERTAKE,
     PACE,
@@ -72,6 +75,7 @@ from ctgpp.language.compiler.phrases import (
     REACH_BELOW,
     REAR_END,
     RIGHTMOST,
+    SAME_AGAIN,
     SIDE_OF,
     SPEED_LIMIT,
     STAND_STILL,
@@ -92,6 +96,7 @@ def _names_vehicle(c: Clause) -> bool:
 
 # (family, recogniser, handler): the first recogniser that holds handles the clause.
 FAMILIES: tuple[tuple[str, Callable[[Clause], bool], Handler], ...] = (
+    ("same_again", lambda c: bool(c.has(SAME_AGAIN)), same_again),
     ("rear_end", lambda c: bool(c.has(REAR_END)), rear_end),
     ("cut_in", lambda c: bool(c.has(CUT_IN)), cut_in),
     ("overtake", lambda c: bool(c.has(OVERTAKE)), overtake),
@@ -109,6 +114,7 @@ FAMILIES: tuple[tuple[str, Callable[[Clause], bool], Handler], ...] = (
     ("collision", lambda c: bool(c.has(COLLIDE)), collision),
     ("stand_still", lambda c: bool(c.has(STAND_STILL)), stand_still),
     ("keep_moving", lambda c: bool(c.has(KEEP_MOVING)) and not c.speeds, keep_moving),
+    ("move_off", lambda c: bool(c.has(MOVE_OFF)) and not c.speeds and not c.negated, move_off),
     ("stop", lambda c: bool(c.has(STOP)) and not c.negated, stop),
     ("goal_waypoint", lambda c: bool(c.points) and bool(c.has(r"\bgoal\b|waypoint")), goal),
     ("reach", lambda c: bool(c.points) and bool(c.has(REACH)), reach),

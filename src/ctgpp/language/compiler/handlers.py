@@ -210,6 +210,38 @@ def keep_moving(c: Clause, ctx: Context) -> list[PartSpec]:
                      window=_whole_episode(c, ctx, "moving without stopping"))]
 
 
+SUBJECT_PARAMS = ("vehicle", "vehicle_a", "follower")  # the role of a rule's subject, where it has one
+
+
+def same_again(c: Clause, ctx: Context) -> list[PartSpec]:
+    """"... then vehicle 10 does the same": the previous clause's parts, each with its subject (the
+    previous clause's subject vehicles) replaced by each vehicle this clause names; refused where the
+    previous clause had no parts about its subject."""
+    if not c.vehicles or not ctx.specs or not ctx.subjects:
+        raise QueryError(f"{c.text.strip()!r}: 'the same' needs a vehicle of its own after a clause about "
+                         "another ('vehicle 9 changes to the left lane, then vehicle 10 does the same')")
+    before = set(ctx.subjects)
+    out = []
+    for v in c.vehicles:
+        for spec in (replace(s, window=None) for s in ctx.specs) if c.timed else ctx.specs:  # its own time
+            keys = [k for k in SUBJECT_PARAMS if spec.params.get(k) in before]
+            if keys:
+                out.append(replace(spec, params={**spec.params, **{k: v for k in keys}}))
+            elif spec.only is not None and set(spec.only) <= before:
+                out.append(replace(spec, only=(v,)))
+    if not out:
+        raise QueryError(f"{c.text.strip()!r}: the clause before says nothing of vehicle(s) {sorted(before)} "
+                         "that another vehicle could do the same")
+    return out
+
+
+def move_off(c: Clause, ctx: Context) -> list[PartSpec]:
+    """Moving (at least :data:`MOVING_BEFORE_STOP_MPS`) by the end and from then on: "drives off",
+    "starts moving" (a vehicle at rest sets off; one moving keeps going)."""
+    params = {"speed_mps": MOVING_BEFORE_STOP_MPS, "bound": "above"}
+    return [PartSpec("move_off", "reach_speed", params, scope(c, ctx))]
+
+
 def reach(c: Clause, ctx: Context) -> list[PartSpec]:
     x, y = c.points[0]
     params: dict[str, Any] = {"x": x, "y": y}

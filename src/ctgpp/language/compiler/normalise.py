@@ -268,6 +268,8 @@ _WORDING = (  # (pattern, replacement), case-insensitive, in order
     (r"\b(into|in|to|onto)\s+the\s+lane\s+(?:on|to)\s+(?:its|his|her|their|the)\s+(left|right)\b",
      r"\1 the \2 lane"),
     (r"\binfront\b", "in front"),
+    (r"\bwait(?:s|ed|ing)?\s+(?:for\s+)?(\d+(?:\.\d+)?)\s*(?:s|secs?|seconds?)\b",
+     r"stands still for the first \1 s"),
     (r"\b(vehicle|car|agent|truck)\s+(?:numbered|labell?ed|tagged|with\s+(?:the\s+)?(?:number|id|label))\s+",
      r"\1 "),
     (r"\b(?:one|a)\s+lane\s+(?:to\s+)?(?:the\s+)?(left|right)\b", r"one lane over to the \1"),
@@ -362,6 +364,14 @@ _HARD_BRAKE_TO_STOP = re.compile(
 )
 
 
+# "; as soon as it has done so, ..." / "once it has completed the turn, ...": the next part in turn
+_ONCE_DONE = re.compile(
+    r"\s*[;,]?\s*\b(?:as\s+soon\s+as|once|after|when)\s+(?:it|they|he|she)\s+(?:has|have|had|is|are)\s+"
+    r"(?:done\s+(?:so|that|this|it)|finished(?:\s+(?:it|that|the\s+\w+))?|completed\s+(?:it|that|the\s+\w+))\s*,?\s*",
+    re.IGNORECASE,
+)
+
+
 def drop_asides(text: str) -> str:
     """Asides that ask for nothing removed (:data:`_ASIDES`), braking hard into a stop left to the stop,
     "without hitting anyone" as "and must not collide"."""
@@ -369,6 +379,7 @@ def drop_asides(text: str) -> str:
         text = pattern.sub(" ", text)
     text = _HARD_BRAKE_TO_STOP.sub("", text)
     text = _WITHOUT_HITTING.sub(" and must not collide", text)
+    text = _ONCE_DONE.sub(", then ", text)
     return text.strip()
 
 

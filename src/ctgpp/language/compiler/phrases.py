@@ -123,6 +123,9 @@ OFFROAD = rf"{OFFROAD_STAY}|{LEAVE_ROAD}|drivable\s+area"
 
 STOP = r"\bstop\w*|\bhalt\w*|standstill|\bpark(?:s|ed)?\b|\b(?:come|comes|came|coming)\s+to\s+rest\b"
 
+# the previous clause's behaviour again, for other vehicles: "then vehicle 10 does the same"
+SAME_AGAIN = r"\b(?:do|does|did|doing)\s+(?:the\s+same|likewise|so\s+too)\b|\bfollows?\s+suit\b"
+
 # stopped from the start to the end: "stands still", "remains stationary", "stays put", "does not move"
 STAND_STILL = (
     r"\bstand\w*\s+still|\b(?:remain|stay)\w*\s+(?:still|put|stationary|motionless|at\s+rest)\b"
@@ -133,6 +136,13 @@ STAND_STILL = (
 KEEP_MOVING = (
     r"\bkeep\w*\s+(?:on\s+)?(?:moving|going|driving|rolling)\b|\bwithout\s+stopping\b"
     r"|\b(?:not|never|n't)\s+(?:come\s+to\s+a\s+)?(?:stop|halt)\w*"
+)
+
+# setting off: moving at the end, from rest or not ("drives off", "pulls away", "starts moving")
+MOVE_OFF = (
+    r"\b(?:drive|drives|drove|driving|pull|pulls|pulled|pulling|set|sets|setting|move|moves|moved|moving)\s+"
+    r"(?:off|away)\b(?!\s+from\b|[-\s]+(?:the\s+|a\s+)?(?:road|street|pavement|map|edge|kerb|curb|cliff|bridge))"
+    r"|\bget\w*\s+(?:going|moving)\b|\bstart\w*\s+(?:moving|driving|to\s+(?:move|drive))\b"
 )
 
 # a place on the map a stop may be asked at that the compiler has no coordinates for

@@ -41,7 +41,8 @@ class PartSpec:
 @dataclass(frozen=True)
 class Context:
     """What a clause inherits: the previous clause's ``subjects`` and ``objects``, every vehicle
-    ``named`` so far, the scene's ``num_vehicles`` and whether the clause is ``joined`` by
+    ``named`` so far, the ``specs`` the previous clause compiled to ("vehicle 10 does the same"), the
+    scene's ``num_vehicles`` and whether the clause is ``joined`` by
     "while"/"then" (so a global rule applies to the previous subjects); ``previous``: every vehicle the
     previous clause involved ("both", "they"); ``had_subject``: whether the previous clause had a
     subject ("vehicle 6 keeps its lane and stays below 8 m/s", not "no collisions and stay on the road")."""
@@ -51,6 +52,7 @@ class Context:
     named: tuple[int, ...] = ()
     previous: tuple[int, ...] = ()
     had_subject: bool = False
+    specs: tuple[PartSpec, ...] = ()
     num_vehicles: int = 0
     joined: bool = False
 
