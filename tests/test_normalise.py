@@ -126,6 +126,17 @@ def test_correct_word(word: str, fixed: str) -> None:
     ("vehicle 6 cuts in ahead of vehicle 7, leaving 5 m", "vehicle 6 cuts in ahead of vehicle 7 leaving 5 m"),
     ("vehicle 1 stops, and vehicle 2 drives 30 m ahead", "vehicle 1 stops, and vehicle 2 drives 30 m ahead"),
     ("send vehicle 7 to (40, 8)", "vehicle 7 should drive to (40, 8)"),
+    # chat-box English
+    ("vehicle 3 dont move", "vehicle 3 do not move"),
+    ("pls vehicle 3 go left lane now", "please vehicle 3 go left lane now"),
+    ("vehicle 1 go more fast then vehicle 2", "vehicle 1 go faster than vehicle 2"),
+    ("vehicle 10 go to most right lane", "vehicle 10 go to rightmost lane"),
+    ("i want vehicle 6 and 9 collide", "vehicle 6 and 9 should collide"),
+    # "after which" orders the next part; "without ever exceeding" is a limit
+    ("vehicle 4 slows to under 5 m/s, after which it must stop",
+     "vehicle 4 slows to under 5 m/s, then it must stop"),
+    ("vehicle 3 overtakes vehicle 4 without ever exceeding 25 m/s",
+     "vehicle 3 overtakes vehicle 4 and never exceeds 25 m/s"),
     ("no collisions", "no collisions"),  # no subject: left as it is
     ("vehicle 2 passes no vehicle", "vehicle 2 passes no vehicle"),  # an object, not a subject
 ])

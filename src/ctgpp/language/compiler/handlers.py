@@ -89,9 +89,11 @@ def cut_in(c: Clause, ctx: Context) -> list[PartSpec]:
             for a, b in pairs(c, ctx, "a cut-in")]
 
 
+OVERTAKE_SIDE = r"\b(?:on|to|by|from|via)\s+(?:the\s+|its\s+|their\s+)?(?:left|right)\b"
+
+
 def overtake(c: Clause, ctx: Context) -> list[PartSpec]:
-    side = _side_word(c, r"\b(?:on|to|by)\s+(?:the\s+|its\s+|their\s+)?(?:left|right)\b") if c.has(
-        r"\b(?:on|to|by)\s+(?:the\s+|its\s+|their\s+)?(?:left|right)\b") else None
+    side = _side_word(c, OVERTAKE_SIDE) if c.has(OVERTAKE_SIDE) else None
     chosen = {} if side is None else {"side": side}
     return [PartSpec("overtake", "overtake", {"vehicle": a, "other": b, **chosen})
             for a, b in pairs(c, ctx, "an overtake")]

@@ -144,7 +144,9 @@ def correct_word(word: str) -> str:
 
 _CONTRACTIONS = ((r"\b(w)on't\b", r"\1ill not"), (r"\b(c)an't\b", r"\1an not"),
                  (r"\b(s)han't\b", r"\1hall not"),
-                 (r"\b(\w+)n't\b", r"\1 not"), (r"\b(c)annot\b", r"\1an not"))
+                 (r"\b(\w+)n't\b", r"\1 not"), (r"\b(c)annot\b", r"\1an not"),
+                 # the apostrophe left out ("dont move"; not "wont", "cant": words of their own)
+                 (r"\b(do|does|did|should|must|could|would|is|are|has|have)nt\b", r"\1 not"))
 
 
 def expand_contractions(text: str) -> str:
@@ -268,6 +270,13 @@ _WORDING = (  # (pattern, replacement), case-insensitive, in order
     (r"\b(into|in|to|onto)\s+the\s+lane\s+(?:on|to)\s+(?:its|his|her|their|the)\s+(left|right)\b",
      r"\1 the \2 lane"),
     (r"\binfront\b", "in front"),
+    (r"\b(?:pls|plz)\b", "please"),
+    (r"\bmore\s+(fast|quick|slow)(?:ly)?\s+th[ae]n\b", r"\1er than"),
+    (r"\b(faster|slower|quicker)\s+then\b", r"\1 than"),
+    (r"\b(?:not|no)\s+more\s+far\s+than\b", "at most"),
+    (r"\bmost\s+(right|left)\s+lane\b", r"\1most lane"),
+    (r",?\s+after\s+which\b|,?\s+whereupon\b|,?\s+following\s+which\b", ", then"),
+    (r",?\s+without\s+ever\s+(?:exceeding|going\s+(?:over|above|faster\s+than))\s+", " and never exceeds "),
     (r"\bwait(?:s|ed|ing)?\s+(?:for\s+)?(\d+(?:\.\d+)?)\s*(?:s|secs?|seconds?)\b",
      r"stands still for the first \1 s"),
     (r"\b(vehicle|car|agent|truck)\s+(?:numbered|labell?ed|tagged|with\s+(?:the\s+)?(?:number|id|label))\s+",
@@ -276,6 +285,7 @@ _WORDING = (  # (pattern, replacement), case-insensitive, in order
     (rf"^\s*(?:please\s+)?(?:i\s+want|i'd\s+like|i\s+would\s+like|we\s+want|we'd\s+like|tell|ask|get|make"
      rf"|have|let|force|i\s+need|we\s+need)\s+({_VEH})\s+to\s+", r"\1 should "),
     (rf"^\s*(?:please\s+)?(?:send|bring|take|route|steer|direct)\s+({_VEH})\s+", r"\1 should drive "),
+    (rf"^\s*(?:please\s+)?(?:i|we)\s+(?:want|need|would\s+like)\s+({_VEH})\s+(?!to\b)", r"\1 should "),
     (rf"^\s*(?:please\s+)?(drive|move)\s+({_VEH})\s+", r"\2 should \1 "),
     (rf"\bkeep\s+({_VEH})\s+in\s+(?:its|their|the)\s+(?:own\s+|current\s+)?lanes?\b",
      r"\1 keep their lanes"),
@@ -350,7 +360,7 @@ _WITHOUT_HITTING = re.compile(
 # no farther than 18 m back", "cuts in ahead of vehicle 7, leaving at most 5 m"): part of that clause
 _DISTANCE_AFTER = re.compile(
     r"\s*(?:,\s*(?:but\s+)?|\s+but\s+)(?=(?:leaving|staying|keeping|with|at|no|not|within|between|under|less"
-    r"|\d)[^,.;]*?\d\s*(?:m|meters?|metres?|ft|feet)\b(?:\s+(?:of\s+)?(?:gap|back|behind|ahead|apart|away))?"
+    r"|minimum|min|maximum|max|\d)[^,.;]*?\d\s*(?:m|meters?|metres?|ft|feet)\b(?:\s+(?:of\s+)?(?:gap|back|behind|ahead|apart|away))?"
     r"\s*(?:[.!?]?\s*$))",
     re.IGNORECASE,
 )

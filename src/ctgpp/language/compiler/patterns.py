@@ -23,7 +23,8 @@ _VEHICLE = re.compile(
 )
 _BARE_PAIR = re.compile(r"\b(?:make|let|have|get)\s+(\d+)\s*(?:and|&|,)\s*(\d+)\b")
 _POINT = re.compile(
-    rf"\(\s*({NUM})\s*,\s*({NUM})\s*\)|\bx\s*=\s*({NUM})\s*,?\s*(?:and\s+)?y\s*=\s*({NUM})"
+    rf"\(\s*({NUM})\s*,\s*({NUM})\s*\)"
+    rf"|\bx\s*=?\s*({NUM})(?:\s*m\b)?\s*,?\s*(?:and\s+)?y\s*=?\s*({NUM})(?:\s*m\b)?"
 )
 _SPEED_UNIT = (
     r"m/s|mps|m\s*s-1|(?:meters?|metres?)\s+(?:per|a|/)\s+second|km/h|kmh|kph|km\s+per\s+hour"
@@ -68,11 +69,11 @@ _ONE_BY_ONE = re.compile(r"\b(?:one\s+by\s+one|one\s+after\s+(?:the\s+)?other|in
 _SECONDS = r"(?:s|secs?|seconds?)\b"
 _DEADLINE = re.compile(
     rf"\b(?:within(?:\s+the\s+first)?|in(?:\s+(?:under|less\s+than|at\s+most))?|by(?:\s+t\s*=)?|before(?:\s+t\s*=)?"
-    rf"|no\s+later\s+than)\s+(?:the\s+)?({NUM})\s*{_SECONDS}(?:\s+mark\b)?"
+    rf"|no\s+later\s+than)\s+(?:the\s+|t\s*=\s*)?({NUM})\s*{_SECONDS}(?:\s+mark\b)?"
 )
 _START = re.compile(
     rf"\b(?:after(?:\s+the\s+first)?|from(?:\s+t\s*=)?|starting(?:\s+(?:at|from|after))?(?:\s+t\s*=)?|once)\s+"
-    rf"({NUM})\s*{_SECONDS}(?:\s+(?:on|onwards?|have\s+passed|passed|in))?"
+    rf"({NUM})\s*{_SECONDS}(?:\s+(?:onwards?|on|have\s+passed|passed|in))?"
 )
 _END = re.compile(
     rf"\b(?:for|during)\s+the\s+first\s+({NUM})\s*{_SECONDS}|\b(?:until|till|up\s+to)\s+(?:t\s*=\s*)?({NUM})\s*{_SECONDS}"

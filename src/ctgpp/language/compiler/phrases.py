@@ -14,6 +14,7 @@ LANE_CHANGE = (
     r"(?:left|right)(?:[- ]hand)?\s+lane|lane[- ]change\s+(?:to\s+the\s+)?(?:left|right)"
     r"|chang\w*\s+lanes?\s+(?:to\s+(?:the\s+)?)?(?:left|right)|(?:left|right)\s+lane[- ]change"
     r"|\b(?:mov|shift|go|chang|switch)\w*\s+(?:one\s+|a\s+)?lanes?\s+(?:over\s+)?(?:to\s+(?:the\s+)?)?(?:left|right)"
+    r"|\b(?:go|goes|move|moves|get|gets|switch\w*|chang\w*)\s+(?:to\s+)?(?:left|right)\s+lane\b"
     r"|\b(?:chang|switch|mov|shift|merg|pull|go)\w*\s+back\s+(?:in)?to\s+the\s+(?:left|right)\b"
 )
 
@@ -76,16 +77,20 @@ TARGET_SPEED = (
     r"target\s+speed|(?:drive|travel|go|move|cruise|run|ride|proceed)\w*\s+(?:at|with)|speed\s+of|\bat\s+"
     r"|maintain\w*|hold\w*|keep\w*|speed\w*\s+(?:up|down)|accelerat\w*|slow\w*|decelerat\w*|\bspeed\b"
     r"|\breach\w*|\bget\w*\s+(?:up\s+)?to\b"
+    rf"|\b(?:drive|go|travel|move|cruise|ride)\w*\s+(?={NUM}\s*(?:m/s|km/h|kph|mph)\b)"
 )
 
 STAY_AWAY = (
     r"away\s+from|at\s+least|(?<!no )(?:more|further|farther)\s+than|keep\w*\s+(?:a\s+)?(?:safe\s+)?distance"
-    r"|(?:not|n't|never)\s+(?:get|come|go|drive)\w*\s+(?:too\s+)?(?:close|near|within)|minimum\s+distance|\bavoid\w*\s+"
+    r"|(?:not|n't|never)\s+(?:get|come|go|drive)\w*\s+(?:too\s+)?(?:close|near|within)|\bavoid\w*\s+"
+    r"|minimum\s+(?:distance|separation|gap|spacing|clearance)|\bfar\s+(?:away\s+)?from\b"
+    r"|\d\s*(?:m|meters?|metres?|ft|feet)\s+or\s+(?:more|further|farther|greater)\b"
 )
 
 WITHIN = (
     r"within|close\s+to|\bnear\b|closer\s+than|less\s+than|no\s+more\s+than|no\s+(?:farther|further)\s+than"
     r"|at\s+most|\bstay\w*\s+with\b|\bstick\w*\s+(?:close\s+)?to\b|\bup\s+to\b|\bunder\b|\bmax(?:imum)?\b"
+    r"|\d\s*(?:m|meters?|metres?|ft|feet)\s+or\s+(?:less|closer|under|nearer)\b"
 )
 
 # the centre of a lane, which following a lane keeps to (keeping to a lane only stays in it)
@@ -96,7 +101,7 @@ FOLLOW_LANE = (
     r"|(?:stay|remain)\w*\s+(?:in|within|inside)\s+(?:its|their|the|his|her)?\s*(?:own\s+|current\s+)?lanes?\b"
     r"|lane[- ]following"
     r"|(?:stay|keep|stick|remain|driv)\w*\s+(?:\w+\s+){0,2}?(?:in|to|at|along)\s+the\s+(?:cent(?:er|re)|middle)"
-    r"\s+of\s+(?:its|their|the|his|her)\s+(?:own\s+)?lanes?|\bcent(?:er|re|ere)d\s+(?:in|on)\s+(?:its|their|the)\s+lanes?"
+    r"\s+of\s+(?:its|their|the|his|her)\s+(?:own\s+)?lanes?|\bcent(?:er|re|ere)d\s+(?:in|on)\s+(?:its|their|the)\s+(?:own\s+)?lanes?"
     r"|\b(?:stay|keep|stick|remain|driv)\w*\s+(?:to|on|at|along)\s+(?:the|its|their)\s+lane(?:'s)?\s+(?:cent(?:er|re)|middle)"
 )
 
@@ -109,11 +114,13 @@ KEEP_LANE = (
 REACH_BELOW = (
     r"\b(?:slow\w*|decelerat\w*|brak\w*|reduc\w*)\b.*"
     r"(?:\b(?:under|below|less\s+than|at\s+most|no\s+more\s+than)\b|\bor\s+(?:less|lower|slower|under|below)\b)"
+    rf"|{NUM}\s*(?:m/s|km/h|kph|mph)\s+or\s+(?:less|lower|slower|under|below)\b"
 )
 
 REACH_ABOVE = (
     r"\b(?:speed\w*\s+up|accelerat\w*|get\w*\s+to|reach\w*|pick\w*\s+up)\b.*"
     r"(?:\b(?:over|above|more\s+than|at\s+least|faster\s+than)\b|\bor\s+(?:more|higher|faster|over|above)\b)"
+    rf"|{NUM}\s*(?:m/s|km/h|kph|mph)\s+or\s+(?:more|higher|faster|over|above)\b"
 )
 
 OFFROAD_STAY = r"(?:stay|remain|keep|drive)\w*\s+on\s+(?:the\s+)?(?:road|drivable|pavement|street)"
@@ -187,4 +194,5 @@ TARGET_DISTANCE = (
 BOUND = (  # words that make a distance a bound, not a target
     r"\bat\s+(?:least|most)\b|\bwithin\b|\b(?:less|more|closer|farther|further|nearer)\s+than\b|\bunder\b|\bover\b"
     r"|\bminimum\b|\bmaximum\b|\bmin\b|\bmax\b|\bup\s+to\b|\bbetween\b|\bbeyond\b|\baway\b"
+    r"|\bor\s+(?:more|less|fewer|further|farther|closer|greater|higher|lower|over|under)\b"
 )
