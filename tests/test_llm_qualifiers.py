@@ -75,6 +75,15 @@ REFUSED = [
     ("vehicle 2 turns left at the second intersection",
      calls({"behaviour": "turn_at_next_intersection", "vehicle": 2, "direction": "left"}),
      "a turn at the second intersection cannot be expressed"),
+    # a behaviour the sentence has no word of, a side it does not say: made up
+    ("vehicle 4 should drive like a drunk driver", calls({"behaviour": "no_collision", "vehicles": [4]}),
+     "a driving style"),
+    ("vehicle 10 leaves at the next opportunity",
+     calls({"behaviour": "lane_change", "vehicle": 10, "side": "right"}),
+     "the reading asks for lane_change, which the sentence does not name"),
+    ("the ego may turn at junctions", calls({"behaviour": "turn_at_next_intersection", "vehicle": 0,
+                                             "direction": "right"}),
+     "direction is 'right', which the sentence does not say"),
     # two vehicles in the other order
     ("vehicle 5 stays 12 m ahead of vehicle 6",
      calls({"behaviour": "keep_distance", "follower": 5, "leader": 6, "min_m": 12}),

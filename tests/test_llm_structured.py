@@ -211,10 +211,16 @@ def test_structured_mode_uses_the_models_reading_and_compares(server: CannedServ
     got = resolve_query(query, obs, config(server, "structured"))
     assert got.path.startswith(f"{STRUCTURED_PATH} (language model {MODEL}")
     assert got.notes == ["the offline compiler reads the sentence the same way"]
+    # a reading that differs from the compiler's (a part left out) is used, and the difference said
     server.replies = [calls({"behaviour": "no_offroad", "vehicles": [1]})]
-    got = resolve_query(query, obs, config(server, "structured"))
+    both = "vehicle 1 should come to a stop and stay on the road"
+    got = resolve_query(both, obs, config(server, "structured"))
     assert got.path.startswith(STRUCTURED_PATH) and got.compiled.parts[0].rule == "no_offroad"
     assert got.notes[0].startswith("the offline compiler reads the sentence differently")
+    # a behaviour the sentence has no word of is made up: refused, the compiler's reading used
+    server.replies = [calls({"behaviour": "no_offroad", "vehicles": [1]})]
+    got = resolve_query(query, obs, config(server, "structured"))
+    assert got.path == "offline query compiler (fallback)"
 
 
 def test_auto_asks_the_model_only_where_the_compiler_refuses(server: CannedServer, obs: Any) -> None:

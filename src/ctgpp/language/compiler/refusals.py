@@ -130,6 +130,19 @@ MANOEUVRES = (
      r"|\bemergency\s+brak\w*)(?![^.;]*\b(?:stop|halt|standstill)\w*)",  # braking hard to a stop is a stop
      "braking hard (a deceleration: \"vehicle 3 stops within 2 s\" or \"slows down to 2 m/s within 2 s\" "
      "asks for one)"),
+    (r"\bzig[- ]?zag\w*|\bweav\w*\b(?!\s+into)|\bswerv\w*\b(?!\s+into)|\bdrift\w*|\bdonut",
+     "weaving, swerving or drifting (no behaviour moves a vehicle from side to side)"),
+    (r"\berratic\w*|\baggressive\w*|\breckless\w*|\bdrunk\w*|\bnervous\w*|\bhesitat\w*|\btimid\w*"
+     r"|\blearner\b|\bcarefully\b|\bcautious\w*|\bdefensive\w*|\bdrive\w*\s+like\s+a",
+     "a driving style (no behaviour sets one: say what the vehicle should do, a speed, a gap or a lane)"),
+    (r"\bon[- ]?ramp|\boff[- ]?ramp|\bslip\s+road|\b(?:merg|enter|join)\w*\s+(?:onto|on\s+to|into)\s+the\s+"
+     r"(?:highway|motorway|freeway|expressway|interstate)",
+     "joining or leaving a highway by a ramp (\"vehicle 5 changes to the left lane\" is the nearest)"),
+    (r"\b(?:first|second|third|fourth|last|next)\s+exit\b|\bexit\s+(?:of|at|from)\s+the\s+roundabout",
+     "taking a given exit (a turn is at the next intersection: \"vehicle 10 turns right at the next "
+     "intersection\")"),
+    (r"\b(?:the|its|their)\s+(?:posted\s+)?speed\s+limit\b(?!\s*(?:of|is|=|:|at|to|be)?\s*\d)",
+     "the road's speed limit (the maps carry none: say the speed, \"at 50 km/h\")"),
     (r"\bhonk\w*|\bsignal\w*|\bindicat\w*|\bblinker|\bheadlight", "signals and lights (not simulated)"),
     (r"\bhead[- ]?on\b|\bt[- ]?bon\w*|\bside[- ]?swip\w*|\bbroadsid\w*",
      "a collision of a given kind (head-on, T-bone, sideswipe): \"vehicle 4 crashes into vehicle 5\" asks "

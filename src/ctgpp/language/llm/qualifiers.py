@@ -27,7 +27,10 @@ offline compiler knows it cannot honour:
 - a "not" read as the thing it denies, or as a prohibition of something else: a clause that says
   "not" or "never" about a vehicle none of whose calls is a limit or prohibition of what the clause
   talks about (:data:`DENIABLE`: "should not make a U-turn" read as a U-turn, "should not stop" as
-  no collision).
+  no collision);
+- a behaviour the sentence has none of the words of, or a side or direction it does not say
+  (:func:`check_evidence`: "drives like a drunk driver" read as no collision, "takes the second exit"
+  as a lane change to the right, "is allowed to turn" as a right turn).
 """
 
 from __future__ import annotations
@@ -43,7 +46,7 @@ from ctgpp.language.compiler.refusals import MANOEUVRES, SUPPORTED
 from ctgpp.language.llm.calls import StructuredRefused, is_vehicle_param
 from ctgpp.language.llm.sentence import named_vehicles
 
-__all__ = ["DENIABLE", "ORDER", "check_expressible", "positions"]
+__all__ = ["DENIABLE", "EVIDENCE", "ORDER", "check_evidence", "check_expressible", "positions"]
 
 TIME_GAP = re.compile(
     r"\d+(?:\.\d+)?\s*-?\s*(?:s|secs?|seconds?)\s+(?:time\s+)?(?:gap|headway)\b"
@@ -68,6 +71,48 @@ read as it: a small model reads "should not stop" as no collision and "must neve
 staying on the road. Every other behaviour asks for something to happen (a turn, a stop, a
 collision, a lane change), the opposite of denying it."""
 _NOT = re.compile(r"\b(?:not|never)\b", re.I)
+
+# the words without which a sentence does not ask for a behaviour: a reading that calls it for a
+# sentence with none of them invented it (a small model reads "drives like a drunk driver" as no
+# collision, "takes the second exit" as a lane change); generous, as synonyms are many
+EVIDENCE = {
+    "lane_change": r"\blane|\bmerg|\bswitch|\bmove\s+over|\bshift",
+    "move_to_rightmost_lane": r"right",
+    "turn_at_next_intersection": r"\bturn|\bleft\b|\bright\b|\bstraight|\btak(?:e|es|ing)\b",
+    "u_turn": r"u[- ]?turn|\bturn\w*\s+(?:a)?round|\bback\s+(?:the\s+way|where)|opposite\s+direction|180",
+    "overtake": r"overt|\bpass|\bpast\b|\baround\b|\bahead\b",
+    "cut_in": r"\bcut|\bmerg|in\s+front|\bahead",
+    "collision": r"colli|crash|\bhit|smash|\bram|bump|accident|contact|\binto\b|strike|struck",
+    "collide_from_behind": r"rear|behind|\bback\b|\binto\b|tail",
+    "no_collision": r"colli|crash|\bhit|accident|contact|touch|safe|clear|bump|\binto\b",
+    "acceleration_limit": r"accel|brak|decel|m/s²|m/s\^?2|jerk|smooth|comfort|gentl|harsh",
+    "stop": r"stop|halt|standstill|\bpark|\brest\b|still|wait|stationary|\bput\b|\bmove\b",
+    "stop_region": r"stop|halt|standstill|\bpark|\brest\b|still|wait",
+    "follow_lane": r"\blane|cent(?:er|re)|middle",
+    "keep_lane": r"\blane",
+    "no_offroad": r"road|drivable|pavement|kerb|curb|shoulder|street|\boff\b",
+    "same_direction": r"direction|same\s+way|heading|parallel",
+    "stay_side_of": r"\bleft\b|\bright\b|\bside\b",
+    "faster_than": r"fast|slow|quick|speed",
+}
+CHOICES = ("side", "direction")  # a word-valued parameter: the word is the sentence's (or it is unset)
+
+
+def check_evidence(calls: list[dict[str, Any]], sentence: str) -> None:
+    """:class:`StructuredRefused` when a call's behaviour has none of its words in the sentence
+    (:data:`EVIDENCE`), or a side or direction is one the sentence does not say: a behaviour the model
+    made up. Run after :func:`~ctgpp.language.llm.calls.check_grounded`, whose reasons (a vehicle or a
+    number the sentence does not say) are the more specific."""
+    low = sentence.lower()
+    for call in calls:
+        name = str(call.get("behaviour", ""))
+        words = EVIDENCE.get(name)
+        if words is not None and not re.search(words, low):
+            raise StructuredRefused(f"the reading asks for {name}, which the sentence does not name")
+        for key in CHOICES:
+            value = call.get(key)
+            if isinstance(value, str) and not re.search(rf"\b{re.escape(value.lower())}", low):
+                raise StructuredRefused(f"{name}: {key} is {value!r}, which the sentence does not say")
 _MENTION = r"(?:\b(?:vehicle|car|agent)\s+(\d+)\b|\b(the\s+)?ego\b)"
 _BETWEEN = r"(?:(?!\b(?:vehicles?|cars?|agents?|ego)\b)[^,;.])*?"  # no other vehicle in between
 _POSITION = re.compile(rf"{_MENTION}{_BETWEEN}\b(ahead\s+of|in\s+front\s+of|behind|back\s+from)\s+"

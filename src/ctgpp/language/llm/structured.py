@@ -53,7 +53,7 @@ from ctgpp.language.llm.calls import (
 from ctgpp.language.llm.client import LLMClient
 from ctgpp.language.llm.generate import Round
 from ctgpp.language.llm.prompt import Message
-from ctgpp.language.llm.qualifiers import check_expressible
+from ctgpp.language.llm.qualifiers import check_evidence, check_expressible
 from ctgpp.language.llm.schema import TIME_FIELDS, TUNING, is_vehicle, reply_schema, scoped, words
 
 __all__ = ["StructuredReading", "StructuredRefused", "build_parts", "parse_calls", "read_structured",
@@ -223,6 +223,7 @@ def read_structured(query: str, client: LLMClient, num_vehicles: int) -> Structu
         sentence = si_units(normalise(query))
         check_expressible(calls, sentence)
         check_grounded(calls, sentence)
+        check_evidence(calls, sentence)
         for part in parts:
             get_behaviour(part.rule).resolve(part.params)
     except (StructuredRefused, ValueError) as err:
