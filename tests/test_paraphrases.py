@@ -253,6 +253,12 @@ def test_the_same_again_and_setting_off(query: str, expect: list) -> None:
     assert got == expect
 
 
+def test_the_same_steers_the_new_subject() -> None:
+    """The copy of "vehicle 1 follows vehicle 0" for vehicle 2 steers vehicle 2, never vehicle 1."""
+    parts = compile_query("vehicle 1 follows vehicle 0 and vehicle 2 does the same", N).parts
+    assert [(p.params["follower"], p.steers) for p in parts] == [(1, (1,)), (2, (2,))]
+
+
 def test_the_same_needs_a_clause_about_another_vehicle_before_it() -> None:
     with pytest.raises(QueryError, match="'the same' needs"):
         compile_query("vehicle 5 does the same", N)

@@ -215,22 +215,36 @@ def keep_moving(c: Clause, ctx: Context) -> list[PartSpec]:
 SUBJECT_PARAMS = ("vehicle", "vehicle_a", "follower")  # the role of a rule's subject, where it has one
 
 
+def _for_vehicle(spec: PartSpec, before: set[int], v: int) -> PartSpec | None:
+    """``spec`` with its subject (any of ``before``) replaced by vehicle ``v``, in its parameters, its
+    restriction and the vehicles it steers; None when ``spec`` is not about its subject."""
+
+    def swap(vs: tuple[int, ...]) -> tuple[int, ...]:
+        return tuple(dict.fromkeys(v if u in before else u for u in vs))
+
+    keys = [k for k in SUBJECT_PARAMS if spec.params.get(k) in before]
+    if keys:
+        params = {**spec.params, **{k: v for k in keys}}
+    elif spec.only is not None and set(spec.only) <= before:
+        params = spec.params
+    else:
+        return None
+    return replace(spec, params=params, only=None if spec.only is None else swap(spec.only),
+                   steers=None if spec.steers is None else swap(spec.steers),
+                   steers_when_held=swap(spec.steers_when_held))
+
+
 def same_again(c: Clause, ctx: Context) -> list[PartSpec]:
     """"... then vehicle 10 does the same": the previous clause's parts, each with its subject (the
-    previous clause's subject vehicles) replaced by each vehicle this clause names; refused where the
-    previous clause had no parts about its subject."""
+    previous clause's subject vehicles) replaced by each vehicle this clause names (:func:`_for_vehicle`;
+    the previous clause's time too, unless this clause gives its own); refused where the previous
+    clause had no parts about its subject."""
     if not c.vehicles or not ctx.specs or not ctx.subjects:
         raise QueryError(f"{c.text.strip()!r}: 'the same' needs a vehicle of its own after a clause about "
                          "another ('vehicle 9 changes to the left lane, then vehicle 10 does the same')")
     before = set(ctx.subjects)
-    out = []
-    for v in c.vehicles:
-        for spec in (replace(s, window=None) for s in ctx.specs) if c.timed else ctx.specs:  # its own time
-            keys = [k for k in SUBJECT_PARAMS if spec.params.get(k) in before]
-            if keys:
-                out.append(replace(spec, params={**spec.params, **{k: v for k in keys}}))
-            elif spec.only is not None and set(spec.only) <= before:
-                out.append(replace(spec, only=(v,)))
+    specs = [replace(s, window=None) for s in ctx.specs] if c.timed else list(ctx.specs)
+    out = [got for v in c.vehicles for s in specs if (got := _for_vehicle(s, before, v)) is not None]
     if not out:
         raise QueryError(f"{c.text.strip()!r}: the clause before says nothing of vehicle(s) {sorted(before)} "
                          "that another vehicle could do the same")
