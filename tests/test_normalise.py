@@ -137,6 +137,10 @@ def test_correct_word(word: str, fixed: str) -> None:
      "vehicle 4 slows to under 5 m/s, then it must stop"),
     ("vehicle 3 overtakes vehicle 4 without ever exceeding 25 m/s",
      "vehicle 3 overtakes vehicle 4 and never exceeds 25 m/s"),
+    # a ticket's label is no part of the request; a vehicle before a colon is its subject
+    ("Repro: veh 7 cuts in ahead of veh 2", "veh 7 cuts in ahead of veh 2"),
+    ("Bug #412: veh 5 stops", "veh 5 stops"),
+    ("vehicle 3: stop", "vehicle 3 should stop"),
     ("no collisions", "no collisions"),  # no subject: left as it is
     ("vehicle 2 passes no vehicle", "vehicle 2 passes no vehicle"),  # an object, not a subject
 ])

@@ -7,8 +7,9 @@ left unchanged):
 1. Typography: dashes and quotes to ASCII, "°"-free, runs of spaces to one; contractions spelt out
    (:func:`expand_contractions`: "shouldn't" -> "should not", "won't" -> "will not", before the typo
    step could read "shouldn" as "should" and drop the "not"); asides that ask for nothing dropped
-   (:func:`drop_asides`: a parenthesis or ", which ...," without a number, a framing "For this study,"
-   that names no place), "without hitting anyone" -> "and must not collide".
+   (:func:`drop_asides`: a ticket's label, "Repro:", a parenthesis or ", which ...," without a
+   number, a framing "For this study," that names no place), "without hitting anyone" -> "and must
+   not collide".
 2. Typos (:func:`correct_typos`): a word of at least 5 letters that is not in :data:`VOCABULARY` and
    is one edit away (insert, delete, substitute, or swap two neighbours) from exactly one word of it is
    replaced by that word ("chnage" -> "change", "vehicel" -> "vehicle"); a 4-letter word only by a
@@ -343,6 +344,9 @@ def negative_subjects(text: str) -> str:
 # number is kept (and refused if no part reads it), as is one that names a place on the map
 _PLACE = r"intersection|junction|crossing|crosswalk|light|sign|lane|road|roundabout|corner|kerb|curb|shoulder"
 _ASIDES = (
+    # a ticket's label before a colon ("Repro:", "Setup:", "Test plan:", "Bug #412:"), never a vehicle
+    re.compile(r"^\s*(?!(?:vehicles?|cars?|agents?|trucks?|veh|the\s+ego|ego)\b)[a-z][a-z ]{0,20}?"
+               r"(?:\s*#\d+)?\s*:\s+", re.IGNORECASE),
     re.compile(r"\s*\((?=[^()]*[a-z])[^()\d]*\)", re.IGNORECASE),
     re.compile(r",\s*(?:which|who)\s+[^,\d]*(?:,|(?=[.!?]?\s*$))", re.IGNORECASE),
     re.compile(rf"^\s*(?:for|in|to|as\s+part\s+of|whatever)\b(?![^,]*\b(?:{_PLACE})\b)[^,\d]*,\s*",
@@ -410,11 +414,12 @@ _LIST = re.compile(
 
 # "vehicles 1 to 4", "cars 2-5", "vehicles 3 through 6": a range of vehicle numbers (no unit after it)
 _RANGE = re.compile(
-    r"\b((?:vehicles|cars|agents|trucks)\s+)#?(\d+)\s*(?:-|to|through|thru|until)\s*#?(\d+)\b"
+    r"\b((?:vehicles?|cars?|agents?|trucks?|veh)\s+)#?(\d+)\s*(?:-|to|through|thru|until)\s*#?(\d+)\b"
     r"(?!\s*(?:m/s|km|mph|m\b|meters?|metres?|s\b|secs?\b|seconds?|feet|ft|%|\.\d))",
     re.IGNORECASE,
 )
 MAX_RANGE = 64  # a longer range of vehicle numbers is left as written (and refused, its numbers unread)
+_PLURAL = {"veh": "vehicles", "vehicle": "vehicles", "car": "cars", "agent": "agents", "truck": "trucks"}
 
 
 def expand_ranges(text: str) -> str:
@@ -426,7 +431,9 @@ def expand_ranges(text: str) -> str:
         if not lo < hi or hi - lo >= MAX_RANGE:
             return m.group(0)
         numbers = [str(v) for v in range(lo, hi + 1)]
-        return f"{m.group(1)}{', '.join(numbers[:-1])} and {numbers[-1]}"
+        noun = m.group(1).strip()
+        plural = _PLURAL.get(noun.lower(), noun)  # "veh 0 through 3": a list of vehicles
+        return f"{plural} {', '.join(numbers[:-1])} and {numbers[-1]}"
 
     return _RANGE.sub(listed, text)
 

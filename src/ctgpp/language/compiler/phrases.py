@@ -53,7 +53,10 @@ COLLIDE = (
 
 REAR_END = r"rear[- ]?end|from\s+behind|into\s+the\s+(?:back|rear)\s+of"
 
-CUT_IN = r"\bcut\w*\s+(?:in|off|ahead|in\s+front)\b|\bmerg\w*\s+(?:\w+\s+){0,2}?(?:ahead|in\s+front)\s+of"
+CUT_IN = (
+    r"\bcut\w*\s+(?:in|off|ahead|in\s+front)\b|\bmerg\w*\s+(?:\w+\s+){0,2}?(?:ahead|in\s+front)\s+of"
+    r"|\bsqueez\w*\s+(?:in\s+|into\s+)?(?:ahead|in\s+front)\s+of"
+)
 
 # "passes" only with a vehicle after it: "passes within 2 m of (x, y)" is a reach, "pass each other" is
 # refused (refusals.MANOEUVRES)

@@ -143,6 +143,7 @@ MANOEUVRES = (
      "intersection\")"),
     (r"\b(?:the|its|their)\s+(?:posted\s+)?speed\s+limit\b(?!\s*(?:of|is|=|:|at|to|be)?\s*\d)",
      "the road's speed limit (the maps carry none: say the speed, \"at 50 km/h\")"),
+    (r"\bparallel[- ]park\w*|\breverse[- ]park\w*|\bbay[- ]park\w*", "parking manoeuvres (they reverse)"),
     (r"\bhonk\w*|\bsignal\w*|\bindicat\w*|\bblinker|\bheadlight", "signals and lights (not simulated)"),
     (r"\bhead[- ]?on\b|\bt[- ]?bon\w*|\bside[- ]?swip\w*|\bbroadsid\w*",
      "a collision of a given kind (head-on, T-bone, sideswipe): \"vehicle 4 crashes into vehicle 5\" asks "
