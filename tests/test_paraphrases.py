@@ -114,6 +114,7 @@ def test_a_number_or_time_no_part_reads_is_refused(query: str) -> None:
     "vehicle 2 should not keep its lane",
     "vehicle 3 should not turn left at the next intersection",
     "vehicle 6 drives 5 km/h slower than vehicle 7",  # a relative speed, not a limit for both
+    "vehicle 3 must not move over",  # no lane change, never a vehicle standing still
 ])
 def test_a_negated_or_relative_reading_is_refused_never_reversed(query: str) -> None:
     with pytest.raises(QueryError):

@@ -139,7 +139,8 @@ SAME_AGAIN = r"\b(?:do|does|did|doing)\s+(?:the\s+same|likewise|so\s+too)\b|\bfo
 # stopped from the start to the end: "stands still", "remains stationary", "stays put", "does not move"
 STAND_STILL = (
     r"\bstand\w*\s+still|\b(?:remain|stay)\w*\s+(?:still|put|stationary|motionless|at\s+rest)\b"
-    r"|\b(?:not|never|n't)\s+(?:move|budge)\b"
+    r"|\b(?:not|never|n't)\s+(?:move|budge)\b(?!\s+(?:over|into|in|to|onto|left|right|away|off|past|ahead|forward"
+    r"|out|up|back|closer|toward|towards|a\s+lane|lanes?)\b)"
 )
 
 # moving from the start to the end: "keeps moving", "keeps going", "does not stop", "never stops"
