@@ -17,7 +17,7 @@ import numpy as np
 from ctgpp.behaviours.base import MissingVehicle, Vehicles
 from ctgpp.interfaces import Rollout
 from ctgpp.metrics.collision import controlled_vehicle_indices
-from ctgpp.metrics.offroad import past_map_end
+from ctgpp.metrics.offroad import off_the_map
 
 
 @dataclass(frozen=True)
@@ -66,8 +66,7 @@ def on_the_map(rollout: Rollout, t: Track) -> Track:
     t = t.valid_part()
     if not t.xy.size:
         return t
-    drivable = rollout.scene.drivable
-    beyond = ~drivable.is_drivable(t.xy) & (~drivable.covers(t.xy) | past_map_end(rollout.scene, t.xy))
+    beyond = ~rollout.scene.drivable.is_drivable(t.xy) & off_the_map(rollout.scene, t.xy)
     k = int(np.argmax(beyond)) if beyond.any() else len(beyond)
     if k in (0, len(beyond)):
         return t

@@ -75,10 +75,16 @@ def beyond_map_steps(rollout: Rollout, agents: np.ndarray | None = None) -> np.n
     log_step = first_step(log_off, from_start, n)  # (C,)
     off_step = first_step(offroad_steps(rollout, agents), rollout.future, n)  # (C,)
     xy_then = rollout.sim.xy[agents, np.maximum(off_step, 0)]  # (C, 2)
-    off_map = ~rollout.scene.drivable.covers(xy_then) | past_map_end(rollout.scene, xy_then)
-    sim_step = np.where((off_step >= 0) & off_map, off_step, -1)
+    sim_step = np.where((off_step >= 0) & off_the_map(rollout.scene, xy_then), off_step, -1)
     both = np.stack([log_step, sim_step])  # (2, C)
     return np.where((both >= 0).any(axis=0), np.where(both >= 0, both, n).min(axis=0), -1)
+
+
+def off_the_map(scene: Scene, xy: np.ndarray) -> np.ndarray:
+    """(N, 2) world points -> (N,) bool: where the map says nothing, off the raster or just past a lane
+    end where the mapped road stops (:func:`past_map_end`); a point off the road there is beyond the
+    map, not off-road."""
+    return np.asarray(~scene.drivable.covers(xy) | past_map_end(scene, xy))
 
 
 def past_map_end(scene: Scene, xy: np.ndarray) -> np.ndarray:
