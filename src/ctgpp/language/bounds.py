@@ -31,15 +31,18 @@ from typing import Any
 
 from ctgpp.behaviours import get_behaviour
 
-__all__ = ["CLAUSE_BREAK", "StatedBound", "bound_mismatch", "param_side", "stated_bounds"]
+__all__ = ["CLAUSE_BREAK", "UP_TO_BOUND", "StatedBound", "bound_mismatch", "param_side", "stated_bounds"]
 
 _NUM = r"(\d+(?:\.\d+)?)"
 _UNIT = r"(?:\s*(m/s²|m/s|m|s)\b)?"
 _THAN = r"(?:less|fewer|slower|closer|nearer|lower|more|faster|farther|further|higher|greater)\s+than"
 _UPPER_WORDS = ("at most", "up to", "within", "under", "below", "max", "a max", "less than", "fewer than",
                 "slower than", "closer than", "nearer than", "lower than")
+UP_TO_BOUND = (r"(?<!speed\s)(?<!speeds\s)(?<!speeding\s)(?<!get\s)(?<!gets\s)(?<!got\s)(?<!getting\s)"
+               r"(?<!back\s)\bup\s+to\b")
+""""up to" as a bound ("up to 15 m/s"), not the speed reached ("speeds up to", "gets up to", "back up to")."""
 _BEFORE = re.compile(
-    r"\b(at\s+most|at\s+least|(?<!speed\s)(?<!speeds\s)(?<!speeding\s)(?<!get\s)(?<!gets\s)(?<!got\s)(?<!getting\s)(?<!back\s)up\s+to|within|under|below|over|above"
+    rf"\b(at\s+most|at\s+least|{UP_TO_BOUND}|within|under|below|over|above"
     rf"|beyond|{_THAN}|(?:a\s+)?(?:max|min)(?:imum)?(?:\s+of)?)\s+(?:a\s+(?:distance|speed|gap)\s+of\s+)?"
     rf"{_NUM}{_UNIT}", re.I)
 _VEHICLE_NUMBER = (r"(?<!vehicle\s)(?<!vehicles\s)(?<!car\s)(?<!cars\s)(?<!agent\s)(?<!truck\s)(?<!veh\s)"

@@ -55,6 +55,12 @@ STOP_AT_TOLERANCE_S = 1.0  # "stops at 4 s": still moving until 3 s, stopped fro
 MOVING_BEFORE_STOP_MPS = 1.0  # "still moving" before a stop at a time: at least this speed
 
 
+def _moving() -> dict[str, Any]:
+    """The parameters of "moving": ``reach_speed`` above :data:`MOVING_BEFORE_STOP_MPS` (before a stop
+    at a time, "keeps moving", "drives off")."""
+    return {"speed_mps": MOVING_BEFORE_STOP_MPS, "bound": "above"}
+
+
 Handler = Callable[[Clause, Context], list[PartSpec]]
 
 
@@ -180,8 +186,7 @@ def stop(c: Clause, ctx: Context) -> list[PartSpec]:
     moving_until = c.at_s - STOP_AT_TOLERANCE_S
     if moving_until < 1.0:  # no full second of driving to judge before: a deadline
         return [stopped]
-    moving = PartSpec("stop", "reach_speed", {"speed_mps": MOVING_BEFORE_STOP_MPS, "bound": "above"}, only,
-                      window=TimeWindow(0.0, moving_until))
+    moving = PartSpec("stop", "reach_speed", _moving(), only, window=TimeWindow(0.0, moving_until))
     return [moving, stopped]
 
 
@@ -207,8 +212,7 @@ def stand_still(c: Clause, ctx: Context) -> list[PartSpec]:
 def keep_moving(c: Clause, ctx: Context) -> list[PartSpec]:
     """At least :data:`MOVING_BEFORE_STOP_MPS` at every step of the window: "keeps moving", "never
     stops" (a stop's opposite, as "still moving" before a stop at a time is judged)."""
-    params = {"speed_mps": MOVING_BEFORE_STOP_MPS, "bound": "above"}
-    return [PartSpec("keep_moving", "reach_speed", params, scope(c, ctx),
+    return [PartSpec("keep_moving", "reach_speed", _moving(), scope(c, ctx),
                      window=_whole_episode(c, ctx, "moving without stopping"))]
 
 
@@ -254,8 +258,7 @@ def same_again(c: Clause, ctx: Context) -> list[PartSpec]:
 def move_off(c: Clause, ctx: Context) -> list[PartSpec]:
     """Moving (at least :data:`MOVING_BEFORE_STOP_MPS`) by the end and from then on: "drives off",
     "starts moving" (a vehicle at rest sets off; one moving keeps going)."""
-    params = {"speed_mps": MOVING_BEFORE_STOP_MPS, "bound": "above"}
-    return [PartSpec("move_off", "reach_speed", params, scope(c, ctx))]
+    return [PartSpec("move_off", "reach_speed", _moving(), scope(c, ctx))]
 
 
 def reach(c: Clause, ctx: Context) -> list[PartSpec]:

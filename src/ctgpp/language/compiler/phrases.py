@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import re
 
+from ctgpp.language.bounds import UP_TO_BOUND
 from ctgpp.language.compiler.patterns import NUM
 
 LANE_CHANGE = (
@@ -72,7 +73,7 @@ FOLLOW_VEHICLE = r"\bfollow\w*|\btail\w*|\bbehind\b"
 
 SPEED_LIMIT = (
     r"speed\s+limit|exceed|slower\s+than|(?:no|not)\s+(?:faster|quicker|more)\s+than|at\s+most|\bbelow\b"
-    r"|(?<!speeds\s)(?<!speed\s)(?<!speeding\s)(?<!gets\s)(?<!get\s)(?<!got\s)(?<!getting\s)(?<!back\s)\bup\s+to\b|(?:never|not|n't)\s+(?:go|drive|get)\w*\s+(?:over|above)"
+    rf"|{UP_TO_BOUND}|(?:never|not|n't)\s+(?:go|drive|get)\w*\s+(?:over|above)"
     r"|\bunder\b|max(?:imum)?\s+(?:speed|of)|\blimit\w*|(?:faster|above|over)\s+than|\bcap(?:s|ped|ping)?\b"
 )
 
