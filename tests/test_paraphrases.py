@@ -287,3 +287,77 @@ def test_the_same_needs_a_clause_about_another_vehicle_before_it() -> None:
 def test_chat_and_specification_wordings(query: str, rule: str, params: dict) -> None:
     (got,) = structure(query, N)
     assert (got["rule"], got["params"]) == (rule, params)
+
+
+@pytest.mark.parametrize(("query", "expect"), [
+    # sequences and simultaneity said as test plans say them
+    ("vehicle 2 slows to under 3 m/s; subsequently the ego overtakes vehicle 2",
+     [("reach_speed", {"speed_mps": 3.0, "bound": "below"}, [2], None, 0),
+      ("overtake", {"vehicle": 0, "other": 2}, None, None, 1)]),
+    ("vehicle 6 brakes to under 2 m/s within 4 s, followed by vehicle 1 rear-ending vehicle 6",
+     [("reach_speed", {"speed_mps": 2.0, "bound": "below"}, [6], [4.0, None], 0),
+      ("collide_from_behind", {"vehicle": 1, "target": 6}, None, None, 1)]),
+    ("the ego cruises at 54 km/h; at the same time vehicle 3 follows it at a distance of 12 to 20 m",
+     [("target_speed", {"speed_mps": 15.0}, [0], None, 0),
+      ("keep_distance", {"follower": 3, "leader": 0, "min_m": 12.0, "max_m": 20.0}, None, None, 0)]),
+    ("vehicle 3 is followed by vehicle 4",  # the passive of "follow", never a sequence
+     [("keep_distance", {"follower": 4, "leader": 3, "min_m": 10.0, "max_m": 30.0}, None, None, 0)]),
+    ("Step 1: vehicle 8 changes into the left lane. Step 2: vehicle 8 overtakes vehicle 11 on the right.",
+     [("lane_change", {"vehicle": 8, "side": "left"}, None, None, 0),
+      ("overtake", {"vehicle": 8, "other": 11, "side": "right"}, None, None, 1)]),
+    # "throughout" holds for the whole episode, not from the stage before it
+    ("vehicle 7 overtakes vehicle 2, then moves to the rightmost lane; all agents remain on-road throughout",
+     [("overtake", {"vehicle": 7, "other": 2}, None, None, 0),
+      ("move_to_rightmost_lane", {"vehicle": 7}, None, None, 1), ("no_offroad", {}, None, None, 0)]),
+    # a window between two times
+    ("Between t = 2 s and t = 6 s, vehicle 4 stays on the right side of the ego.",
+     [("stay_side_of", {"vehicle": 4, "other": 0, "side": "right"}, None, [2.0, 6.0], 0)]),
+    ("veh 1 and ego collide between 2 and 6 s",
+     [("collision", {"vehicle_a": 1, "vehicle_b": 0}, None, [2.0, 6.0], 0)]),
+    ("vehicle 10 changes to the left lane, not before t = 3 s",
+     [("lane_change", {"vehicle": 10, "side": "left"}, None, [3.0, None], 0)]),
+    ("v1 and v2 keep their lanes for first ten sec",
+     [("keep_lane", {"vehicle": 1}, None, [0.0, 10.0], 0),
+      ("keep_lane", {"vehicle": 2}, None, [0.0, 10.0], 0)]),
+    # a qualifier after a comma, a point's comma kept, both ends of a range in words
+    ("v5 stop in region around (40,8), radius 6 m",
+     [("stop_region", {"vehicle": 5, "x": 40.0, "y": 8.0, "radius_m": 6.0}, None, None, 0)]),
+    ("the ego must not collide with anything, keeping 0.5 m of clearance",
+     [("no_collision", {"buffer_m": 0.5}, [0], None, 0)]),
+    ("v1 cut off v3, gap less then 5 m",
+     [("cut_in", {"vehicle": 1, "ahead_of": 3, "gap_m": 5.0}, None, None, 0)]),
+    ("veh 6 tailgate car 9 between five and fifteen metres",
+     [("keep_distance", {"follower": 6, "leader": 9, "min_m": 5.0, "max_m": 15.0}, None, None, 0)]),
+    # other words for a vehicle, a collision, the same turn, advancing, a goal's speed
+    ("Actor 5 [oncoming truck] performs a U-turn no later than t = 8 s.",
+     [("u_turn", {"vehicle": 5}, None, [0.0, 8.0], 0)]),
+    ("Agent 6 and agent 2 come into contact within 8 s.",
+     [("collision", {"vehicle_a": 6, "vehicle_b": 2}, None, [0.0, 8.0], 0)]),
+    ("Vehicle 9 makes the same turn as vehicle 3.",
+     [("same_direction", {"vehicle": 9, "other": 3}, None, None, 0)]),
+    ("v4 advance thirty metres", [("reach_ahead", {"vehicle": 4, "distance_m": 30.0}, None, None, 0)]),
+    ("ego drive toward goal (100, 2) holding 36 km/h",
+     [("goal_waypoint", {"vehicle": 0, "x": 100.0, "y": 2.0, "target_speed_mps": 10.0}, None, None, 0)]),
+    # a stop within a time that then "remains stationary" is one stop
+    ("Vehicle 4 comes to a stop within 6 s and remains stationary.", [("stop", {}, [4], [6.0, None], 0)]),
+])
+def test_test_plan_wordings(query: str, expect: list) -> None:
+    got = [(p["rule"], p["params"], p["vehicles"], p["window"], p["stage"]) for p in structure(query, N)]
+    assert got == expect
+
+
+@pytest.mark.parametrize(("query", "match"), [
+    ("v6 park in next free spot", "parking"),
+    ("Keep the ego's jerk below 1.5 m/s³ throughout.", "jerk"),
+    ("The ego's lateral acceleration stays under 2 m/s² for the duration.", "one component"),
+    ("v3 accelerate at exactly 2 m/s²", "read only as a limit"),
+    ("vehicle 2 accelerates from 5 to 10 m/s", "from A to B"),
+])
+def test_what_no_behaviour_reads_is_refused_by_name(query: str, match: str) -> None:
+    with pytest.raises(ValueError, match=match):
+        structure(query, N)
+
+
+def test_parking_at_a_point_is_a_stop_there() -> None:
+    (got,) = structure("vehicle 4 parks at (615, 1660)", N)
+    assert got["rule"] == "stop_region"

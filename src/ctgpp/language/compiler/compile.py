@@ -130,6 +130,16 @@ def _same(a: QueryPart, b: QueryPart) -> bool:
     return key(a) == key(b)
 
 
+def _held_already(parts: list[QueryPart], part: QueryPart) -> bool:
+    """Whether ``part``, a stop with the behaviour's own window (reached, then held to the end), is
+    asked already by a stop of the same vehicles held from a time to the end ("stops within 6 s and
+    remains stationary")."""
+    if part.rule != "stop" or part.window is not None:
+        return False
+    return any(p.rule == "stop" and p.vehicles == part.vehicles and p.stage == part.stage
+               and p.window is not None and p.window.end_s is None and p.window.hold for p in parts)
+
+
 def _vehicle_of(spec: PartSpec) -> int | None:
     got = part_vehicles(spec)
     return min(got) if got and len(got) == 1 else None
@@ -170,7 +180,7 @@ def compile_query(query: str, num_vehicles: int) -> CompiledQuery:
             check_vehicles(spec, num_vehicles, text)
             check_quantities(spec, text)
             check_bounds(spec, text)
-            step = stage
+            step = 0 if clause.always and not then else stage  # "; all stay on the road throughout"
             if clause.one_by_one and (v := _vehicle_of(spec)) is not None and v in order:
                 step = stage + order.index(v)
             window = spec.window or (_window(clause, spec.rule, text) if spec.rule else None)
@@ -187,7 +197,7 @@ def compile_query(query: str, num_vehicles: int) -> CompiledQuery:
                 parts[hit] = replace(part, text=query[span[0] : span[1]].strip(), span=span, stage=old.stage)
                 refinable.discard(hit)
                 continue
-            if any(_same(p, part) for p in parts):  # "parks and stays put": one stop, said twice
+            if any(_same(p, part) for p in parts) or _held_already(parts, part):  # one stop, said twice
                 continue
             if spec.refinable:
                 refinable.add(len(parts))

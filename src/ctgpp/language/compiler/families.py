@@ -108,7 +108,7 @@ FAMILIES: tuple[tuple[str, Callable[[Clause], bool], Handler], ...] = (
     ("u_turn", lambda c: bool(c.has(U_TURN)), u_turn),
     ("turn", lambda c: bool(c.has(TURN) or (c.has(STRAIGHT) and c.has(r"intersection|junction"))), turn),
     ("stay_side_of", lambda c: bool(c.has(SIDE_OF)) and _names_vehicle(c), side_of),
-    ("same_direction", lambda c: bool(c.has(r"same\s+(?:direction|heading|way)|parallel\s+(?:to|with)")),
+    ("same_direction", lambda c: bool(c.has(r"same\s+(?:direction|heading|way|turn)|parallel\s+(?:to|with)")),
      same_direction),
     ("reach_ahead", lambda c: bool(c.has(AHEAD)) and not c.objects and not c.points, reach_ahead),
     ("collision", lambda c: bool(c.has(COLLIDE)), collision),

@@ -21,7 +21,7 @@ from dataclasses import replace
 from typing import Any
 
 from ctgpp.behaviours.timing import TimeWindow
-from ctgpp.language.compiler.patterns import NEGATION, Clause
+from ctgpp.language.compiler.patterns import NEGATION, NUM, Clause
 from ctgpp.language.compiler.phrases import (
     ACCELERATION,
     BOUND,
@@ -84,7 +84,9 @@ def rear_end(c: Clause, ctx: Context) -> list[PartSpec]:
 
 def collision(c: Clause, ctx: Context) -> list[PartSpec]:
     if c.negated or c.has(r"collision[- ]free"):
-        return [PartSpec("no_collision", "no_collision", {}, scope(c, ctx))]
+        clearance = c.distances and c.has(r"\b(?:clearance|buffer|margin|apart|space)\b")
+        params = {"buffer_m": c.distances[0]} if clearance else {}
+        return [PartSpec("no_collision", "no_collision", params, scope(c, ctx))]
     return [PartSpec("collision", "collision", {"vehicle_a": a, "vehicle_b": b})
             for a, b in pairs(c, ctx, "a collision")]
 
@@ -261,12 +263,17 @@ def move_off(c: Clause, ctx: Context) -> list[PartSpec]:
     return [PartSpec("move_off", "reach_speed", _moving(), scope(c, ctx))]
 
 
-def reach(c: Clause, ctx: Context) -> list[PartSpec]:
+def _point(c: Clause) -> dict[str, Any]:
+    """The clause's point, with the speed to hold on the way when it says one ("at 36 km/h")."""
     x, y = c.points[0]
     params: dict[str, Any] = {"x": x, "y": y}
     if c.speeds:
         params["target_speed_mps"] = c.speeds[0]
-    return [PartSpec("reach", "reach_point", {"vehicle": v, **params}) for v in subjects(c, ctx)]
+    return params
+
+
+def reach(c: Clause, ctx: Context) -> list[PartSpec]:
+    return [PartSpec("reach", "reach_point", {"vehicle": v, **_point(c)}) for v in subjects(c, ctx)]
 
 
 def _speed_limit(c: Clause, ctx: Context) -> list[PartSpec]:
@@ -280,18 +287,27 @@ def _reach_speed(c: Clause, ctx: Context) -> list[PartSpec]:
     return [PartSpec("reach_speed", "reach_speed", params, scope(c, ctx))]
 
 
+_ACCELERATION_BOUND = re.compile(
+    r"\b(?:at\s+most|under|below|less\s+than|within|max\w*|limit\w*|cap\w*|exceed\w*|not|never|no"
+    r"|(?:harder|more|stronger)\s+than)\b")
+
+
 def acceleration(c: Clause, ctx: Context) -> list[PartSpec]:
+    """The largest acceleration magnitude: a value in m/s² said as a bound ("no harder than", "under",
+    "limit ... to"); an acceleration to keep ("accelerates at exactly 2 m/s²") is no behaviour."""
     m = ACCELERATION.search(c.text)
     if m is None:
         raise QueryError(f"{c.text.strip()!r}: an acceleration limit needs a value in m/s² (e.g. '3 m/s²')")
+    if not _ACCELERATION_BOUND.search(c.text):
+        raise QueryError(f"{c.text.strip()!r}: an acceleration in m/s² is read only as a limit "
+                         f"('accelerates no harder than {m.group(1)} m/s²'); one to keep is not a supported "
+                         "behaviour")
     params = {"max_mps2": float(m.group(1))}
     return [PartSpec("acceleration_limit", "acceleration_limit", params, scope(c, ctx))]
 
 
 def goal(c: Clause, ctx: Context) -> list[PartSpec]:
-    x, y = c.points[0]
-    return [PartSpec("goal_waypoint", "goal_waypoint", {"vehicle": v, "x": x, "y": y})
-            for v in subjects(c, ctx)]
+    return [PartSpec("goal_waypoint", "goal_waypoint", {"vehicle": v, **_point(c)}) for v in subjects(c, ctx)]
 
 
 def keep_lane(c: Clause, ctx: Context) -> list[PartSpec]:
@@ -399,7 +415,12 @@ def reach_ahead(c: Clause, ctx: Context) -> list[PartSpec]:
 
 
 def _speed_range(c: Clause, ctx: Context) -> list[PartSpec]:
+    """A band of speeds ("between 8 and 12 m/s"); "from 5 to 10 m/s" is a change of speed, whose
+    start the vehicle has already: refused, never read as a band."""
     lo, hi = c.speed_ranges[0]
+    if c.has(rf"\bfrom\s+{NUM}\s*(?:to|-|–)"):
+        raise QueryError(f"{c.text.strip()!r}: a speed 'from A to B' changes speed; say the speed to reach "
+                         f"('speeds up to {hi:g} m/s')")
     only = scope(c, ctx)
     return [PartSpec("speed_limit", "speed_limit", {"limit_mps": hi, "margin_mps": SPEED_MARGIN_MPS}, only),
             PartSpec("reach_speed", "reach_speed", {"speed_mps": lo, "bound": "above"}, only)]

@@ -192,6 +192,9 @@ _UNIT_AFTER = (
     r"(?=[\s-]*(?:m\b|m/s|mps|metres?|meters?|ft\b|feet|foot|km/?h|kph|kmph|kilomet|mph|miles?"
     r"|s\b|secs?\b|seconds?\b))"
 )
+# both ends of a range in words: "between five and fifteen metres" (one phrase would read "five and
+# fifteen" as a single number)
+_RANGE_IN_WORDS = (rf"\b(between|from)\s+({_NUMBER_PHRASE})\s+(and|to)\s+({_NUMBER_PHRASE}){_UNIT_AFTER}")
 _VEHICLE_BEFORE = "|".join(rf"(?<=\b{noun}\s)"
                            for noun in ("vehicle", "vehicles", "car", "cars", "agent", "truck"))
 _LIST_BEFORE = r"(?<=\d\s&\s)|(?<=\d,\s)|(?<=\d\sand\s)|(?<=\d,\sand\s)|(?<=\d\sor\s)"
@@ -242,7 +245,15 @@ def numbers_to_digits(text: str) -> str:
         if longer == text:
             break
         text = longer
+    text = re.sub(_RANGE_IN_WORDS, lambda m: f"{m.group(1)} {digits_of(m.group(2))} {m.group(3)} "
+                  f"{digits_of(m.group(4))}", text, flags=re.IGNORECASE)
     return re.sub(rf"{_NUMBER_PHRASE}{_UNIT_AFTER}", digits, text, flags=re.IGNORECASE)
+
+
+def digits_of(phrase: str) -> str:
+    """A number in words as digits ("fifteen" -> "15"); left as written when it is none."""
+    value = words_value(phrase)
+    return phrase if value is None else f"{value:g}"
 
 
 # --- units and wording -------------------------------------------------------------------------------
@@ -273,10 +284,21 @@ _WORDING = (  # (pattern, replacement), case-insensitive, in order
     (r"\binfront\b", "in front"),
     (r"\b(?:pls|plz)\b", "please"),
     (r"\bmore\s+(fast|quick|slow)(?:ly)?\s+th[ae]n\b", r"\1er than"),
-    (r"\b(faster|slower|quicker)\s+then\b", r"\1 than"),
+    (r"\b(faster|slower|quicker|less|more|fewer|greater|closer|further|farther|lower|higher)\s+then\b(?=\s*(?:\d|vehicle|car|veh|agent|truck|v\d|#|the|ego))",
+     r"\1 than"),
     (r"\b(?:not|no)\s+more\s+far\s+than\b", "at most"),
     (r"\bmost\s+(right|left)\s+lane\b", r"\1most lane"),
     (r",?\s+after\s+which\b|,?\s+whereupon\b|,?\s+following\s+which\b", ", then"),
+    (r"[.;]?\s*\bstep\s+(?:[2-9]|two|three|four|five)\s*[:.)]\s*", ", then "),  # a later numbered step
+    (r"^\s*step\s+(?:1|one)\s*[:.)]\s*", ""),
+    (r"\b(for|during|in|within)\s+first\b", r"\1 the first"),
+    (r"\b(?:not\s+before|no\s+earlier\s+than)\s+(?=(?:t\s*=\s*)?\d)", "after "),
+    (r"\bon-road\b", "on the road"),
+    (r"\b(to|in|on)\s+lane\s+(cent(?:re|er)|middle)\b", r"\1 the lane \2"),
+    # a sequence said another way; "followed by" only after a clause's end, never "is followed by"
+    (r"\s*(?:,|;|\band)?\s*\b(?:subsequently|thereafter|afterwards?|after\s+this(?=,))\b,?"
+     r"|\s*(?:,|;)\s*(?:and\s+)?followed\s+by\b", ", then"),
+    (r"\s*(?:,|;|\band)?\s*\b(?:at\s+the\s+same\s+time|simultaneously|meanwhile|concurrently)\b,?", ", and"),
     (r",?\s+without\s+ever\s+(?:exceeding|going\s+(?:over|above|faster\s+than))\s+", " and never exceeds "),
     (r"\bwait(?:s|ed|ing)?\s+(?:for\s+)?(\d+(?:\.\d+)?)\s*(?:s|secs?|seconds?)\b",
      r"stands still for the first \1 s"),
@@ -347,7 +369,7 @@ _ASIDES = (
     # a ticket's label before a colon ("Repro:", "Setup:", "Test plan:", "Bug #412:"), never a vehicle
     re.compile(r"^\s*(?!(?:vehicles?|cars?|agents?|trucks?|veh|the\s+ego|ego)\b)[a-z][a-z ]{0,20}?"
                r"(?:\s*#\d+)?\s*:\s+", re.IGNORECASE),
-    re.compile(r"\s*\((?=[^()]*[a-z])[^()\d]*\)", re.IGNORECASE),
+    re.compile(r"\s*\((?=[^()]*[a-z])[^()\d]*\)|\s*\[(?=[^\[\]]*[a-z])[^\[\]\d]*\]", re.IGNORECASE),
     re.compile(r",\s*(?:which|who)\s+[^,\d]*(?:,|(?=[.!?]?\s*$))", re.IGNORECASE),
     re.compile(rf"^\s*(?:for|in|to|as\s+part\s+of|whatever)\b(?![^,]*\b(?:{_PLACE})\b)[^,\d]*,\s*",
                re.IGNORECASE),
@@ -363,8 +385,10 @@ _WITHOUT_HITTING = re.compile(
 # a distance said after a comma or "but" about the relation just named ("vehicle 1 follows vehicle 0 but
 # no farther than 18 m back", "cuts in ahead of vehicle 7, leaving at most 5 m"): part of that clause
 _DISTANCE_AFTER = re.compile(
-    r"\s*(?:,\s*(?:but\s+)?|\s+but\s+)(?=(?:leaving|staying|keeping|with|at|no|not|within|between|under|less"
-    r"|minimum|min|maximum|max|\d)[^,.;]*?\d\s*(?:m|meters?|metres?|ft|feet)\b(?:\s+(?:of\s+)?(?:gap|back|behind|ahead|apart|away))?"
+    r"\s*(?:,(?!\s*-?\d+(?:\.\d+)?\s*\))\s*(?:but\s+)?|\s+but\s+)"  # never the comma of a point "(40,8)"
+    r"(?=(?:leaving|staying|keeping|with|at|no|not|within|between|under|less|gap|radius|buffer|clearance"
+    r"|minimum|min|maximum|max|\d)(?:[^,.;]|\.(?=\d))*?\d\s*(?:m|meters?|metres?|ft|feet)\b"
+    r"(?:\s+(?:of\s+)?(?:gap|back|behind|ahead|apart|away|clearance|buffer|space|margin))?"
     r"\s*(?:[.!?]?\s*$))",
     re.IGNORECASE,
 )
@@ -453,6 +477,7 @@ def normalise(query: str) -> str:
     text = query
     for fancy, plain in (("–", "-"), ("—", "-"), ("’", "'"), ("‘", "'"), ("\u00a0", " ")):
         text = text.replace(fancy, plain)
+    text = re.sub(r"\bactor(s?)\b", r"agent\1", text, flags=re.IGNORECASE)  # test plans' word for a vehicle
     text = expand_contractions(text)
     text = drop_asides(text)
     text = correct_typos(text)

@@ -67,12 +67,15 @@ _PASSIVE = re.compile(  # "vehicle 1 gets rear-ended by vehicle 2", "is overtake
 _GROUP = re.compile(r"\b(?:both|they|them|their|all\s+of\s+them|each\s+of\s+them|the\s+two)\b")
 _ONE_BY_ONE = re.compile(r"\b(?:one\s+by\s+one|one\s+after\s+(?:the\s+)?other|in\s+turn|in\s+sequence)\b")
 _SECONDS = r"(?:s|secs?|seconds?)\b"
+_BETWEEN_TIMES = re.compile(  # "between 2 and 6 s", "between t = 2 s and t = 6 s", "from 2 s to 6 s"
+    rf"\b(?:between|from)\s+(?:t\s*=\s*)?({NUM})\s*(?:{_SECONDS})?\s*(?:and|to|-|–)\s*(?:t\s*=\s*)?({NUM})\s*{_SECONDS}"
+)
 _DEADLINE = re.compile(
     rf"\b(?:within(?:\s+the\s+first)?|in(?:\s+(?:under|less\s+than|at\s+most))?|by(?:\s+t\s*=)?|before(?:\s+t\s*=)?"
     rf"|no\s+later\s+than)\s+(?:the\s+|t\s*=\s*)?({NUM})\s*{_SECONDS}(?:\s+mark\b)?"
 )
 _START = re.compile(
-    rf"\b(?:after(?:\s+the\s+first)?|from(?:\s+t\s*=)?|starting(?:\s+(?:at|from|after))?(?:\s+t\s*=)?|once)\s+"
+    rf"\b(?:after(?:\s+the\s+first|\s+t\s*=)?|from(?:\s+t\s*=)?|starting(?:\s+(?:at|from|after))?(?:\s+t\s*=)?|once)\s+"
     rf"({NUM})\s*{_SECONDS}(?:\s+(?:onwards?|on|have\s+passed|passed|in))?"
 )
 _END = re.compile(
@@ -92,8 +95,8 @@ _SPEED_RANGE = re.compile(
 )
 
 # protected spans: separators inside them do not split clauses
-PROTECTED = (_POINT, re.compile(rf"\bbetween\s+{NUM}\s*(?:{_DIST_UNIT}|{_SPEED_UNIT})?\s*and\s+{NUM}"),
-             _ONE_BY_ONE)
+PROTECTED = (_POINT, _BETWEEN_TIMES,
+             re.compile(rf"\bbetween\s+{NUM}\s*(?:{_DIST_UNIT}|{_SPEED_UNIT})?\s*and\s+{NUM}"), _ONE_BY_ONE)
 SEPARATOR = re.compile(
     r"\s*[,;]\s*(?:and\s+|while\s+|but\s+|then\s+|after\s+that,?\s+|afterwards,?\s+)*|\.\s+"
     r"|\s+(?:and\s+then|and\s+after\s+that|after\s+that|afterwards|and\s+also|and|while|whilst|then|but|also"
@@ -108,7 +111,8 @@ class Clause:
     of them (the clause's subject, "vehicles 1, 2 and 3 follow vehicle 4": 1, 2, 3) and objects the
     rest (4); speeds m/s; speed_ranges (lo, hi) m/s; distances m; ranges (lo, hi) m; points (x, y) m;
     bare: numbers without a unit (not vehicle numbers). Times (s from the episode start): deadline_s
-    ("within 5 s"), start_s ("after 3 s"), end_s ("for the first 4 s", "until 4 s"), at_s ("at 4 s": a
+    ("within 5 s"), start_s ("after 3 s"), end_s ("for the first 4 s", "until 4 s"; both: "between 2 and
+    6 s"), at_s ("at 4 s": a
     time point), always ("at all times"); durations: times in seconds no time phrase reads ("a 2 s
     gap"). Flags: everyone, others ("every other car", "the others"), group ("both", "they"),
     one_by_one, negated, pronoun, modal_start ("should ..."), verb_start ("stays below ..."), passive
@@ -216,6 +220,9 @@ def _groups(refs: list[tuple[int, int, int]], low: str) -> tuple[tuple[int, ...]
 def _times(low: str) -> tuple[str, float | None, float | None, float | None, float | None, bool]:
     """The text with its time phrases blanked, and deadline_s, start_s, end_s, at_s, always."""
     deadline = start = end = at = None
+    m = _BETWEEN_TIMES.search(low)
+    if m:
+        start, end, low = float(m.group(1)), float(m.group(2)), _mask(low, m)
     m = _DEADLINE.search(low)
     if m:
         deadline, low = float(m.group(1)), _mask(low, m)

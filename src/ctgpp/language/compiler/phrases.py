@@ -47,7 +47,7 @@ ACCELERATION = re.compile(
 
 COLLIDE = (
     r"\bcollid\w*|\bcollision\w*|\bcrash\w*|\bhit\b|\bhits\b|\bsmash\w*|\brams?\b|\bbump\w*\s+into"
-    r"|accident"
+    r"|accident|\b(?:come|comes|coming|came)\s+into\s+contact|\b(?:make|makes|making|made)\s+(?:physical\s+)?contact"
     r"|\b(?:run|runs|ran|running|swerv\w*|veer\w*|plow\w*|plough\w*|slam\w*|driv\w*|drove)\s+into\s+"
     r"(?:(?:vehicle|car|agent|truck)\s*#?\d+|v\d+|#\d+|(?:the\s+)?ego)\b"
 )
@@ -179,6 +179,7 @@ PACE = r"\b(?:fast|quickly|rapidly|speedily|slow|slowly)\b(?!\s+(?:down|up))"
 AHEAD = (
     rf"({NUM})\s*(?:m|meters?|metres?|ft|feet)\s+(?:further\s+|farther\s+)?"
     r"(?:ahead|in\s+front|down|along|forward|on|up)\b"
+    rf"|\b(?:advanc|progress)\w*\s+(?:another\s+|a\s+further\s+)?({NUM})\s*(?:m|meters?|metres?|ft|feet)\b"
 )
 
 # a lower bound on speed said positively, the number right after it ("goes faster than 10 m/s", "drives

@@ -143,7 +143,14 @@ MANOEUVRES = (
      "intersection\")"),
     (r"\b(?:the|its|their)\s+(?:posted\s+)?speed\s+limit\b(?!\s*(?:of|is|=|:|at|to|be)?\s*\d)",
      "the road's speed limit (the maps carry none: say the speed, \"at 50 km/h\")"),
-    (r"\bparallel[- ]park\w*|\breverse[- ]park\w*|\bbay[- ]park\w*", "parking manoeuvres (they reverse)"),
+    (r"\bparallel[- ]park\w*|\breverse[- ]park\w*|\bbay[- ]park\w*"
+     r"|\bpark(?:s|ed|ing)?\s+(?:in|into)\b"
+     r"|\bpark(?:s|ed|ing)?\s+at\b(?!\s*(?:the\s+)?(?:point\s+)?\()",  # parking at a point: a stop there
+     "parking manoeuvres (they reverse; \"vehicle 6 stops inside the area around (x, y)\" stops at a place)"),
+    (r"\bjerk\b", "a limit on jerk (only the acceleration's magnitude is limited: \"under 2 m/s²\")"),
+    (r"\b(?:lateral|longitudinal|centripetal|sideways|forward)\s+accel\w*|\bg[- ]forces?\b",
+     "a limit on one component of the acceleration (the limit is on its magnitude: \"vehicle 3 keeps its "
+     "acceleration under 2 m/s²\")"),
     (r"\bhonk\w*|\bsignal\w*|\bindicat\w*|\bblinker|\bheadlight", "signals and lights (not simulated)"),
     (r"\bhead[- ]?on\b|\bt[- ]?bon\w*|\bside[- ]?swip\w*|\bbroadsid\w*",
      "a collision of a given kind (head-on, T-bone, sideswipe): \"vehicle 4 crashes into vehicle 5\" asks "

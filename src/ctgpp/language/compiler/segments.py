@@ -17,7 +17,7 @@ from ctgpp.language.compiler.patterns import Clause, analyse, split_points
 from ctgpp.language.compiler.refusals import unsupported
 
 _FILLER = re.compile(
-    r"\b(?:vehicles?|cars?|agents?|trucks?|ego|the|and|or|both|each|other|for|make|let|have|get|also|please"
+    r"\b(?:vehicles?|cars?|agents?|trucks?|veh|ego|the|and|or|both|each|other|for|make|let|have|get|also|please"
     r"|should|must|will|number|no)\b|\bv?\d+\b|[#.,;&!?]"
 )
 
