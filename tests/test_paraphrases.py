@@ -361,3 +361,56 @@ def test_what_no_behaviour_reads_is_refused_by_name(query: str, match: str) -> N
 def test_parking_at_a_point_is_a_stop_there() -> None:
     (got,) = structure("vehicle 4 parks at (615, 1660)", N)
     assert got["rule"] == "stop_region"
+
+
+@pytest.mark.parametrize(("query", "expect"), [
+    # questions and wishes typed into the playground
+    ("Can vehicle 3 swing into the left lane, please?",
+     [("lane_change", {"vehicle": 3, "side": "left"}, None, None, 0)]),
+    ("I'd like to see car 4 pass car 7 on the right.",
+     [("overtake", {"vehicle": 4, "other": 7, "side": "right"}, None, None, 0)]),
+    ("What happens if vehicle 1 gets rear-ended by vehicle 10 within 6 s?",
+     [("collide_from_behind", {"vehicle": 10, "target": 1}, None, [0.0, 6.0], 0)]),
+    ("I want the ego and vehicle 6 to bump into each other sometime in the first 4 seconds.",
+     [("collision", {"vehicle_a": 0, "vehicle_b": 6}, None, [0.0, 4.0], 0)]),
+    ("Make car 2 rear-end car 5, we want to test the crash detection.",
+     [("collide_from_behind", {"vehicle": 2, "target": 5}, None, None, 0)]),
+    ("Let the ego stay in its lane, keep off the verge and never go above 25 mph.",
+     [("follow_lane", {"vehicle": 0}, None, None, 0), ("no_offroad", {}, [0], None, 0),
+      ("speed_limit", {"limit_mps": 11.176}, [0], None, 0)]),
+    ("Can car 8 speed up to above 70 km/h and then, once it's done that, change lanes to the right?",
+     [("reach_speed", {"speed_mps": 19.4444, "bound": "above"}, [8], None, 0),
+      ("lane_change", {"vehicle": 8, "side": "right"}, None, None, 1)]),
+    ("Give vehicles 4 and 9 a goal of (60, 15) and have them cruise at about 8 m/s on the way there.",
+     [("goal_waypoint", {"vehicle": 4, "x": 60.0, "y": 15.0, "target_speed_mps": 8.0}, None, None, 0),
+      ("goal_waypoint", {"vehicle": 9, "x": 60.0, "y": 15.0, "target_speed_mps": 8.0}, None, None, 0)]),
+    ("vehicle 2 overtakes vehicle 6 on the right", [("overtake", {"vehicle": 2, "other": 6, "side": "right"},
+                                                     None, None, 0)]),  # "right" at the end is no tag
+    # a test sheet's shorthand
+    ("V3 -> left lane change, <= 4 s",
+     [("lane_change", {"vehicle": 3, "side": "left"}, None, [0.0, 4.0], 0)]),
+    ("car 6 / car 9: crash, t<6s", [("collision", {"vehicle_a": 6, "vehicle_b": 9}, None, [0.0, 6.0], 0)]),
+    ("v2 spd <= 8 m/s between 5 and 15 s", [("speed_limit", {"limit_mps": 8.0}, [2], [5.0, 15.0], 0)]),
+    ("v1 stays >= 15 m from v8", [("stay_away", {"vehicle": 1, "other": 8, "min_m": 15.0}, None, None, 0)]),
+    ("v8 stop @ (12.5, -3), r=4 m", [("stop_region", {"vehicle": 8, "x": 12.5, "y": -3.0, "radius_m": 4.0},
+                                      None, None, 0)]),
+    ("v1 reach pt (30, 4), tol 1.5 m", [("reach_point", {"vehicle": 1, "x": 30.0, "y": 4.0, "reach_m": 1.5},
+                                         None, None, 0)]),
+    ("v2 + v5: stop in zone around (0, 18), radius 5 m",
+     [("stop_region", {"vehicle": 2, "x": 0.0, "y": 18.0, "radius_m": 5.0}, None, None, 0),
+      ("stop_region", {"vehicle": 5, "x": 0.0, "y": 18.0, "radius_m": 5.0}, None, None, 0)]),
+    ("from t=3 s on: v9 stays on right side of ego",
+     [("stay_side_of", {"vehicle": 9, "other": 0, "side": "right"}, None, [3.0, None], 0)]),
+    ("car 3 rear-ended by car 10 within 5 s", [("collide_from_behind", {"vehicle": 10, "target": 3}, None,
+                                                [0.0, 5.0], 0)]),
+    ("Case 12 – vehicle 1 overtakes vehicle 4 (left side)",  # the bracket's side is read, never dropped
+     [("overtake", {"vehicle": 1, "other": 4, "side": "left"}, None, None, 0)]),
+    ("TC-031 | v2 | straight thru next junction",
+     [("turn_at_next_intersection", {"vehicle": 2, "direction": "straight"}, None, None, 0)]),
+    ("v11 follows v6, gap 8-25 m, first 10 s",
+     [("keep_distance", {"follower": 11, "leader": 6, "min_m": 8.0, "max_m": 25.0}, None, [0.0, 10.0], 0)]),
+    ("all: |accel| <= 2 m/s²", [("acceleration_limit", {"max_mps2": 2.0}, None, None, 0)]),
+])
+def test_playground_and_test_sheet_wordings(query: str, expect: list) -> None:
+    got = [(p["rule"], p["params"], p["vehicles"], p["window"], p["stage"]) for p in structure(query, N)]
+    assert got == expect

@@ -140,6 +140,24 @@ def _held_already(parts: list[QueryPart], part: QueryPart) -> bool:
                and p.window is not None and p.window.end_s is None and p.window.hold for p in parts)
 
 
+def _speed_on_the_way(parts: list[QueryPart]) -> list[QueryPart]:
+    """A speed said in its own clause for exactly the vehicles sent to a point at the same stage
+    ("heads for the goal at (120, 30) while holding 8 m/s") is the speed to hold on the way: the
+    points' ``target_speed_mps``, as when said in the same clause, not a rule of its own."""
+    out = list(parts)
+    for speed in parts:
+        if speed.rule != "target_speed" or speed.window is not None or not speed.vehicles:
+            continue
+        goals = [k for k, p in enumerate(out) if p.rule in ("goal_waypoint", "reach_point")
+                 and p.stage == speed.stage and "target_speed_mps" not in p.params and p.window is None]
+        if sorted(out[k].params["vehicle"] for k in goals) != sorted(speed.vehicles):
+            continue
+        for k in goals:
+            out[k] = replace(out[k], params={**out[k].params, "target_speed_mps": speed.params["speed_mps"]})
+        out.remove(speed)
+    return out
+
+
 def _vehicle_of(spec: PartSpec) -> int | None:
     got = part_vehicles(spec)
     return min(got) if got and len(got) == 1 else None
@@ -213,7 +231,7 @@ def compile_query(query: str, num_vehicles: int) -> CompiledQuery:
                       previous=involved or ctx.previous,
                       had_subject=bool(clause.subjects) or (not clause.vehicles and bool(ctx.subjects)
                                                             and involved == ctx.subjects))
-    parts += _pair_paces(paces, query)
+    parts = _speed_on_the_way(parts) + _pair_paces(paces, query)
     if not parts:
         raise unsupported(query, query)
     if query != original:  # the parts' spans and texts in the query as written

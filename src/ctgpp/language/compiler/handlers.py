@@ -273,7 +273,12 @@ def _point(c: Clause) -> dict[str, Any]:
 
 
 def reach(c: Clause, ctx: Context) -> list[PartSpec]:
-    return [PartSpec("reach", "reach_point", {"vehicle": v, **_point(c)}) for v in subjects(c, ctx)]
+    """A point to reach; a distance said as its tolerance ("within 1.5 m", "tolerance 1.5 m") is how
+    close counts as reached."""
+    params = _point(c)
+    if c.distances and c.has(r"\btolerance\b|\bwithin\b|\baccuracy\b"):
+        params["reach_m"] = c.distances[0]
+    return [PartSpec("reach", "reach_point", {"vehicle": v, **params}) for v in subjects(c, ctx)]
 
 
 def _speed_limit(c: Clause, ctx: Context) -> list[PartSpec]:

@@ -88,6 +88,7 @@ gently softly hardly quick quicker fastest slowest nearest farthest furthest beh
 together alongside across toward along because before after until since being doing having
 take takes taking took make makes making made
 overtaken overtook passed followed rammed struck tailgated collided crashed bumped smashed
+verge grass kerb curb sidewalk footpath median shoulder
 """
 
 
@@ -268,11 +269,13 @@ _UNITS = (  # (pattern, replacement), case-insensitive, in order
      r"|\b(?:metres?|meters?)\s+per\s+second\s+squared\b", "m/s²"),
 )
 
-_VEH = (  # a vehicle or a list of them
-    r"(?:(?:the\s+)?ego(?:[- ](?:vehicle|car))?"
-    r"|(?:vehicles?|cars?|agents?|trucks?)\s+#?\d+(?:\s*(?:,|&|and|or)\s*(?:and\s+)?#?\d+)*)"
+_ONE_VEH = r"(?:(?:the\s+)?ego(?:[- ](?:vehicle|car))?|(?:vehicles?|cars?|agents?|trucks?|veh)\s*#?\d+|v\d+)"
+_VEH = (  # a vehicle or a list of them ("vehicles 1, 2 and 3", "the ego and vehicle 6", "v2 + v5")
+    rf"(?:{_ONE_VEH}(?:\s*(?:,|&|and|or|\+|/)\s*(?:and\s+)?(?:{_ONE_VEH}|#?\d+))*)"
 )
 
+_ALL = (r"(?:everyone|everybody|all\s+(?:the\s+)?(?:cars|vehicles|agents)|every\s+(?:car|vehicle|agent)"
+        r"|each\s+(?:car|vehicle))")
 _WORDING = (  # (pattern, replacement), case-insensitive, in order
     (r"\b(?:not|no)\s+more\s+than\b|\bno\s+(?:farther|further)\s+than\b|\bnot\s+(?:farther|further)\s+than\b",
      "at most"),
@@ -305,6 +308,27 @@ _WORDING = (  # (pattern, replacement), case-insensitive, in order
     (r"\b(vehicle|car|agent|truck)\s+(?:numbered|labell?ed|tagged|with\s+(?:the\s+)?(?:number|id|label))\s+",
      r"\1 "),
     (r"\b(?:one|a)\s+lane\s+(?:to\s+)?(?:the\s+)?(left|right)\b", r"one lane over to the \1"),
+    # questions and wishes: "Can vehicle 3 ...?", "Could we get car 3 and car 8 to ...", "I'd like to see
+    # car 4 ...", "What if the ego ...", "Let's have vehicle 11 ..."
+    (rf"^\s*(?:so\s+|and\s+)?(?:can|could|would|will)\s+(?:you|we|i)\s+(?:please\s+)?(?:get|make|have|let|see)"
+     rf"\s+({_VEH})\s+(?:to\s+)?", r"\1 should "),
+    (rf"^\s*(?:so\s+|and\s+)?(?:can|could)\s+({_VEH})\s+(?:please\s+)?", r"\1 should "),
+    (rf"^\s*(?:i|we)(?:'d|\s+would)\s+(?:like|love|want)\s+to\s+see\s+({_VEH})\s+(?:to\s+)?", r"\1 should "),
+    (rf"^\s*(?:what\s+(?:happens\s+)?if|suppose|imagine|let's\s+say)\s+({_VEH})\s+(?:had\s+to\s+|has\s+to\s+)?",
+     r"\1 should "),
+    (rf"^\s*let(?:'s|\s+us)\s+(?:have|get|make|see)\s+({_VEH})\s+(?:to\s+)?", r"\1 should "),
+    (r"^\s*(?:just\s+)?(?:make\s+sure|ensure|check)\s+(?:that\s+)?", ""),
+    (r"\s*\b(?:ideally|maybe|perhaps|just|kind\s+of|sort\s+of|nicely|basically|simply|sometime|somehow)\b,?",
+     ""),
+    (r"\blike\s+(?=\d)", ""),
+    (r"^\s*(?:can|could)\s+(?:we|you)\s+(?:please\s+)?(?=keep|limit|cap|stop|prevent|avoid)", ""),
+    (r"\(\s*(?:on\s+the\s+)?(left|right)(?:\s+side)?\s*\)", r"on the \1"),
+    (rf"^\s*cut[- ]in\s*:\s*({_VEH})\s+(?:in\s+front\s+of|ahead\s+of)\b", r"\1 cuts in front of"),
+    (r",\s*(?:at\s+)?(\d+(?:\.\d+)?\s*(?:m/s|km/h|mph|kph))\s+(on\s+the\s+way|en\s+route)\b", r" at \1 \2"),
+    (r"\btol(?:erance)?\b\.?", "tolerance"),
+    (r"\s*,\s*(?:ok|okay|yeah|yes|right|please|thanks|thank\s+you|too|as\s+well)\s*[?.!]*\s*$"
+     r"|\s+(?:please|thanks|too|as\s+well)\s*[?.!]*\s*$", ""),
+    (r"\bin\s+the\s+first\s+(?=\d)", "within the first "),
     (rf"^\s*(?:please\s+)?(?:i\s+want|i'd\s+like|i\s+would\s+like|we\s+want|we'd\s+like|tell|ask|get|make"
      rf"|have|let|force|i\s+need|we\s+need)\s+({_VEH})\s+to\s+", r"\1 should "),
     (rf"^\s*(?:please\s+)?(?:send|bring|take|route|steer|direct)\s+({_VEH})\s+", r"\1 should drive "),
@@ -312,8 +336,20 @@ _WORDING = (  # (pattern, replacement), case-insensitive, in order
     (rf"^\s*(?:please\s+)?(drive|move)\s+({_VEH})\s+", r"\2 should \1 "),
     (rf"\bkeep\s+({_VEH})\s+in\s+(?:its|their|the)\s+(?:own\s+|current\s+)?lanes?\b",
      r"\1 keep their lanes"),
-    (rf"^\s*(?:please\s+)?({_VEH})\s*[,:]\s*(?!(?:and|or|{_NUMBER_WORD})\b)(?=[a-z])",
+    (rf"\bkeep\s+({_VEH}|{_ALL})\s+(?=(?:on|inside|within|under|below|off|away|out|at)\b)", r"\1 keep "),
+    (r"\bkeep\s+lanes\b", "keep their lanes"),
+    (r"\bkeep\w*\s+off\s+the\s+(?:verge|grass|kerb|curb|sidewalk|footpath|pavement|shoulder)\b",
+     "stay on the road"),
+    (r"\s*[-,;]?\s*\b(?:and\s+)?(?:no|not|never)\s+(?:driving|drive|drives|going)\s+(?:onto|on|into)\s+the\s+"
+     r"(?:verge|grass|kerb|curb|sidewalk|footpath|shoulder)\b", " and never leave the road"),
+    (r"\b(stay\w*|keep\w*|remain\w*|is|drives?|driving)\s+(left|right)\s+of\b", r"\1 on the \2 of"),
+    (r"\bon\s+(left|right)(\s+side|\s+lane)\b", r"on the \1\2"),
+    (rf"({_ONE_VEH})\s+(rear-ended|rear\s+ended|hit|overtaken|passed|cut\s+off|rammed|struck|tailgated)\s+by\b",
+     r"\1 gets \2 by"),
+    (rf"^\s*(?:please\s+)?({_VEH})\s*[,:|]\s*(?!(?:and|or|{_NUMBER_WORD})\b)(?=[a-z])",
      r"\1 should "),
+    (r"\bkeep(s?)\s+(?:inside|within)\s+", r"stay\1 within "),
+    (r"\b(should|must|will)\s+straight\b", r"\1 go straight"),
 )
 
 
@@ -365,16 +401,30 @@ def negative_subjects(text: str) -> str:
 # framing phrase before the first comma ("For this study, ...", "To test the brakes, ..."); one with a
 # number is kept (and refused if no part reads it), as is one that names a place on the map
 _PLACE = r"intersection|junction|crossing|crosswalk|light|sign|lane|road|roundabout|corner|kerb|curb|shoulder"
+_SAYS_WHERE = "left|right|lane|side|behind|ahead|front"
 _ASIDES = (
     # a ticket's label before a colon ("Repro:", "Setup:", "Test plan:", "Bug #412:"), never a vehicle
     re.compile(r"^\s*(?!(?:vehicles?|cars?|agents?|trucks?|veh|the\s+ego|ego)\b)[a-z][a-z ]{0,20}?"
                r"(?:\s*#\d+)?\s*:\s+", re.IGNORECASE),
-    re.compile(r"\s*\((?=[^()]*[a-z])[^()\d]*\)|\s*\[(?=[^\[\]]*[a-z])[^\[\]\d]*\]", re.IGNORECASE),
+    # a test case's number before a dash, a bar or a colon ("Case 12 –", "TC-031 |")
+    re.compile(r"^\s*(?:case|tc|test(?:\s+case)?|scenario|row|id|req)[\s#-]*\d+\s*[-–:|.)]\s*",
+               re.IGNORECASE),
+    # a remark in brackets, never one that says a side, a lane or a place ("(left side)" is the overtake's)
+    re.compile(rf"\s*\((?=[^()]*[a-z])(?![^()]*\b(?:{_SAYS_WHERE})\b)[^()\d]*\)"
+               rf"|\s*\[(?=[^\[\]]*[a-z])(?![^\[\]]*\b(?:{_SAYS_WHERE})\b)[^\[\]\d]*\]", re.IGNORECASE),
     re.compile(r",\s*(?:which|who)\s+[^,\d]*(?:,|(?=[.!?]?\s*$))", re.IGNORECASE),
     re.compile(rf"^\s*(?:for|in|to|as\s+part\s+of|whatever)\b(?![^,]*\b(?:{_PLACE})\b)[^,\d]*,\s*",
                re.IGNORECASE),
 )
 # a prohibition of collisions said as a manner ("... without hitting anyone")
+# why the request is made ("- we're testing passenger comfort", ", so we can test the braking"): asks
+# for nothing; never with a number (a number is read or refused)
+_PURPOSE = re.compile(
+    r"\s*(?:[,;]|\s-|\s–)?\s*\b(?:so\s+(?:that\s+)?(?:we|i|you)\s+can|we\s+want\s+to|we\s+are\s+(?:testing|trying)"
+    r"|i\s+am\s+(?:testing|trying)|to\s+(?:test|check|stress|exercise)|for\s+(?:testing|a\s+test))\b[^.;\d]*"
+    r"(?=[.;!?]|$)",
+    re.IGNORECASE,
+)
 _WITHOUT_HITTING = re.compile(
     r",?\s+without\s+(?:hitting|crashing\s+into|colliding\s+with|touching|striking|bumping\s+into)\s+"
     r"(?:anyone|anybody|anything|any(?:\s+other)?\s+(?:vehicle|car|agent)s?|other\s+(?:vehicles|cars|traffic))\b",
@@ -386,9 +436,10 @@ _WITHOUT_HITTING = re.compile(
 # no farther than 18 m back", "cuts in ahead of vehicle 7, leaving at most 5 m"): part of that clause
 _DISTANCE_AFTER = re.compile(
     r"\s*(?:,(?!\s*-?\d+(?:\.\d+)?\s*\))\s*(?:but\s+)?|\s+but\s+)"  # never the comma of a point "(40,8)"
-    r"(?=(?:leaving|staying|keeping|with|at|no|not|within|between|under|less|gap|radius|buffer|clearance"
+    r"(?=(?:leaving|staying|keeping|with|at|no|not|within|between|under|less|gap|radius|buffer|clearance|tolerance"
     r"|minimum|min|maximum|max|\d)(?:[^,.;]|\.(?=\d))*?\d\s*(?:m|meters?|metres?|ft|feet)\b"
     r"(?:\s+(?:of\s+)?(?:gap|back|behind|ahead|apart|away|clearance|buffer|space|margin))?"
+    r"(?:\s*,?\s+(?:for\s+the\s+first|within|by|after|until)\s+\d+(?:\.\d+)?\s*(?:s|secs?|seconds?)\b)?"
     r"\s*(?:[.!?]?\s*$))",
     re.IGNORECASE,
 )
@@ -404,7 +455,8 @@ _HARD_BRAKE_TO_STOP = re.compile(
 
 # "; as soon as it has done so, ..." / "once it has completed the turn, ...": the next part in turn
 _ONCE_DONE = re.compile(
-    r"\s*[;,]?\s*\b(?:as\s+soon\s+as|once|after|when)\s+(?:it|they|he|she)\s+(?:has|have|had|is|are)\s+"
+    r"\s*(?:,?\s*(?:and\s+)?then\s*)?[;,]?\s*\b(?:as\s+soon\s+as|once|after|when)\s+(?:it|they|he|she)"
+    r"(?:'s|'ve|\s+(?:has|have|had|is|are))\s+"
     r"(?:done\s+(?:so|that|this|it)|finished(?:\s+(?:it|that|the\s+\w+))?|completed\s+(?:it|that|the\s+\w+))\s*,?\s*",
     re.IGNORECASE,
 )
@@ -418,7 +470,47 @@ def drop_asides(text: str) -> str:
     text = _HARD_BRAKE_TO_STOP.sub("", text)
     text = _WITHOUT_HITTING.sub(" and must not collide", text)
     text = _ONCE_DONE.sub(", then ", text)
+    text = _PURPOSE.sub("", text)
     return text.strip()
+
+
+_SHORTHAND = (  # (pattern, replacement), case-insensitive, in order: a test sheet's notation in words
+    (r"\s*(?:->|=>|→)\s*", ", then "),
+    (r"\|\s*(accel\w*|acceleration|speed|spd)\s*\|", r"\1"),
+    (r"(?:\bt\s*)?(?:<=|≤|<)\s*(\d+(?:\.\d+)?)\s*(?:s|secs?|seconds?)\b", r"within \1 s"),
+    (r"(?:\bt\s*)?(?:>=|≥|>)\s*(\d+(?:\.\d+)?)\s*(?:s|secs?|seconds?)\b", r"after \1 s"),
+    (r"\s*(?:<=|≤)\s*", " at most "),
+    (r"\s*(?:>=|≥)\s*", " at least "),
+    (r"\s*<\s*(?=\d)", " under "),
+    (r"\s*>\s*(?=\d)", " over "),
+    (r"\bspd\b|\bvel\b", "speed"),
+    (r"\bdist\b", "distance"),
+    (r"\baccel\s+(?=to\b)", "accelerate "),
+    (r"\baccels?\b", "acceleration"),
+    (r"\bdecel(?:erates?)?\s+(?=to\b)", "slows down "),
+    (r"\bdecel\b", "deceleration"),
+    (r"\bLC\b", "lane change"),
+    (r"\bthru\b", "through"),
+    (r"\bpt\b", "point"),
+    (r"\bpos\b", "position"),
+    (r"\bw/o\b", "without"),
+    (r"\bw/\s*", "with "),
+    (r"\br\s*=\s*(\d+(?:\.\d+)?)\s*m\b", r"radius \1 m"),
+    (r"\s*@\s*", " at "),
+    (r"\b(v\d+|(?:vehicle|car|agent|truck|veh)\s*#?\d+|ego)\s*[+/]\s*(?=v\d|veh|vehicle|car|agent|truck|the\s+ego|ego)",
+     r"\1 and "),
+    (r"^(\s*(?:from|after|before|within|until|by)\b[^:]{0,24}?\d\s*s\b[^:]{0,8}):\s*", r"\1, "),
+    (r",\s*first\s+(?=\d+(?:\.\d+)?\s*(?:s|secs?|seconds?)\b)", " for the first "),
+    (r"\bm/s\s+squared\b", "m/s²"),
+)
+
+
+def expand_shorthand(text: str) -> str:
+    """A test sheet's notation in words: "->" a sequence, "t<6s" a deadline, "<=" at most, "spd", "LC",
+    "r=4 m", "v2 + v5" (module docstring, step 1)."""
+    for pattern, repl in _SHORTHAND:
+        text = re.sub(pattern, repl, text, flags=re.IGNORECASE)
+    return text
 
 
 def canonical_wording(text: str) -> str:
@@ -480,6 +572,7 @@ def normalise(query: str) -> str:
     text = re.sub(r"\bactor(s?)\b", r"agent\1", text, flags=re.IGNORECASE)  # test plans' word for a vehicle
     text = expand_contractions(text)
     text = drop_asides(text)
+    text = expand_shorthand(text)
     text = correct_typos(text)
     text = numbers_to_digits(text)
     text = canonical_units(text)

@@ -75,8 +75,8 @@ _DEADLINE = re.compile(
     rf"|no\s+later\s+than)\s+(?:the\s+|t\s*=\s*)?({NUM})\s*{_SECONDS}(?:\s+mark\b)?"
 )
 _START = re.compile(
-    rf"\b(?:after(?:\s+the\s+first|\s+t\s*=)?|from(?:\s+t\s*=)?|starting(?:\s+(?:at|from|after))?(?:\s+t\s*=)?|once)\s+"
-    rf"({NUM})\s*{_SECONDS}(?:\s+(?:onwards?|on|have\s+passed|passed|in))?"
+    rf"\b(?:after(?:\s+the\s+first|\s+t\s*=)?|from(?:\s+t\s*=)?|starting(?:\s+(?:at|from|after))?(?:\s+t\s*=)?|once)"
+    rf"(?:\s+|(?<==)\s*)({NUM})\s*{_SECONDS}(?:\s+(?:onwards?|on|have\s+passed|passed|in))?"
 )
 _END = re.compile(
     rf"\b(?:for|during)\s+the\s+first\s+({NUM})\s*{_SECONDS}|\b(?:until|till|up\s+to)\s+(?:t\s*=\s*)?({NUM})\s*{_SECONDS}"

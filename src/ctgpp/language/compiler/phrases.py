@@ -11,12 +11,16 @@ from ctgpp.language.bounds import UP_TO_BOUND
 from ctgpp.language.compiler.patterns import NUM
 
 LANE_CHANGE = (
-    r"(?:chang|switch|mov|go|shift|merg|get|pull)\w*\s+(?:\w+\s+){0,3}?(?:to|into|onto|in)\s+(?:the\s+)?"
+    r"(?:chang|switch|mov|go|shift|merg|get|pull|swing|hop|slid|nip|dart|duck)\w*\s+(?:\w+\s+){0,3}?"
+    r"(?:to|into|onto|in)\s+(?:the\s+)?"
     r"(?:left|right)(?:[- ]hand)?\s+lane|lane[- ]change\s+(?:to\s+the\s+)?(?:left|right)"
     r"|chang\w*\s+lanes?\s+(?:to\s+(?:the\s+)?)?(?:left|right)|(?:left|right)\s+lane[- ]change"
     r"|\b(?:mov|shift|go|chang|switch)\w*\s+(?:one\s+|a\s+)?lanes?\s+(?:over\s+)?(?:to\s+(?:the\s+)?)?(?:left|right)"
     r"|\b(?:go|goes|move|moves|get|gets|switch\w*|chang\w*)\s+(?:to\s+)?(?:left|right)\s+lane\b"
     r"|\b(?:chang|switch|mov|shift|merg|pull|go)\w*\s+back\s+(?:in)?to\s+the\s+(?:left|right)\b"
+    r"|\bchang\w*\s+to\s+the\s+(?:left|right)\b(?!\s*(?:-?hand\s+)?(?:side\s+)?of\b)"
+    r"|\b(?:mov|shift|swing|hop|slid)\w*\s+(?:over\s+)?(?:to\s+the\s+)?(?:left|right)\b"
+    r"(?!\s*(?:-?hand\s+)?(?:side\s+)?of\b|\s+(?:turn|at|into\s+the\s+(?:intersection|junction)))"
 )
 
 # a turn the next-intersection rule cannot be told: one further on ("at the second intersection")
