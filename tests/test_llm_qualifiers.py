@@ -91,6 +91,13 @@ REFUSED = [
     ("vehicle 2 cuts in behind vehicle 3",
      calls({"behaviour": "cut_in", "vehicle": 2, "ahead_of": 3}),
      "cut_in puts vehicle 3 behind vehicle 2, but the sentence puts vehicle 2 behind vehicle 3"),
+    # a passive clause's roles turned round
+    ("What happens if vehicle 1 gets rear-ended by vehicle 10 within 6 s?",
+     calls({"behaviour": "collide_from_behind", "vehicle": 1, "target": 10, "within_s": 6}),
+     "has vehicle 1 act on vehicle 10, but the sentence says vehicle 10 does it to vehicle 1"),
+    ("the ego is overtaken on the left by vehicle 4",
+     calls({"behaviour": "overtake", "vehicle": 0, "other": 4, "side": "left"}),
+     "has vehicle 0 act on vehicle 4"),
     # a bound turned round, or read as a speed to drive at
     ("vehicle 3 should be at most 15 m away from vehicle 0",
      calls({"behaviour": "stay_away", "vehicle": 3, "other": 0, "min_m": 15}),

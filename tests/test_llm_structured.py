@@ -15,7 +15,8 @@ from ctgpp.behaviours import behaviours
 from ctgpp.cli.main import main
 from ctgpp.language.compiler import QueryError, QueryPart, compile_query
 from ctgpp.language.llm.client import LLMConfig, LLMError
-from ctgpp.language.llm.schema import reply_schema
+from ctgpp.language.llm.calls import call_params
+from ctgpp.language.llm.schema import call_schema, reply_schema
 from ctgpp.language.llm.structured import (
     StructuredRefused,
     read_structured,
@@ -279,3 +280,14 @@ def test_benchmark_set_is_refused_by_the_compiler_and_means_registry_calls() -> 
             compile_query(row["query"], SCENE_VEHICLES)
         for part in row["expect"]:
             behaviours()[part["rule"]].resolve(part["params"])  # a behaviour, its parameters
+
+
+def test_a_word_parameter_with_no_default_choice_is_a_word() -> None:
+    """The overtake's side ('left', 'right', or left out: the behaviour chooses) is a word in the schema
+    and in a call, never a number (it had been typed as a number: every side the model gave was refused)."""
+    assert call_schema("overtake")["properties"]["side"] == {"type": "string", "enum": ["left", "right"]}
+    call = {"behaviour": "overtake", "vehicle": 4, "other": 7}
+    assert call_params("overtake", {**call, "side": "right"}, 12)["side"] == "right"
+    assert "side" not in call_params("overtake", {**call, "side": None}, 12)
+    with pytest.raises(ValueError, match="expected one of left, right"):
+        call_params("overtake", {**call, "side": "north"}, 12)

@@ -11,7 +11,7 @@ from typing import Any
 
 from ctgpp.behaviours import behaviours, get_behaviour
 from ctgpp.language.llm.generate import Round
-from ctgpp.language.llm.schema import TIME_FIELDS, is_vehicle, scoped, words
+from ctgpp.language.llm.schema import TIME_FIELDS, is_vehicle, is_word, scoped, words
 from ctgpp.language.llm.sentence import named_vehicles, said_quantities
 from ctgpp.rule_params import check_quantity
 
@@ -55,7 +55,9 @@ def call_params(name: str, call: dict[str, Any], num_vehicles: int) -> dict[str,
         if is_vehicle(p):
             ok = value is None and "None" in p.type
             params[key] = None if ok else vehicle_number(value, what, num_vehicles)
-        elif p.type == "str":
+        elif is_word(p):
+            if value is None and "None" in p.type:  # the behaviour's own choice
+                continue
             if value not in words(p):
                 raise StructuredRefused(f"{what} is {value!r}: expected one of {', '.join(words(p))}")
             params[key] = value

@@ -21,7 +21,9 @@ offline compiler knows it cannot honour:
   :data:`~ctgpp.language.compiler.phrases.STOP_PLACE`), a turn further on than the next intersection
   (:data:`~ctgpp.language.compiler.phrases.TURN_LATER`), as the compiler refuses them;
 - a relation whose vehicles are in the other order than the sentence puts them ("vehicle 3 ...
-  ahead of vehicle 4" read with vehicle 3 behind: following it, cutting in behind it, ...);
+  ahead of vehicle 4" read with vehicle 3 behind: following it, cutting in behind it, ...), or whose
+  roles are turned round from a passive clause ("vehicle 1 gets rear-ended by vehicle 10" read with
+  vehicle 1 hitting);
 - a bound read the other way round or as an exact value (:func:`~ctgpp.language.bounds.bound_mismatch`,
   the compiler's check too: "no farther than 18 m" is no minimum distance);
 - a "not" read as the thing it denies, or as a prohibition of something else: a clause that says
@@ -46,7 +48,8 @@ from ctgpp.language.compiler.refusals import MANOEUVRES, SUPPORTED
 from ctgpp.language.llm.calls import StructuredRefused, is_vehicle_param
 from ctgpp.language.llm.sentence import named_vehicles
 
-__all__ = ["DENIABLE", "EVIDENCE", "ORDER", "check_evidence", "check_expressible", "positions"]
+__all__ = ["ACTS", "DENIABLE", "EVIDENCE", "ORDER", "check_evidence", "check_expressible", "passives",
+           "positions"]
 
 TIME_GAP = re.compile(
     r"\d+(?:\.\d+)?\s*-?\s*(?:s|secs?|seconds?)\s+(?:time\s+)?(?:gap|headway)\b"
@@ -131,6 +134,26 @@ def positions(sentence: str) -> set[tuple[int, int]]:
     return pairs
 
 
+ACTS = {"keep_distance": ("follower", "leader"), "collide_from_behind": ("vehicle", "target"),
+        "cut_in": ("vehicle", "ahead_of"), "overtake": ("vehicle", "other")}
+"""For each relation: the parameter of the vehicle that acts, and of the one acted on."""
+_PASSIVE = re.compile(
+    rf"{_MENTION}\s+(?:(?:is|are|was|were|be|been|being|gets?|got|getting)\s+)?(?:\w+\s+){{0,2}}?"
+    rf"(?:[\w-]+ed|[\w-]+en|hit|cut(?:\s+off)?|struck|run)\s+(?:\w+\s+){{0,3}}?by\s+(?:the\s+)?{_MENTION}",
+    re.I)
+
+
+def passives(sentence: str) -> set[tuple[int, int]]:
+    """The pairs (acted on, acting) of the sentence's passive clauses: "vehicle 1 gets rear-ended by
+    vehicle 10" gives (1, 10)."""
+    pairs = set()
+    for m in _PASSIVE.finditer(sentence):
+        patient = 0 if m.group(1) is None else int(m.group(1))
+        agent = 0 if m.group(3) is None else int(m.group(3))
+        pairs.add((patient, agent))
+    return pairs
+
+
 def _clauses_of(sentence: str, pattern: str) -> list[str]:
     """The pieces of the sentence between clause ends (",", "and", "then", ...) that match ``pattern``."""
     return [piece for piece in CLAUSE_BREAK.split(sentence) if re.search(pattern, piece, re.I)]
@@ -180,6 +203,15 @@ def check_expressible(calls: list[dict[str, Any]], sentence: str) -> None:
         if (ahead, behind) in placed:
             raise StructuredRefused(f"{call['behaviour']} puts vehicle {behind} behind vehicle {ahead}, but "
                                     f"the sentence puts vehicle {ahead} behind vehicle {behind}")
+    acted_on = passives(sentence)
+    for call in calls:
+        roles = ACTS.get(call.get("behaviour", ""))
+        if roles is None:
+            continue
+        actor, other = call.get(roles[0]), call.get(roles[1])
+        if (actor, other) in acted_on:
+            raise StructuredRefused(f"{call['behaviour']} has vehicle {actor} act on vehicle {other}, but "
+                                    f"the sentence says vehicle {other} does it to vehicle {actor} (passive)")
 
 
 def _check_denials(calls: list[dict[str, Any]], sentence: str) -> None:

@@ -28,7 +28,7 @@ from typing import Any
 from ctgpp.behaviours import behaviours
 from ctgpp.rule_params import ParamInfo
 
-__all__ = ["TIME_FIELDS", "TUNING", "call_schema", "is_vehicle", "reply_schema", "scoped", "words"]
+__all__ = ["TIME_FIELDS", "TUNING", "call_schema", "is_vehicle", "is_word", "reply_schema", "scoped", "words"]
 
 TIME_FIELDS = ("within_s", "from_s", "until_s")
 """The time fields every call may carry (``at_s`` only ``stop``'s)."""
@@ -47,9 +47,15 @@ def is_vehicle(param: ParamInfo) -> bool:
     return param.type.startswith("int") and "displayed" in param.help
 
 
+def is_word(param: ParamInfo) -> bool:
+    """Whether ``param`` takes a word (``str``, or ``str | None`` where None is its default: the
+    overtake's side)."""
+    return param.type in ("str", "str | None")
+
+
 def words(param: ParamInfo) -> list[str]:
-    """The words a ``str`` parameter takes, as its help quotes them (``'left' or 'right'``)."""
-    return re.findall(r"'([a-z_]+)'", param.help) if param.type == "str" else []
+    """The words a word parameter takes, as its help quotes them (``'left' or 'right'``)."""
+    return re.findall(r"'([a-z_]+)'", param.help) if is_word(param) else []
 
 
 def scoped(name: str) -> bool:
@@ -66,7 +72,7 @@ def _vehicle(num_vehicles: int | None) -> dict[str, Any]:
 def _param(param: ParamInfo, num_vehicles: int | None) -> dict[str, Any]:
     if is_vehicle(param):
         return _vehicle(num_vehicles)
-    if param.type == "str":
+    if is_word(param):
         return {"type": "string", "enum": words(param)}
     if param.type == "bool":
         return {"type": "boolean"}
