@@ -14,8 +14,8 @@ import pytest
 from ctgpp.behaviours import behaviours
 from ctgpp.cli.main import main
 from ctgpp.language.compiler import QueryError, QueryPart, compile_query
-from ctgpp.language.llm.client import LLMConfig, LLMError
 from ctgpp.language.llm.calls import call_params
+from ctgpp.language.llm.client import LLMConfig, LLMError
 from ctgpp.language.llm.schema import call_schema, reply_schema
 from ctgpp.language.llm.structured import (
     StructuredRefused,
