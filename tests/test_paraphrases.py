@@ -414,3 +414,38 @@ def test_parking_at_a_point_is_a_stop_there() -> None:
 def test_playground_and_test_sheet_wordings(query: str, expect: list) -> None:
     got = [(p["rule"], p["params"], p["vehicles"], p["window"], p["stage"]) for p in structure(query, N)]
     assert got == expect
+
+
+@pytest.mark.parametrize(("query", "expect"), [
+    # a time said first, before a comma, is the window, never a framing aside to drop
+    ("For the first twenty seconds, vehicles 1, 2 and 3 must stay under fifty kilometres per hour.",
+     [("speed_limit", {"limit_mps": 13.8889}, [1, 2, 3], [0.0, 20.0], 0)]),
+    ("On a wet evening, the lead car, vehicle 2, slows down to 20 km/h.",
+     [("target_speed", {"speed_mps": 5.5556}, [2], None, 0)]),
+    # a role beside a vehicle's number, and a passive with one
+    ("The ego is rear-ended by the bus, vehicle 7.",
+     [("collide_from_behind", {"vehicle": 7, "target": 0}, None, None, 0)]),
+    ("A motorcyclist (vehicle 9) passes the delivery van, vehicle 4, on the left.",
+     [("overtake", {"vehicle": 9, "other": 4, "side": "left"}, None, None, 0)]),
+    # "not ... or ..." forbids both; "before that" puts the later clause first
+    ("Nobody collides or leaves the road while vehicle 8 makes a U-turn.",
+     [("no_collision", {}, None, None, 0), ("no_offroad", {}, None, None, 0),
+      ("u_turn", {"vehicle": 8}, None, None, 0)]),
+    ("Vehicle 4 should collide with vehicle 11, but before that it has to change into the left lane.",
+     [("lane_change", {"vehicle": 4, "side": "left"}, None, None, 0),
+      ("collision", {"vehicle_a": 4, "vehicle_b": 11}, None, None, 1)]),
+    ("It is required that vehicle 8 turns left at the next intersection and, once it has done so, that it "
+     "stays within its lane.",
+     [("turn_at_next_intersection", {"vehicle": 8, "direction": "left"}, None, None, 0),
+      ("follow_lane", {"vehicle": 8}, None, None, 1)]),
+    # times in other words
+    ("By the time half a minute has passed, the ego must have slowed to under four metres per second.",
+     [("reach_speed", {"speed_mps": 4.0, "bound": "below"}, [0], [30.0, None], 0)]),
+    ("Vehicle 4 should be standing still by the twelve-second mark.", [("stop", {}, [4], [12.0, None], 0)]),
+    ("For the first fifteen seconds, neither vehicle 4 nor vehicle 9 may change lanes.",
+     [("keep_lane", {"vehicle": 4}, None, [0.0, 15.0], 0),
+      ("keep_lane", {"vehicle": 9}, None, [0.0, 15.0], 0)]),
+])
+def test_red_team_and_story_wordings(query: str, expect: list) -> None:
+    got = [(p["rule"], p["params"], p["vehicles"], p["window"], p["stage"]) for p in structure(query, N)]
+    assert got == expect

@@ -207,7 +207,10 @@ def _whole_episode(c: Clause, ctx: Context, what: str) -> TimeWindow | None:
 
 
 def stand_still(c: Clause, ctx: Context) -> list[PartSpec]:
-    """Stopped (under 0.5 m/s) at every step of the window: "stands still", "does not move"."""
+    """Stopped (under 0.5 m/s) at every step of the window: "stands still", "does not move"; by a time
+    ("is standing still by the 12 s mark") a stop within it."""
+    if c.deadline_s is not None and c.start_s is None and c.end_s is None and c.at_s is None:
+        return [PartSpec("stop", "stop", {}, scope(c, ctx))]
     return [PartSpec("stop", "stop", {}, scope(c, ctx), window=_whole_episode(c, ctx, "standing still"))]
 
 

@@ -259,7 +259,15 @@ def digits_of(phrase: str) -> str:
 
 # --- units and wording -------------------------------------------------------------------------------
 
+def _minutes(m: re.Match[str]) -> str:
+    return f"{float(m.group(1)) * 60:g} seconds"
+
+
 _UNITS = (  # (pattern, replacement), case-insensitive, in order
+    (r"\bhalf\s+a\s+minute\b", "30 seconds"),
+    (r"\ba\s+quarter\s+of\s+a\s+minute\b", "15 seconds"),
+    (r"\b(?:a|one)\s+minute\b", "60 seconds"),
+    (r"(\d+(?:\.\d+)?)\s*(?:minutes?|mins?)\b", _minutes),
     (r"(\d)-(seconds?|secs?|s|metres?|meters?|m|feet|foot|ft)\b", r"\1 \2"),
     (r"(\d)\s*(?:foot)\b", r"\1 feet"),
     (r"\bkm\s*/\s*hr?\b|\bkmph\b|\bkm\s+an\s+hour\b|\bkilomet(?:re|er)s?\s+an\s+hour\b", "km/h"),
@@ -302,6 +310,17 @@ _WORDING = (  # (pattern, replacement), case-insensitive, in order
     (r"\s*(?:,|;|\band)?\s*\b(?:subsequently|thereafter|afterwards?|after\s+this(?=,))\b,?"
      r"|\s*(?:,|;)\s*(?:and\s+)?followed\s+by\b", ", then"),
     (r"\s*(?:,|;|\band)?\s*\b(?:at\s+the\s+same\s+time|simultaneously|meanwhile|concurrently)\b,?", ", and"),
+    (r"\s*(?:,|;)?\s*(?:and\s+)?\bfinally\b,?", ", then"),
+    (rf"\bneither\s+({_ONE_VEH})\s+nor\s+({_ONE_VEH})\s+(?:may|can|should|must|will)\s+",
+     r"\1 and \2 must not "),
+    (r"\bneither\s+of\s+them\s+(?:may|can|should|must|will)\s+", "they must not "),
+    (r"\b(nobody|no\s+one|no\s+vehicle|not|never)\b([^,.;]*?)\s+or\s+(?=(?:leav|collid|crash|hit|chang|exceed|cross)\w*\b)",
+     r"\1\2 and never "),
+    (r"\bthe\s+cent(?:re|er)s?\s+of\s+(?:its|their|the)\s+lanes?\b", "the lane centre"),
+    (r",\s*passing\s+(?:it|them|him|her)\s+on\s+the\s+(left|right)\b", r" on the \1"),
+    (r",?\s*measured\s+along\s+", " along "),
+    (r"^\s*(?:it\s+is\s+(?:required|necessary|important)|we\s+require)\s+that\s+", ""),
+    (r"(,\s*then)\s+that\s+", r"\1 "),
     (r",?\s+without\s+ever\s+(?:exceeding|going\s+(?:over|above|faster\s+than))\s+", " and never exceeds "),
     (r"\bwait(?:s|ed|ing)?\s+(?:for\s+)?(\d+(?:\.\d+)?)\s*(?:s|secs?|seconds?)\b",
      r"stands still for the first \1 s"),
@@ -402,6 +421,8 @@ def negative_subjects(text: str) -> str:
 # number is kept (and refused if no part reads it), as is one that names a place on the map
 _PLACE = r"intersection|junction|crossing|crosswalk|light|sign|lane|road|roundabout|corner|kerb|curb|shoulder"
 _SAYS_WHERE = "left|right|lane|side|behind|ahead|front"
+_TIME_WORDS = (r"first|last|seconds?|secs?|minutes?|mark|zero|one|two|three|four|five|six|seven|eight"
+               r"|nine|ten|eleven|twelve|fifteen|twenty|thirty|half|quarter")
 _ASIDES = (
     # a ticket's label before a colon ("Repro:", "Setup:", "Test plan:", "Bug #412:"), never a vehicle
     re.compile(r"^\s*(?!(?:vehicles?|cars?|agents?|trucks?|veh|the\s+ego|ego)\b)[a-z][a-z ]{0,20}?"
@@ -413,8 +434,14 @@ _ASIDES = (
     re.compile(rf"\s*\((?=[^()]*[a-z])(?![^()]*\b(?:{_SAYS_WHERE})\b)[^()\d]*\)"
                rf"|\s*\[(?=[^\[\]]*[a-z])(?![^\[\]]*\b(?:{_SAYS_WHERE})\b)[^\[\]\d]*\]", re.IGNORECASE),
     re.compile(r",\s*(?:which|who)\s+[^,\d]*(?:,|(?=[.!?]?\s*$))", re.IGNORECASE),
-    re.compile(rf"^\s*(?:for|in|to|as\s+part\s+of|whatever)\b(?![^,]*\b(?:{_PLACE})\b)[^,\d]*,\s*",
+    re.compile(rf"^\s*(?:for|in|to|on|at|during|as\s+part\s+of|whatever)\b(?![^,]*\b(?:{_PLACE}|{_TIME_WORDS})\b)"
+               r"[^,\d]*,\s*", re.IGNORECASE),
+    # a sentence that only names a role ("Vehicle 4 is the lead car.")
+    re.compile(r"^\s*(?:vehicle|car|agent|truck)\s+\d+\s+is\s+(?:the|a|an)\s+[a-z -]+\.\s+", re.IGNORECASE),
+    # a remark on conditions ("even though the road is icy")
+    re.compile(r",?\s*\b(?:even\s+though|although|though|because|since)\b[^,.;\d]*(?=[,.;!?]|$)",
                re.IGNORECASE),
+    re.compile(r"^\s*first(?:ly)?\s*,\s*", re.IGNORECASE),
 )
 # a prohibition of collisions said as a manner ("... without hitting anyone")
 # why the request is made ("- we're testing passenger comfort", ", so we can test the braking"): asks
@@ -440,7 +467,7 @@ _DISTANCE_AFTER = re.compile(
     r"|minimum|min|maximum|max|\d)(?:[^,.;]|\.(?=\d))*?\d\s*(?:m|meters?|metres?|ft|feet)\b"
     r"(?:\s+(?:of\s+)?(?:gap|back|behind|ahead|apart|away|clearance|buffer|space|margin))?"
     r"(?:\s*,?\s+(?:for\s+the\s+first|within|by|after|until)\s+\d+(?:\.\d+)?\s*(?:s|secs?|seconds?)\b)?"
-    r"\s*(?:[.!?]?\s*$))",
+    r"\s*(?:[.!?]?\s*$|,\s*then\b|;))",
     re.IGNORECASE,
 )
 
@@ -456,15 +483,36 @@ _HARD_BRAKE_TO_STOP = re.compile(
 # "; as soon as it has done so, ..." / "once it has completed the turn, ...": the next part in turn
 _ONCE_DONE = re.compile(
     r"\s*(?:,?\s*(?:and\s+)?then\s*)?[;,]?\s*\b(?:as\s+soon\s+as|once|after|when)\s+(?:it|they|he|she)"
-    r"(?:'s|'ve|\s+(?:has|have|had|is|are))\s+"
-    r"(?:done\s+(?:so|that|this|it)|finished(?:\s+(?:it|that|the\s+\w+))?|completed\s+(?:it|that|the\s+\w+))\s*,?\s*",
+    r"(?:'s|'ve|\s+(?:has|have|had|is|are))"
+    r"(?:\s+(?:done\s+(?:so|that|this|it)|finished(?:\s+(?:it|that|the\s+\w+))?|completed\s+(?:it|that|the\s+\w+))"
+    r"|(?=\s*,))\s*,?\s*",  # "once it has," said short
     re.IGNORECASE,
 )
+
+
+# a role said beside a vehicle's number ("the bus, vehicle 7,", "a motorcyclist (vehicle 9)"): the number
+_ROLE = re.compile(
+    r"\b(?:the|a|an)\s+(?!(?:ego|vehicle|car|agent|truck)\b)[a-z][a-z -]{0,30}?\s*(?:,\s*|\(\s*)"
+    r"((?:vehicle|car|agent|truck)\s+\d+)\s*(?:,|\)|(?=\s*[.;!?]|\s*$))", re.IGNORECASE)
+# "A, but before that B": B, then A
+_BEFORE_THAT = re.compile(
+    r"^(?P<a>[^;]+?),?\s+(?:but\s+)?before\s+that,?\s+(?P<b>[^;]+?)\s*(?P<end>[.!?]?)\s*$", re.IGNORECASE)
+
+
+def _first_things_first(m: re.Match[str]) -> str:
+    """"A, but before that B" as "B, then A"; B's "it" is A's subject when A starts with one."""
+    a, b = m.group("a"), m.group("b")
+    subject = re.match(rf"\s*({_VEH})\b", a, re.IGNORECASE)
+    if subject is not None:
+        b = re.sub(r"^\s*(?:it|they)\b", subject.group(1), b, flags=re.IGNORECASE)
+    return f"{b}, then {a}{m.group('end')}"
 
 
 def drop_asides(text: str) -> str:
     """Asides that ask for nothing removed (:data:`_ASIDES`), braking hard into a stop left to the stop,
     "without hitting anyone" as "and must not collide"."""
+    text = _ROLE.sub(r"\1", text)
+    text = _BEFORE_THAT.sub(_first_things_first, text)
     for pattern in _ASIDES:
         text = pattern.sub(" ", text)
     text = _HARD_BRAKE_TO_STOP.sub("", text)

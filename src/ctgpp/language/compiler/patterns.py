@@ -71,12 +71,13 @@ _BETWEEN_TIMES = re.compile(  # "between 2 and 6 s", "between t = 2 s and t = 6 
     rf"\b(?:between|from)\s+(?:t\s*=\s*)?({NUM})\s*(?:{_SECONDS})?\s*(?:and|to|-|–)\s*(?:t\s*=\s*)?({NUM})\s*{_SECONDS}"
 )
 _DEADLINE = re.compile(
-    rf"\b(?:within(?:\s+the\s+first)?|in(?:\s+(?:under|less\s+than|at\s+most))?|by(?:\s+t\s*=)?|before(?:\s+t\s*=)?"
-    rf"|no\s+later\s+than)\s+(?:the\s+|t\s*=\s*)?({NUM})\s*{_SECONDS}(?:\s+mark\b)?"
+    rf"\b(?:within(?:\s+the\s+first)?|in(?:\s+(?:under|less\s+than|at\s+most))?|by(?:\s+the\s+time|\s+t\s*=)?"
+    rf"|before(?:\s+t\s*=)?|no\s+later\s+than)\s+(?:the\s+|t\s*=\s*)?({NUM})\s*{_SECONDS}"
+    rf"(?:\s+mark\b|\s+in\b|\s+(?:are|is|has|have)\s+(?:up|passed|over|elapsed|gone\s+by)\b)?"
 )
 _START = re.compile(
-    rf"\b(?:after(?:\s+the\s+first|\s+t\s*=)?|from(?:\s+t\s*=)?|starting(?:\s+(?:at|from|after))?(?:\s+t\s*=)?|once)"
-    rf"(?:\s+|(?<==)\s*)({NUM})\s*{_SECONDS}(?:\s+(?:onwards?|on|have\s+passed|passed|in))?"
+    rf"\b(?:after(?:\s+the\s+first|\s+the|\s+t\s*=)?|from(?:\s+t\s*=)?|starting(?:\s+(?:at|from|after))?(?:\s+t\s*=)?|once)"
+    rf"(?:\s+|(?<==)\s*)({NUM})\s*{_SECONDS}(?:\s+(?:onwards?|on|have\s+passed|passed|in|mark))?"
 )
 _END = re.compile(
     rf"\b(?:for|during)\s+the\s+first\s+({NUM})\s*{_SECONDS}|\b(?:until|till|up\s+to)\s+(?:t\s*=\s*)?({NUM})\s*{_SECONDS}"
