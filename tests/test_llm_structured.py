@@ -194,6 +194,25 @@ def test_then_needs_stages(server: CannedServer) -> None:
         read_structured("vehicles 9 and 10 change to the right lane", server.client(), SCENE_VEHICLES)
 
 
+def test_calls_in_any_order_are_read_in_stage_order(server: CannedServer) -> None:
+    """A reply that lists a later stage's call first is a sequence all the same (it had stopped the
+    reading with "InOrder: part 0 may only wait for earlier parts")."""
+    query = "vehicle 3 changes into the right lane, then it overtakes the ego"
+    server.replies = [calls({"behaviour": "overtake", "vehicle": 3, "other": 0, "stage": 1},
+                            {"behaviour": "lane_change", "vehicle": 3, "side": "right", "stage": 0})]
+    got = read_structured(query, server.client(), SCENE_VEHICLES)
+    assert [(p.rule, p.stage) for p in got.compiled.parts] == [("lane_change", 0), ("overtake", 1)]
+
+
+def test_a_whole_episode_clause_after_a_sequence_waits_for_nothing() -> None:
+    """"...; vehicle 7 stays on the road throughout" after a "then" holds from the start (stage 0), and
+    the loss is built whatever order the clauses came in."""
+    parts = compile_query("vehicle 7 overtakes vehicle 2, then moves to the rightmost lane; vehicle 7 stays "
+                          "on the road throughout", SCENE_VEHICLES).parts
+    assert [(p.rule, p.stage) for p in parts] == [("overtake", 0), ("no_offroad", 0),
+                                                  ("move_to_rightmost_lane", 1)]
+
+
 @pytest.mark.parametrize(("answer", "reason"), BAD[:3])
 def test_refused_reply_falls_back_to_the_compiler(answer: str, reason: str, server: CannedServer,
                                                    obs: Any) -> None:

@@ -48,7 +48,7 @@ from dataclasses import replace
 
 from ctgpp.behaviours import get_behaviour
 from ctgpp.behaviours.timing import TimeWindow
-from ctgpp.language.compiler.compiled import CompiledQuery, QueryPart, compose, render_code
+from ctgpp.language.compiler.compiled import CompiledQuery, QueryPart, compose, in_stage_order, render_code
 from ctgpp.language.compiler.normalise import normalise, original_span
 from ctgpp.language.compiler.patterns import Clause
 from ctgpp.language.compiler.refusals import (
@@ -231,7 +231,7 @@ def compile_query(query: str, num_vehicles: int) -> CompiledQuery:
                       previous=involved or ctx.previous,
                       had_subject=bool(clause.subjects) or (not clause.vehicles and bool(ctx.subjects)
                                                             and involved == ctx.subjects))
-    parts = _speed_on_the_way(parts) + _pair_paces(paces, query)
+    parts = in_stage_order(_speed_on_the_way(parts) + _pair_paces(paces, query))
     if not parts:
         raise unsupported(query, query)
     if query != original:  # the parts' spans and texts in the query as written

@@ -106,6 +106,13 @@ def part_subjects(part: QueryPart) -> set[int]:
     return {int(vehicle)} if isinstance(vehicle, int) else set()
 
 
+def in_stage_order(parts: list[QueryPart]) -> list[QueryPart]:
+    """``parts`` ordered by stage, in their order within a stage: a part waits only for parts before
+    it (:func:`prerequisites`), whichever order a reader listed them in ("...; all stay on the road
+    throughout" after a sequence, a model's calls in any order)."""
+    return sorted(parts, key=lambda p: p.stage)
+
+
 def compose(parts: list[QueryPart]) -> GuidanceLoss:
     """The loss of a query's ``parts``: all of them together (:class:`CompositeLoss`), or, for a
     sequence (parts of more than one stage), each part once those it waits for are reached

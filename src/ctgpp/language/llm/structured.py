@@ -33,6 +33,7 @@ from typing import Any
 from ctgpp.behaviours import behaviours, get_behaviour
 from ctgpp.behaviours.timing import TimeWindow
 from ctgpp.language.compiler import CompiledQuery, QueryPart, compose, render_code
+from ctgpp.language.compiler.compiled import in_stage_order
 from ctgpp.language.compiler.handlers import (
     DISTANCE_MARGIN_M,
     MOVING_BEFORE_STOP_MPS,
@@ -219,7 +220,7 @@ def read_structured(query: str, client: LLMClient, num_vehicles: int) -> Structu
     seconds = time.perf_counter() - started
     try:
         calls = parse_calls(reply, num_vehicles)
-        parts = build_parts(calls, num_vehicles)
+        parts = in_stage_order(build_parts(calls, num_vehicles))
         sentence = si_units(normalise(query))
         check_expressible(calls, sentence)
         check_grounded(calls, sentence)
