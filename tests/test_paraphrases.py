@@ -307,8 +307,8 @@ def test_chat_and_specification_wordings(query: str, rule: str, params: dict) ->
       ("overtake", {"vehicle": 8, "other": 11, "side": "right"}, None, None, 1)]),
     # "throughout" holds for the whole episode, not from the stage before it
     ("vehicle 7 overtakes vehicle 2, then moves to the rightmost lane; all agents remain on-road throughout",
-     [("overtake", {"vehicle": 7, "other": 2}, None, None, 0),
-      ("move_to_rightmost_lane", {"vehicle": 7}, None, None, 1), ("no_offroad", {}, None, None, 0)]),
+     [("overtake", {"vehicle": 7, "other": 2}, None, None, 0), ("no_offroad", {}, None, None, 0),
+      ("move_to_rightmost_lane", {"vehicle": 7}, None, None, 1)]),
     # a window between two times
     ("Between t = 2 s and t = 6 s, vehicle 4 stays on the right side of the ego.",
      [("stay_side_of", {"vehicle": 4, "other": 0, "side": "right"}, None, [2.0, 6.0], 0)]),
@@ -449,3 +449,39 @@ def test_playground_and_test_sheet_wordings(query: str, expect: list) -> None:
 def test_red_team_and_story_wordings(query: str, expect: list) -> None:
     got = [(p["rule"], p["params"], p["vehicles"], p["window"], p["stage"]) for p in structure(query, N)]
     assert got == expect
+
+
+@pytest.mark.parametrize(("query", "expect"), [
+    ("After 3 s vehicle 7 moves to the rightmost lane, and once it has done that it stops inside the area of "
+     "radius 4 m around (210, 55).",
+     [("move_to_rightmost_lane", {"vehicle": 7}, None, [3.0, None], 0),
+      ("stop_region", {"vehicle": 7, "x": 210.0, "y": 55.0, "radius_m": 4.0}, None, None, 1)]),
+    ("TC-08: 1. Vehicle 6 proceeds to goal waypoint (300, 12.5). 2. Speed on the way: 70 km/h.",
+     [("goal_waypoint", {"vehicle": 6, "x": 300.0, "y": 12.5, "target_speed_mps": 19.4444}, None, None, 0)]),
+    ("(1) vehicle 10 drives 35 m ahead along its lane within 6 s; (2) vehicle 10 then drives at 36 km/h.",
+     [("reach_ahead", {"vehicle": 10, "distance_m": 35.0}, None, [0.0, 6.0], 0),
+      ("target_speed", {"speed_mps": 10.0}, [10], None, 1)]),
+    ("car 9 overtake ego then cut in front of it",  # an object's "then" stays where it is
+     [("overtake", {"vehicle": 9, "other": 0}, None, None, 0),
+      ("cut_in", {"vehicle": 9, "ahead_of": 0, "gap_m": 10.0}, None, None, 1)]),
+    ("Have car 9 follow the ego at fifteen to twenty-five metres for the first 10 seconds.",
+     [("keep_distance", {"follower": 9, "leader": 0, "min_m": 15.0, "max_m": 25.0}, None, [0.0, 10.0], 0)]),
+    ("vehicle 2 stays 10-20 m behind vehicle 6, following it",  # one band: the one said
+     [("keep_distance", {"follower": 2, "leader": 6, "min_m": 10.0, "max_m": 20.0}, None, None, 0)]),
+    ("Vehicle 11 goes straight through the next intersection, keeping at least 4 m/s.",
+     [("turn_at_next_intersection", {"vehicle": 11, "direction": "straight", "min_speed_mps": 4.0},
+       None, None, 0)]),
+])
+def test_regression_suite_wordings(query: str, expect: list) -> None:
+    got = [(p["rule"], p["params"], p["vehicles"], p["window"], p["stage"]) for p in structure(query, N)]
+    assert got == expect
+
+
+@pytest.mark.parametrize(("query", "match"), [
+    ("make car 2 park next to the curb", "parking"),
+    ("Vehicle 6 tailgates the ego at half a second of headway.", "time gap"),
+    ("Vehicle 7 slows down to 4 m/s and switches on its hazard lights.", "signals and lights"),
+])
+def test_more_of_what_no_behaviour_reads(query: str, match: str) -> None:
+    with pytest.raises(ValueError, match=match):
+        structure(query, N)

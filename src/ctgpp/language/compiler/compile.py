@@ -122,6 +122,15 @@ def _refines(parts: list[QueryPart], part: QueryPart, refinable: set[int]) -> in
     return None
 
 
+def _band_said(parts: list[QueryPart], part: QueryPart) -> bool:
+    """Whether a band on the pair of ``part`` (a default band) is among ``parts`` already."""
+    if part.rule != "keep_distance":
+        return False
+    pair = (part.params["follower"], part.params["leader"])
+    return any(p.rule == "keep_distance" and (p.params["follower"], p.params["leader"]) == pair
+               for p in parts)
+
+
 def _same(a: QueryPart, b: QueryPart) -> bool:
     """Whether two parts ask the same thing of the same vehicles at the same time."""
     def key(p: QueryPart) -> tuple[object, ...]:
@@ -154,6 +163,25 @@ def _speed_on_the_way(parts: list[QueryPart]) -> list[QueryPart]:
             continue
         for k in goals:
             out[k] = replace(out[k], params={**out[k].params, "target_speed_mps": speed.params["speed_mps"]})
+        out.remove(speed)
+    return out
+
+
+def _speed_while_turning(parts: list[QueryPart]) -> list[QueryPart]:
+    """A lower bound on speed said after a turn for its vehicle alone (", keeping at least 4 m/s") is
+    the speed to keep while turning: the turn's ``min_speed_mps``, as the registry has it."""
+    out = list(parts)
+    for speed in parts:
+        said = re.match(r"\s*(?:while\s+)?(?:keeping|keep|maintaining|holding|at)\b", speed.text, re.I)
+        if (speed.rule != "reach_speed" or speed.params.get("bound") != "above" or speed.window is not None
+                or said is None or speed.vehicles is None or len(speed.vehicles) != 1):
+            continue
+        turns = [k for k, p in enumerate(out) if p.rule in ("turn_at_next_intersection", "u_turn")
+                 and p.stage == speed.stage and p.params["vehicle"] == speed.vehicles[0]]
+        if len(turns) != 1:
+            continue
+        k = turns[0]
+        out[k] = replace(out[k], params={**out[k].params, "min_speed_mps": speed.params["speed_mps"]})
         out.remove(speed)
     return out
 
@@ -208,6 +236,8 @@ def compile_query(query: str, num_vehicles: int) -> CompiledQuery:
             if spec.family == "pace":
                 paces.append(part)
                 continue
+            if spec.refinable and _band_said(parts, part):
+                continue  # "stays 10-20 m behind vehicle 6, following it": the band said already
             hit = _refines(parts, part, refinable)
             if hit is not None:
                 old = parts[hit]
@@ -231,7 +261,7 @@ def compile_query(query: str, num_vehicles: int) -> CompiledQuery:
                       previous=involved or ctx.previous,
                       had_subject=bool(clause.subjects) or (not clause.vehicles and bool(ctx.subjects)
                                                             and involved == ctx.subjects))
-    parts = in_stage_order(_speed_on_the_way(parts) + _pair_paces(paces, query))
+    parts = in_stage_order(_speed_while_turning(_speed_on_the_way(parts)) + _pair_paces(paces, query))
     if not parts:
         raise unsupported(query, query)
     if query != original:  # the parts' spans and texts in the query as written

@@ -196,6 +196,8 @@ _UNIT_AFTER = (
 # both ends of a range in words: "between five and fifteen metres" (one phrase would read "five and
 # fifteen" as a single number)
 _RANGE_IN_WORDS = (rf"\b(between|from)\s+({_NUMBER_PHRASE})\s+(and|to)\s+({_NUMBER_PHRASE}){_UNIT_AFTER}")
+# "fifteen to twenty-five metres"
+_TO_RANGE_IN_WORDS = rf"\b({_NUMBER_PHRASE})\s+to\s+({_NUMBER_PHRASE}){_UNIT_AFTER}"
 _VEHICLE_BEFORE = "|".join(rf"(?<=\b{noun}\s)"
                            for noun in ("vehicle", "vehicles", "car", "cars", "agent", "truck"))
 _LIST_BEFORE = r"(?<=\d\s&\s)|(?<=\d,\s)|(?<=\d\sand\s)|(?<=\d,\sand\s)|(?<=\d\sor\s)"
@@ -248,6 +250,8 @@ def numbers_to_digits(text: str) -> str:
         text = longer
     text = re.sub(_RANGE_IN_WORDS, lambda m: f"{m.group(1)} {digits_of(m.group(2))} {m.group(3)} "
                   f"{digits_of(m.group(4))}", text, flags=re.IGNORECASE)
+    text = re.sub(_TO_RANGE_IN_WORDS, lambda m: f"{digits_of(m.group(1))} to {digits_of(m.group(2))}", text,
+                  flags=re.IGNORECASE)
     return re.sub(rf"{_NUMBER_PHRASE}{_UNIT_AFTER}", digits, text, flags=re.IGNORECASE)
 
 
@@ -265,6 +269,7 @@ def _minutes(m: re.Match[str]) -> str:
 
 _UNITS = (  # (pattern, replacement), case-insensitive, in order
     (r"\bhalf\s+a\s+minute\b", "30 seconds"),
+    (r"\bhalf\s+a\s+second\b", "0.5 seconds"),
     (r"\ba\s+quarter\s+of\s+a\s+minute\b", "15 seconds"),
     (r"\b(?:a|one)\s+minute\b", "60 seconds"),
     (r"(\d+(?:\.\d+)?)\s*(?:minutes?|mins?)\b", _minutes),
@@ -302,9 +307,14 @@ _WORDING = (  # (pattern, replacement), case-insensitive, in order
     (r",?\s+after\s+which\b|,?\s+whereupon\b|,?\s+following\s+which\b", ", then"),
     (r"[.;]?\s*\bstep\s+(?:[2-9]|two|three|four|five)\s*[:.)]\s*", ", then "),  # a later numbered step
     (r"^\s*step\s+(?:1|one)\s*[:.)]\s*", ""),
+    (r"^\s*(?:\(?1[.)]|\(a\)|a\))\s+(?=[a-z])", ""),  # a list of conditions: all at once
+    (r"(?<=[a-z0-9)])[.;]?\s+(?:\(?[2-9][.)]|\([b-h]\)|[b-h]\))\s+(?=[a-z])", "; "),
     (r"\b(for|during|in|within)\s+first\b", r"\1 the first"),
     (r"\b(?:not\s+before|no\s+earlier\s+than)\s+(?=(?:t\s*=\s*)?\d)", "after "),
     (r"\bon-road\b", "on the road"),
+    (r"\bat(least|most)\b", r"at \1"),
+    # "...; vehicle 3 then cuts in": the clause's "then" first (never an object's: "overtake ego then cut in")
+    (rf"(?:^|(?<=[;,.]\s)|(?<=\band\s))({_VEH})\s+((?:shall|should|must|will)\s+)?then\s+", r"then \1 \2"),
     (r"\b(to|in|on)\s+lane\s+(cent(?:re|er)|middle)\b", r"\1 the lane \2"),
     # a sequence said another way; "followed by" only after a clause's end, never "is followed by"
     (r"\s*(?:,|;|\band)?\s*\b(?:subsequently|thereafter|afterwards?|after\s+this(?=,))\b,?"
@@ -318,6 +328,7 @@ _WORDING = (  # (pattern, replacement), case-insensitive, in order
      r"\1\2 and never "),
     (r"\bthe\s+cent(?:re|er)s?\s+of\s+(?:its|their|the)\s+lanes?\b", "the lane centre"),
     (r",\s*passing\s+(?:it|them|him|her)\s+on\s+the\s+(left|right)\b", r" on the \1"),
+    (r"\s+while\s+(?:it|they)\s+(?:turns?|(?:is|are)\s+turning)\b", ""),
     (r",?\s*measured\s+along\s+", " along "),
     (r"^\s*(?:it\s+is\s+(?:required|necessary|important)|we\s+require)\s+that\s+", ""),
     (r"(,\s*then)\s+that\s+", r"\1 "),
@@ -482,7 +493,7 @@ _HARD_BRAKE_TO_STOP = re.compile(
 
 # "; as soon as it has done so, ..." / "once it has completed the turn, ...": the next part in turn
 _ONCE_DONE = re.compile(
-    r"\s*(?:,?\s*(?:and\s+)?then\s*)?[;,]?\s*\b(?:as\s+soon\s+as|once|after|when)\s+(?:it|they|he|she)"
+    r"\s*(?:,?\s*(?:and\s+)?then\s*)?[;,]?\s*(?:\band\s+)?\b(?:as\s+soon\s+as|once|after|when)\s+(?:it|they|he|she)"
     r"(?:'s|'ve|\s+(?:has|have|had|is|are))"
     r"(?:\s+(?:done\s+(?:so|that|this|it)|finished(?:\s+(?:it|that|the\s+\w+))?|completed\s+(?:it|that|the\s+\w+))"
     r"|(?=\s*,))\s*,?\s*",  # "once it has," said short

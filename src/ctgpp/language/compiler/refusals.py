@@ -144,14 +144,15 @@ MANOEUVRES = (
     (r"\b(?:the|its|their)\s+(?:posted\s+)?speed\s+limit\b(?!\s*(?:of|is|=|:|at|to|be)?\s*\d)",
      "the road's speed limit (the maps carry none: say the speed, \"at 50 km/h\")"),
     (r"\bparallel[- ]park\w*|\breverse[- ]park\w*|\bbay[- ]park\w*"
-     r"|\bpark(?:s|ed|ing)?\s+(?:in|into)\b"
+     r"|\bpark(?:s|ed|ing)?\s+(?:in|into|next\s+to|beside|by|along|alongside|near|behind)\b"
      r"|\bpark(?:s|ed|ing)?\s+at\b(?!\s*(?:the\s+)?(?:point\s+)?\()",  # parking at a point: a stop there
      "parking manoeuvres (they reverse; \"vehicle 6 stops inside the area around (x, y)\" stops at a place)"),
     (r"\bjerk\b", "a limit on jerk (only the acceleration's magnitude is limited: \"under 2 m/s²\")"),
     (r"\b(?:lateral|longitudinal|centripetal|sideways|forward)\s+accel\w*|\bg[- ]forces?\b",
      "a limit on one component of the acceleration (the limit is on its magnitude: \"vehicle 3 keeps its "
      "acceleration under 2 m/s²\")"),
-    (r"\bhonk\w*|\bsignal\w*|\bindicat\w*|\bblinker|\bheadlight", "signals and lights (not simulated)"),
+    (r"\bhonk\w*|\bsignal\w*|\bindicat\w*|\bblinker|\bheadlight|\bhazard\w*|\bhorn\b",
+     "signals and lights (not simulated)"),
     (r"\bhead[- ]?on\b|\bt[- ]?bon\w*|\bside[- ]?swip\w*|\bbroadsid\w*",
      "a collision of a given kind (head-on, T-bone, sideswipe): \"vehicle 4 crashes into vehicle 5\" asks "
      "for any collision, \"vehicle 4 rear-ends vehicle 5\" for one from behind"),
@@ -200,6 +201,9 @@ def check_numbers_used(clause: Clause, specs: list[PartSpec], text: str) -> None
 def check_times(clause: Clause, specs: list[PartSpec], text: str) -> None:
     """A time of a clause that no time window reads is refused: a time gap ("a 2 s gap", not a
     behaviour of the vocabulary) and a time point ("at 4 s") for anything but a stop."""
+    if clause.at_s is not None and clause.has(r"\bgap\b|headway"):  # "at half a second of headway"
+        raise QueryError(f"{text.strip()!r}: a time gap ({clause.at_s:g} s) is not supported: distances "
+                         f"between vehicles are in metres ('stays at least 20 m behind vehicle 0')")
     if clause.durations:
         what = f"{clause.durations[0]:g} s"
         if clause.has(r"\bgap\b|headway|\bbehind\b|\bfollow"):

@@ -79,7 +79,13 @@ _NOT = re.compile(r"\b(?:not|never)\b", re.I)
 # sentence with none of them invented it (a small model reads "drives like a drunk driver" as no
 # collision, "takes the second exit" as a lane change); generous, as synonyms are many
 EVIDENCE = {
-    "lane_change": r"\blane|\bmerg|\bswitch|\bmove\s+over|\bshift",
+    # a change, never "lane" alone ("a three-lane highway")
+    "lane_change": r"\blane[- ]?change|\bchang\w*|\bmerg|\bswitch|\bmov\w*|\bshift|\bswing|\bhop\b"
+                   r"|\bget\w*\s+(?:in)?to|\bpull\w*\s+(?:in)?to",
+    "goal_waypoint": r"\bgoal|waypoint|destination",
+    # a bound, never "slows down to 20 km/h"
+    "speed_limit": r"exceed|limit|\bunder\b|below|at\s+most|\bmax|\bno\s+(?:faster|more|quicker)|\bnot?\b"
+                   r"|never|\bcap|\bup\s+to|slower\s+than|less\s+than|within",
     "move_to_rightmost_lane": r"right",
     "turn_at_next_intersection": r"\bturn|\bleft\b|\bright\b|\bstraight|\btak(?:e|es|ing)\b",
     "u_turn": r"u[- ]?turn|\bturn\w*\s+(?:a)?round|\bback\s+(?:the\s+way|where)|opposite\s+direction|180",
@@ -143,6 +149,16 @@ _PASSIVE = re.compile(
     re.I)
 
 
+_FOLLOWS = re.compile(rf"{_MENTION}\s+(?:(?:should|must|will|shall|has\s+to|needs\s+to)\s+)?(?:closely\s+)?"
+                      r"(?:follow|follows|following|tailgat\w*)\b", re.I)
+
+
+def followers(sentence: str) -> set[int]:
+    """The vehicles the sentence says follow another ("vehicle 5 follows it", "the ego should
+    tailgate vehicle 3"); never one that "is followed by" another."""
+    return {0 if m.group(1) is None else int(m.group(1)) for m in _FOLLOWS.finditer(sentence)}
+
+
 def passives(sentence: str) -> set[tuple[int, int]]:
     """The pairs (acted on, acting) of the sentence's passive clauses: "vehicle 1 gets rear-ended by
     vehicle 10" gives (1, 10)."""
@@ -203,6 +219,11 @@ def check_expressible(calls: list[dict[str, Any]], sentence: str) -> None:
         if (ahead, behind) in placed:
             raise StructuredRefused(f"{call['behaviour']} puts vehicle {behind} behind vehicle {ahead}, but "
                                     f"the sentence puts vehicle {ahead} behind vehicle {behind}")
+    for call in calls:
+        if call.get("behaviour") == "keep_distance" and call.get("leader") in followers(sentence) \
+                and call.get("follower") not in followers(sentence):
+            raise StructuredRefused(f"keep_distance has vehicle {call.get('leader')} lead, but the sentence "
+                                    "says it follows")
     acted_on = passives(sentence)
     for call in calls:
         roles = ACTS.get(call.get("behaviour", ""))
