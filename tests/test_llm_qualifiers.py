@@ -6,14 +6,17 @@ sentence of this kind), through the real client and a canned local server: no la
 from __future__ import annotations
 
 import json
+from pathlib import Path
 from typing import Any
 
 import pytest
 
+from ctgpp.language.compiler.normalise import normalise
+from ctgpp.language.compiler.paraphrases import FRESH, load
 from ctgpp.language.llm.calls import check_grounded
-from ctgpp.language.llm.qualifiers import check_expressible, positions
+from ctgpp.language.llm.qualifiers import check_evidence, check_expressible, positions
 from ctgpp.language.llm.sentence import said_quantities
-from ctgpp.language.llm.structured import StructuredRefused, read_structured
+from ctgpp.language.llm.structured import StructuredRefused, read_structured, si_units
 from tests.support.llm_server import CannedServer, no_proxy, server
 
 __all__ = ["no_proxy", "server"]  # fixtures from tests/support
@@ -205,3 +208,21 @@ def test_the_checks_need_no_model() -> None:
     with pytest.raises(StructuredRefused, match="not a supported manoeuvre"):
         check_expressible([{"behaviour": "stop", "vehicles": [1]}], "vehicle 1 backs up and stops")
     check_expressible([{"behaviour": "stop", "vehicles": [1]}], "vehicle 1 stops")
+
+
+def test_every_meant_reading_of_the_sets_has_its_evidence() -> None:
+    """check_evidence never refuses a reading the paraphrase sets mean (the structures of the main and
+    fresh sets and the structured set), so the words it asks of each behaviour are no stricter than how
+    people write them."""
+    rows = load(None) + load(FRESH) + [json.loads(line) for line in (
+        Path(__file__).parent / "data" / "structured" / "refused.jsonl").read_text().splitlines()]
+    refused = []
+    for row in rows:
+        if row["expect"] == "refuse":
+            continue
+        calls = [{"behaviour": p["rule"], **p["params"]} for p in row["expect"]]
+        try:
+            check_evidence(calls, si_units(normalise(row["query"])))
+        except ValueError as err:
+            refused.append((row["query"], str(err)))
+    assert not refused, refused

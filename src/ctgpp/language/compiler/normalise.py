@@ -437,7 +437,7 @@ _TIME_WORDS = (r"first|last|seconds?|secs?|minutes?|mark|zero|one|two|three|four
 _ASIDES = (
     # a ticket's label before a colon ("Repro:", "Setup:", "Test plan:", "Bug #412:"), never a vehicle
     re.compile(r"^\s*(?!(?:vehicles?|cars?|agents?|trucks?|veh|the\s+ego|ego)\b)[a-z][a-z ]{0,20}?"
-               r"(?:\s*#\d+)?\s*:\s+", re.IGNORECASE),
+               r"(?:\s*#\d+|(?<=[a-z]{2})\s+\d+(?:\.\d+)*)?\s*:\s+", re.IGNORECASE),
     # a test case's number before a dash, a bar or a colon ("Case 12 –", "TC-031 |")
     re.compile(r"^\s*(?:case|tc|test(?:\s+case)?|scenario|row|id|req)[\s#-]*\d+\s*[-–:|.)]\s*",
                re.IGNORECASE),

@@ -79,13 +79,18 @@ _NOT = re.compile(r"\b(?:not|never)\b", re.I)
 # sentence with none of them invented it (a small model reads "drives like a drunk driver" as no
 # collision, "takes the second exit" as a lane change); generous, as synonyms are many
 EVIDENCE = {
-    # a change, never "lane" alone ("a three-lane highway")
-    "lane_change": r"\blane[- ]?change|\bchang\w*|\bmerg|\bswitch|\bmov\w*|\bshift|\bswing|\bhop\b"
-                   r"|\bget\w*\s+(?:in)?to|\bpull\w*\s+(?:in)?to",
+    # a change or a side's lane, never "lane" alone ("a three-lane highway")
+    "lane_change": r"\blane[- ]?change|\bchang\w*|\bmerg|\bswitch|\bmov\w*|\bshift|\bswing|\bhop\b|\bscoot"
+                   r"|(?:left|right)(?:[- ]hand)?\s+lane|\blanes?\s+(?:on|to)\s+(?:its|the|their)\s+"
+                   r"(?:left|right)|\bone\s+lane|\blane\s+over",
     "goal_waypoint": r"\bgoal|waypoint|destination",
+    "keep_distance": r"follow|\btail|trail|behind|ahead|\bback\b|\bgap\b|distance|apart|\bbetween\b|within"
+                     r"|close|near|at\s+most|no\s+(?:further|farther)|less\s+than",
+    "stay_away": r"\baway|apart|distance|\bclear\b|behind|ahead|\bfrom\b|\bgap\b|close|near|avoid|within"
+                 r"|at\s+least",
     # a bound, never "slows down to 20 km/h"
     "speed_limit": r"exceed|limit|\bunder\b|below|at\s+most|\bmax|\bno\s+(?:faster|more|quicker)|\bnot?\b"
-                   r"|never|\bcap|\bup\s+to|slower\s+than|less\s+than|within",
+                   r"|never|\bcap|\bup\s+to|slower\s+than|less\s+than|within|between",
     "move_to_rightmost_lane": r"right",
     "turn_at_next_intersection": r"\bturn|\bleft\b|\bright\b|\bstraight|\btak(?:e|es|ing)\b",
     "u_turn": r"u[- ]?turn|\bturn\w*\s+(?:a)?round|\bback\s+(?:the\s+way|where)|opposite\s+direction|180",
@@ -100,9 +105,9 @@ EVIDENCE = {
     "follow_lane": r"\blane|cent(?:er|re)|middle",
     "keep_lane": r"\blane",
     "no_offroad": r"road|drivable|pavement|kerb|curb|shoulder|street|\boff\b",
-    "same_direction": r"direction|same\s+way|heading|parallel",
+    "same_direction": r"direction|same\s+(?:way|turn)|whichever\s+way|heading|parallel",
     "stay_side_of": r"\bleft\b|\bright\b|\bside\b",
-    "faster_than": r"fast|slow|quick|speed",
+    "faster_than": r"fast|slow|quick|speed|outpace",
 }
 CHOICES = ("side", "direction")  # a word-valued parameter: the word is the sentence's (or it is unset)
 
