@@ -7,26 +7,33 @@ left unchanged):
 1. Typography: dashes and quotes to ASCII, "°"-free, runs of spaces to one; contractions spelt out
    (:func:`expand_contractions`: "shouldn't" -> "should not", "won't" -> "will not", before the typo
    step could read "shouldn" as "should" and drop the "not"); asides that ask for nothing dropped
-   (:func:`drop_asides`: a ticket's label, "Repro:", a parenthesis or ", which ...," without a
-   number, a framing "For this study," that names no place), "without hitting anyone" -> "and must
-   not collide".
+   (:func:`drop_asides`: a ticket's label, "Repro:", "Case 12 –", a parenthesis or ", which ...,"
+   without a number or a side, a framing "For this study," or "On a wet evening," that names no place
+   and no time, a role beside a number "the bus, vehicle 7" -> "vehicle 7", a purpose ", we want to
+   test ..." or a remark "even though ..."), "without hitting anyone" -> "and must not collide", "A,
+   but before that B" -> "B, then A"; a test sheet's shorthand in words (:func:`expand_shorthand`:
+   "->" a sequence, "t<6s" a deadline, "<=" at most, "spd", "LC", "r=4 m", "v2 + v5").
 2. Typos (:func:`correct_typos`): a word of at least 5 letters that is not in :data:`VOCABULARY` and
    is one edit away (insert, delete, substitute, or swap two neighbours) from exactly one word of it is
    replaced by that word ("chnage" -> "change", "vehicel" -> "vehicle"); a 4-letter word only by a
    swap of two neighbours ("trun" -> "turn").
 3. Numbers in words (:func:`numbers_to_digits`): "thirty", "twenty-five", "one hundred", "two and a
    half", "a dozen" -> digits, where a unit follows or a vehicle noun precedes ("thirty km/h", "vehicle
-   two", "a two-second gap"); "one lane over", "one by one" are left as words.
-4. Units (:func:`canonical_units`): "2-second" -> "2 seconds", "10-metre" -> "10 metres", "km/hr",
+   two", "a two-second gap"), both ends of a range ("fifteen to twenty-five metres"); "one lane over",
+   "one by one" are left as words.
+4. Units (:func:`canonical_units`): "half a minute" -> "30 seconds", "2 minutes" -> "120 seconds",
+   "2-second" -> "2 seconds", "10-metre" -> "10 metres", "km/hr",
    "kmph", "kilometres an hour" -> "km/h", "miles an hour" -> "mph", "meters per second" -> "m/s".
 5. Wording (:func:`canonical_wording`): bounds ("not more than", "no farther than" -> "at most"; "not
    less than", "no closer than" -> "at least"), "over one lane to the left" -> "one lane over to the
    left", "tell vehicle 3 to ..." / "I want vehicle 3 to ..." -> "vehicle 3 should ...", "keep
-   vehicles 1 & 2 in their lanes" -> "vehicles 1 & 2 keep their lanes", "send vehicle 3 to" ->
-   "vehicle 3 should drive to", a distance said after a comma or "but" joined to the clause it
-   qualifies ("follows vehicle 0 but no farther than 18 m back"), a negative subject to the
-   prohibition for every vehicle ("nobody changes lanes" -> "every vehicle must not change lanes"), and
-   a range of vehicles listed (:func:`expand_ranges`: "vehicles 1 to 4" -> "vehicles 1, 2, 3 and 4").
+   vehicles 1 & 2 in their lanes" -> "vehicles 1 & 2 keep their lanes", questions and wishes ("Can
+   vehicle 3 ...?", "I'd like to see car 4 ...") as requests, hedges and tags ("ideally", ", OK?")
+   dropped, connectives ("subsequently", "followed by", "at the same time", "Step 2:") as "then" or
+   "and", "send vehicle 3 to" -> "vehicle 3 should drive to", a distance said after a comma or "but"
+   joined to the clause it qualifies ("follows vehicle 0 but no farther than 18 m back"), a negative
+   subject to the prohibition for every vehicle ("nobody changes lanes" -> "every vehicle must not
+   change lanes"), and a range of vehicles listed (:func:`expand_ranges`: "vehicles 1 to 4" -> "vehicles 1, 2, 3 and 4").
 6. Lists (:func:`join_lists`): "vehicles 1, 2 and 3" -> "vehicles 1 & 2 & 3", so a list is never split
    into clauses at its commas.
 """
@@ -454,7 +461,6 @@ _ASIDES = (
                re.IGNORECASE),
     re.compile(r"^\s*first(?:ly)?\s*,\s*", re.IGNORECASE),
 )
-# a prohibition of collisions said as a manner ("... without hitting anyone")
 # why the request is made ("- we're testing passenger comfort", ", so we can test the braking"): asks
 # for nothing; never with a number (a number is read or refused)
 _PURPOSE = re.compile(
@@ -463,6 +469,7 @@ _PURPOSE = re.compile(
     r"(?=[.;!?]|$)",
     re.IGNORECASE,
 )
+# a prohibition of collisions said as a manner ("... without hitting anyone")
 _WITHOUT_HITTING = re.compile(
     r",?\s+without\s+(?:hitting|crashing\s+into|colliding\s+with|touching|striking|bumping\s+into)\s+"
     r"(?:anyone|anybody|anything|any(?:\s+other)?\s+(?:vehicle|car|agent)s?|other\s+(?:vehicles|cars|traffic))\b",
