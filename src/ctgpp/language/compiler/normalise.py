@@ -33,7 +33,8 @@ left unchanged):
    "and", "send vehicle 3 to" -> "vehicle 3 should drive to", a distance said after a comma or "but"
    joined to the clause it qualifies ("follows vehicle 0 but no farther than 18 m back"), a negative
    subject to the prohibition for every vehicle ("nobody changes lanes" -> "every vehicle must not
-   change lanes"), and a range of vehicles listed (:func:`expand_ranges`: "vehicles 1 to 4" -> "vehicles 1, 2, 3 and 4").
+   change lanes"), and a range of vehicles listed (:func:`expand_ranges`: "vehicles 1 to 4" ->
+   "vehicles 1, 2, 3 and 4").
 6. Lists (:func:`join_lists`): "vehicles 1, 2 and 3" -> "vehicles 1 & 2 & 3", so a list is never split
    into clauses at its commas.
 """
