@@ -192,15 +192,17 @@ def stop(c: Clause, ctx: Context) -> list[PartSpec]:
     return [moving, stopped]
 
 
-def _whole_episode(c: Clause, ctx: Context, what: str) -> TimeWindow | None:
+def _whole_episode(c: Clause, ctx: Context, what: str, goes_on_after: bool = True) -> TimeWindow | None:
     """The window of a state held from the start ("stands still", "keeps moving"): from t = 0, or from
     "after N s", to the end, or "until N s" / "for the first N s"; held from its first step. A clause
-    that goes on about the vehicles of the clause before ("parks and stays put") holds the state from
-    where that left it: no window of its own (the behaviour's: reached, then held to the end)."""
+    that goes on about the vehicles of the clause before ("parks and stays put"; with
+    ``goes_on_after`` False only after "then" or "while") holds the state from where that left it: no
+    window of its own (the behaviour's: reached, then held to the end)."""
     if c.deadline_s is not None or c.at_s is not None:
         raise QueryError(f"{c.text.strip()!r}: {what} holds from the start; a deadline or a time point "
                          f"does not apply (say 'until N s' or 'after N s')")
     goes_on = bool(ctx.previous) and (not c.vehicles or bool(set(c.vehicles) & set(ctx.previous)))
+    goes_on = goes_on and (goes_on_after or ctx.joined)
     if goes_on and c.start_s is None and c.end_s is None:
         return None
     return TimeWindow(c.start_s or 0.0, c.end_s, hold=True)
@@ -217,8 +219,8 @@ def stand_still(c: Clause, ctx: Context) -> list[PartSpec]:
 def keep_moving(c: Clause, ctx: Context) -> list[PartSpec]:
     """At least :data:`MOVING_BEFORE_STOP_MPS` at every step of the window: "keeps moving", "never
     stops" (a stop's opposite, as "still moving" before a stop at a time is judged)."""
-    return [PartSpec("keep_moving", "reach_speed", _moving(), scope(c, ctx),
-                     window=_whole_episode(c, ctx, "moving without stopping"))]
+    return [PartSpec("keep_moving", "reach_speed", _moving(), scope(c, ctx),  # "follows it and never stops"
+                     window=_whole_episode(c, ctx, "moving without stopping", goes_on_after=False))]
 
 
 SUBJECT_PARAMS = ("vehicle", "vehicle_a", "follower")  # the role of a rule's subject, where it has one

@@ -325,7 +325,9 @@ _WORDING = (  # (pattern, replacement), case-insensitive, in order
     (rf"(?:^|(?<=[;,.]\s)|(?<=\band\s))({_VEH})\s+((?:shall|should|must|will)\s+)?then\s+", r"then \1 \2"),
     (r"\b(to|in|on)\s+lane\s+(cent(?:re|er)|middle)\b", r"\1 the lane \2"),
     # a sequence said another way; "followed by" only after a clause's end, never "is followed by"
-    (r"\s*(?:,|;|\band)?\s*\b(?:subsequently|thereafter|afterwards?|after\s+this(?=,))\b,?"
+    # "... by car 10, which then cuts in": the vehicle just named does it next
+    (rf"({_ONE_VEH})\s*,?\s*(?:and\s+)?(?:which|who)\s+then\s+", r"\1, then \1 "),
+    (r"\s*(?:,|;|\band)?\s*\b(?:subsequently|thereafter|afterwards?|after\s+this(?=,)|(?<=and\s)after\s+this)\b,?"
      r"|\s*(?:,|;)\s*(?:and\s+)?followed\s+by\b", ", then"),
     (r"\s*(?:,|;|\band)?\s*\b(?:at\s+the\s+same\s+time|simultaneously|meanwhile|concurrently)\b,?", ", and"),
     (r"\s*(?:,|;)?\s*(?:and\s+)?\bfinally\b,?", ", then"),
@@ -452,7 +454,10 @@ _ASIDES = (
     # a remark in brackets, never one that says a side, a lane or a place ("(left side)" is the overtake's)
     re.compile(rf"\s*\((?=[^()]*[a-z])(?![^()]*\b(?:{_SAYS_WHERE})\b)[^()\d]*\)"
                rf"|\s*\[(?=[^\[\]]*[a-z])(?![^\[\]]*\b(?:{_SAYS_WHERE})\b)[^\[\]\d]*\]", re.IGNORECASE),
-    re.compile(r",\s*(?:which|who)\s+[^,\d]*(?:,|(?=[.!?]?\s*$))", re.IGNORECASE),
+    # a relative clause that asks for nothing (", which is initially parked,"); never one that does
+    re.compile(r",\s*(?:which|who)\s+(?![^,]*\b(?:then|cut|overtak|pass|stop|turn|chang|collid|crash|hit|follow"
+               r"|merg|slow|speed|accelerat|brak|reach|driv|go|keep|stay)\w*)[^,\d]*(?:,|(?=[.!?]?\s*$))",
+               re.IGNORECASE),
     re.compile(rf"^\s*(?:for|in|to|on|at|during|as\s+part\s+of|whatever)\b(?![^,]*\b(?:{_PLACE}|{_TIME_WORDS})\b)"
                r"[^,\d]*,\s*", re.IGNORECASE),
     # a sentence that only names a role ("Vehicle 4 is the lead car.")
@@ -503,7 +508,8 @@ _HARD_BRAKE_TO_STOP = re.compile(
 _ONCE_DONE = re.compile(
     r"\s*(?:,?\s*(?:and\s+)?then\s*)?[;,]?\s*(?:\band\s+)?\b(?:as\s+soon\s+as|once|after|when)\s+(?:it|they|he|she)"
     r"(?:'s|'ve|\s+(?:has|have|had|is|are))"
-    r"(?:\s+(?:done\s+(?:so|that|this|it)|finished(?:\s+(?:it|that|the\s+\w+))?|completed\s+(?:it|that|the\s+\w+))"
+    r"(?:\s+(?:done\s+(?:so|that|this|it)|finished(?:\s+(?:it|that|the\s+\w+))?|completed\s+(?:it|that|the\s+\w+)"
+    r"|reached\s+(?:it|this|that|the)(?:\s+speed)?)"
     r"|(?=\s*,))\s*,?\s*",  # "once it has," said short
     re.IGNORECASE,
 )

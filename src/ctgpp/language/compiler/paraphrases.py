@@ -16,8 +16,8 @@ qualifier, or compiled when it should be refused) or *refused* (a ValueError whe
 expected).
 
 The fresh batches (``paraphrases_fresh.jsonl``, the same form, ``source`` "author", "helper",
-"helper2" to "helper13"): 1,088 sentences written on 2026-11-29 by writers who had not read the
-compiler (50 by a developer before reading it, thirteen batches of 80 by helpers that never did, each
+"helper2" to "helper15"): 1,247 sentences written on 2026-11-29 by writers who had not read the
+compiler (50 by a developer before reading it, fifteen batches of 80 by helpers that never did, each
 in its own style), each scored before the changes it prompted (docs/benchmarks.md) and tuned on since, so
 all "dev": a regression set, and the measure of how much a set tuned on over many sessions overstates.
 Vehicles a rule is restricted to are compared as a set.

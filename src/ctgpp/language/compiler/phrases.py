@@ -56,7 +56,8 @@ COLLIDE = (
     r"(?:(?:vehicle|car|agent|truck)\s*#?\d+|v\d+|#\d+|(?:the\s+)?ego)\b"
 )
 
-REAR_END = r"rear[- ]?end|from\s+behind|into\s+the\s+(?:back|rear)\s+of"
+REAR_END = (r"rear[- ]?end|from\s+behind|into\s+the\s+(?:back|rear)\s+of"
+            r"|from\s+the\s+(?:back|rear)(?:\s+side)?\b")
 
 CUT_IN = (
     r"\bcut\w*\s+(?:in|off|ahead|in\s+front)\b|\bmerg\w*\s+(?:\w+\s+){0,2}?(?:ahead|in\s+front)\s+of"
@@ -163,7 +164,8 @@ MOVE_OFF = (
 
 # a place on the map a stop may be asked at that the compiler has no coordinates for
 STOP_PLACE = (
-    r"\b(?:before|at|in|near|after|past|by|behind)\s+(?:the\s+|a\s+)?(?:next\s+|first\s+)?(?:red\s+)?(?:intersection|junction"
+    r"\b(?:before|at|in|near|after|past|by|behind|in\s+front\s+of)\s+(?:the\s+|a\s+)?(?:next\s+|first\s+)?(?:red\s+)?"
+    r"(?:intersection|junction"
     r"|crossing|crosswalk|zebra|stop\s*(?:line|sign)|(?:traffic\s+)?(?:lights?|signals?)|corner|roundabout|kerb|curb"
     r"|exit)"
     r"|\b(?:on|onto|to|at|in|by)\s+(?:the\s+|a\s+)?(?:hard\s+)?(?:shoulder|roadside|verge|side\s+of\s+the\s+road"

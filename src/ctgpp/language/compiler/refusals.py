@@ -144,7 +144,8 @@ MANOEUVRES = (
     (r"\b(?:the|its|their)\s+(?:posted\s+)?speed\s+limit\b(?!\s*(?:of|is|=|:|at|to|be)?\s*\d)",
      "the road's speed limit (the maps carry none: say the speed, \"at 50 km/h\")"),
     (r"\bparallel[- ]park\w*|\breverse[- ]park\w*|\bbay[- ]park\w*"
-     r"|\bpark(?:s|ed|ing)?\s+(?:in|into|next\s+to|beside|by|along|alongside|near|behind)\b"
+     r"|\bpark(?:s|ed|ing)?\s+(?:(?:(?:the\s+)?ego|(?:vehicle|car|agent|truck)\s+\d+|v\d+)\s+)?"
+     r"(?:in|into|next\s+to|beside|by|along|alongside|near|behind)\b"
      r"|\bpark(?:s|ed|ing)?\s+at\b(?!\s*(?:the\s+)?(?:point\s+)?\()",  # parking at a point: a stop there
      "parking manoeuvres (they reverse; \"vehicle 6 stops inside the area around (x, y)\" stops at a place)"),
     (r"\bjerk\b", "a limit on jerk (only the acceleration's magnitude is limited: \"under 2 m/s²\")"),
