@@ -124,11 +124,8 @@ def _refines(parts: list[QueryPart], part: QueryPart, refinable: set[int]) -> in
 
 def _band_said(parts: list[QueryPart], part: QueryPart) -> bool:
     """Whether a band on the pair of ``part`` (a default band) is among ``parts`` already."""
-    if part.rule != "keep_distance":
-        return False
-    pair = (part.params["follower"], part.params["leader"])
-    return any(p.rule == "keep_distance" and (p.params["follower"], p.params["leader"]) == pair
-               for p in parts)
+    bands = {k for k, p in enumerate(parts) if p.rule == "keep_distance"}
+    return _refines(parts, part, bands) is not None
 
 
 def _same(a: QueryPart, b: QueryPart) -> bool:

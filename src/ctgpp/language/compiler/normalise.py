@@ -350,13 +350,12 @@ _WORDING = (  # (pattern, replacement), case-insensitive, in order
     (r"\b(?:one|a)\s+lane\s+(?:to\s+)?(?:the\s+)?(left|right)\b", r"one lane over to the \1"),
     # questions and wishes: "Can vehicle 3 ...?", "Could we get car 3 and car 8 to ...", "I'd like to see
     # car 4 ...", "What if the ego ...", "Let's have vehicle 11 ..."
-    (rf"^\s*(?:so\s+|and\s+)?(?:can|could|would|will)\s+(?:you|we|i)\s+(?:please\s+)?(?:get|make|have|let|see)"
+    (rf"^\s*(?:(?:so\s+|and\s+)?(?:can|could|would|will)\s+(?:you|we|i)\s+(?:please\s+)?(?:get|make|have|let|see)"
+     rf"|(?:i|we)(?:'d|\s+would)\s+(?:like|love|want)\s+to\s+see|let(?:'s|\s+us)\s+(?:have|get|make|see))"
      rf"\s+({_VEH})\s+(?:to\s+)?", r"\1 should "),
     (rf"^\s*(?:so\s+|and\s+)?(?:can|could)\s+({_VEH})\s+(?:please\s+)?", r"\1 should "),
-    (rf"^\s*(?:i|we)(?:'d|\s+would)\s+(?:like|love|want)\s+to\s+see\s+({_VEH})\s+(?:to\s+)?", r"\1 should "),
     (rf"^\s*(?:what\s+(?:happens\s+)?if|suppose|imagine|let's\s+say)\s+({_VEH})\s+(?:had\s+to\s+|has\s+to\s+)?",
      r"\1 should "),
-    (rf"^\s*let(?:'s|\s+us)\s+(?:have|get|make|see)\s+({_VEH})\s+(?:to\s+)?", r"\1 should "),
     (r"^\s*(?:just\s+)?(?:make\s+sure|ensure|check)\s+(?:that\s+)?", ""),
     (r"\s*\b(?:ideally|maybe|perhaps|just|kind\s+of|sort\s+of|nicely|basically|simply|sometime|somehow)\b,?",
      ""),

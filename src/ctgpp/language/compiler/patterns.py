@@ -59,9 +59,11 @@ _OTHERS = re.compile(  # the vehicles not named: "every other car", "the others"
     r"(?:vehicles|cars|traffic))?|(?:every|each|any|all)\s+(?:vehicles?|cars?)\s+(?:other\s+than|except|but)"
     r"|(?:everyone|everybody)\s+(?:except|but|other\s+than))\b"
 )
+PASSIVE_VERB = r"(?:[\w-]+ed|[\w-]+en|hit|cut|struck|run)"
+"""A verb's participle after "is" / "gets" in the passive ("rear-ended", "overtaken", "cut off")."""
 _PASSIVE = re.compile(  # "vehicle 1 gets rear-ended by vehicle 2", "is overtaken by", "is cut off by": 2 acts
     r"\b(?:is|are|was|were|be|been|being|gets?|got|getting)\s+(?:\w+\s+){0,2}?"
-    r"(?:[\w-]+ed|[\w-]+en|hit|cut|struck|run|rammed|followed|passed)\b[^.;]*?"
+    rf"{PASSIVE_VERB}\b[^.;]*?"
     r"\bby\s+(?:(?:vehicle|car|agent|truck)s?\s*#?\d|v\d|#\d|(?:the\s+)?ego)"
 )
 _GROUP = re.compile(r"\b(?:both|they|them|their|all\s+of\s+them|each\s+of\s+them|the\s+two)\b")

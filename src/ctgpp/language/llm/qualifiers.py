@@ -43,6 +43,7 @@ from typing import Any
 from ctgpp.behaviours import get_behaviour
 from ctgpp.language.bounds import CLAUSE_BREAK, bound_mismatch
 from ctgpp.language.compiler.handlers import LEAVING_THE_ROAD, U_TURN_PLACE, U_TURN_SIDE, asks_to_leave_road
+from ctgpp.language.compiler.patterns import PASSIVE_VERB
 from ctgpp.language.compiler.phrases import STOP, STOP_PLACE, TURN, TURN_LATER, U_TURN
 from ctgpp.language.compiler.refusals import MANOEUVRES, SUPPORTED
 from ctgpp.language.llm.calls import StructuredRefused, is_vehicle_param
@@ -150,7 +151,7 @@ ACTS = {"keep_distance": ("follower", "leader"), "collide_from_behind": ("vehicl
 """For each relation: the parameter of the vehicle that acts, and of the one acted on."""
 _PASSIVE = re.compile(
     rf"{_MENTION}\s+(?:(?:is|are|was|were|be|been|being|gets?|got|getting)\s+)?(?:\w+\s+){{0,2}}?"
-    rf"(?:[\w-]+ed|[\w-]+en|hit|cut(?:\s+off)?|struck|run)\s+(?:\w+\s+){{0,3}}?by\s+(?:the\s+)?{_MENTION}",
+    rf"{PASSIVE_VERB}\s+(?:\w+\s+){{0,3}}?by\s+(?:the\s+)?{_MENTION}",
     re.I)
 
 
@@ -224,9 +225,10 @@ def check_expressible(calls: list[dict[str, Any]], sentence: str) -> None:
         if (ahead, behind) in placed:
             raise StructuredRefused(f"{call['behaviour']} puts vehicle {behind} behind vehicle {ahead}, but "
                                     f"the sentence puts vehicle {ahead} behind vehicle {behind}")
+    follows = followers(sentence)
     for call in calls:
-        if call.get("behaviour") == "keep_distance" and call.get("leader") in followers(sentence) \
-                and call.get("follower") not in followers(sentence):
+        if call.get("behaviour") == "keep_distance" and call.get("leader") in follows \
+                and call.get("follower") not in follows:
             raise StructuredRefused(f"keep_distance has vehicle {call.get('leader')} lead, but the sentence "
                                     "says it follows")
     acted_on = passives(sentence)
